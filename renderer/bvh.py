@@ -1,0 +1,161 @@
+"""A bounding volume hierarchy built with the surface area heuristic.
+
+Binned SAH (16 bins per axis, as in pbrt-v4's BVHAggregate) over primitive
+bounds; nodes are stored depth-first, so an inner node's left child is the
+next node and `info[node, 0]` is its right child. Leaves hold at most
+MAX_LEAF primitives.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["build_bvh"]
+
+N_BINS = 16
+MAX_LEAF = 4
+TRAVERSAL_COST = 0.125  # relative to one primitive test
+
+
+@njit(cache=True)
+def _area(lo0, lo1, lo2, hi0, hi1, hi2):
+    dx, dy, dz = hi0 - lo0, hi1 - lo1, hi2 - lo2
+    if dx < 0.0:
+        return 0.0
+    return 2.0 * (dx * dy + dy * dz + dz * dx)
+
+
+@njit(cache=True)
+def _build(lo, hi, prims):
+    n = prims.shape[0]
+    max_nodes = max(2 * n, 1)
+    node_min = np.zeros((max_nodes, 3))
+    node_max = np.zeros((max_nodes, 3))
+    info = np.zeros((max_nodes, 3), np.int32)
+    order = prims.copy()
+    cen = 0.5 * (lo + hi)
+    # job stack: (start, end, parent or -1)
+    stack = np.zeros((128, 3), np.int64)
+    sp = 0
+    stack[0, 0], stack[0, 1], stack[0, 2] = 0, n, -1
+    sp = 1
+    n_nodes = 0
+    bin_lo = np.zeros((N_BINS, 3))
+    bin_hi = np.zeros((N_BINS, 3))
+    bin_n = np.zeros(N_BINS, np.int64)
+    right_area = np.zeros(N_BINS)
+    right_n = np.zeros(N_BINS, np.int64)
+    while sp > 0:
+        sp -= 1
+        start, end, parent = stack[sp, 0], stack[sp, 1], stack[sp, 2]
+        node = n_nodes
+        n_nodes += 1
+        if parent >= 0:
+            info[parent, 0] = node  # this job is always the parent's right child
+        bmin = np.full(3, np.inf)
+        bmax = np.full(3, -np.inf)
+        cmin = np.full(3, np.inf)
+        cmax = np.full(3, -np.inf)
+        for i in range(start, end):
+            p = order[i]
+            for k in range(3):
+                bmin[k] = min(bmin[k], lo[p, k])
+                bmax[k] = max(bmax[k], hi[p, k])
+                cmin[k] = min(cmin[k], cen[p, k])
+                cmax[k] = max(cmax[k], cen[p, k])
+        for k in range(3):
+            node_min[node, k] = bmin[k]
+            node_max[node, k] = bmax[k]
+        count = end - start
+        best_axis, best_bin, best_cost = -1, -1, np.inf
+        if count > 1:
+            parent_area = _area(bmin[0], bmin[1], bmin[2], bmax[0], bmax[1], bmax[2])
+            for axis in range(3):
+                extent = cmax[axis] - cmin[axis]
+                if extent <= 0.0:
+                    continue
+                bin_n[:] = 0
+                bin_lo[:, :] = np.inf
+                bin_hi[:, :] = -np.inf
+                for i in range(start, end):
+                    p = order[i]
+                    b = int(N_BINS * (cen[p, axis] - cmin[axis]) / extent)
+                    b = min(max(b, 0), N_BINS - 1)
+                    bin_n[b] += 1
+                    for k in range(3):
+                        bin_lo[b, k] = min(bin_lo[b, k], lo[p, k])
+                        bin_hi[b, k] = max(bin_hi[b, k], hi[p, k])
+                # sweep from the right: area and count of bins b..N-1
+                rl = np.full(3, np.inf)
+                rh = np.full(3, -np.inf)
+                rn = 0
+                for b in range(N_BINS - 1, 0, -1):
+                    rn += bin_n[b]
+                    for k in range(3):
+                        rl[k] = min(rl[k], bin_lo[b, k])
+                        rh[k] = max(rh[k], bin_hi[b, k])
+                    right_n[b] = rn
+                    right_area[b] = _area(rl[0], rl[1], rl[2], rh[0], rh[1], rh[2]) if rn > 0 else 0.0
+                ll = np.full(3, np.inf)
+                lh = np.full(3, -np.inf)
+                ln = 0
+                for b in range(0, N_BINS - 1):
+                    ln += bin_n[b]
+                    for k in range(3):
+                        ll[k] = min(ll[k], bin_lo[b, k])
+                        lh[k] = max(lh[k], bin_hi[b, k])
+                    if ln == 0 or right_n[b + 1] == 0:
+                        continue
+                    la = _area(ll[0], ll[1], ll[2], lh[0], lh[1], lh[2])
+                    cost = TRAVERSAL_COST + (la * ln + right_area[b + 1] * right_n[b + 1]) / max(parent_area, 1e-300)
+                    if cost < best_cost:
+                        best_cost, best_axis, best_bin = cost, axis, b
+        make_leaf = best_axis < 0 or (count <= MAX_LEAF and best_cost >= count)
+        if make_leaf and count > MAX_LEAF and best_axis < 0:
+            # all centroids coincide: split in the middle of the list
+            mid = start + count // 2
+        elif make_leaf:
+            mid = -1
+        else:
+            extent = cmax[best_axis] - cmin[best_axis]
+            i, j = start, end - 1
+            while i <= j:
+                b = int(N_BINS * (cen[order[i], best_axis] - cmin[best_axis]) / extent)
+                b = min(max(b, 0), N_BINS - 1)
+                if b <= best_bin:
+                    i += 1
+                else:
+                    tmp = order[i]
+                    order[i] = order[j]
+                    order[j] = tmp
+                    j -= 1
+            mid = i
+            if mid == start or mid == end:
+                mid = start + count // 2
+        if mid < 0:
+            info[node, 0] = start
+            info[node, 1] = count
+            info[node, 2] = -1
+            continue
+        info[node, 1] = 0
+        info[node, 2] = best_axis if best_axis >= 0 else 0
+        if sp + 2 > stack.shape[0]:
+            bigger = np.zeros((stack.shape[0] * 2, 3), np.int64)
+            bigger[:sp] = stack[:sp]
+            stack = bigger
+        # push right first so the left child is built next (node + 1)
+        stack[sp, 0], stack[sp, 1], stack[sp, 2] = mid, end, node
+        sp += 1
+        stack[sp, 0], stack[sp, 1], stack[sp, 2] = start, mid, -1
+        sp += 1
+    return node_min[:n_nodes].copy(), node_max[:n_nodes].copy(), info[:n_nodes].copy(), order
+
+
+def build_bvh(lo: np.ndarray, hi: np.ndarray, prim_ids: np.ndarray):
+    """Build over the bounds of `prim_ids` -> (node_min, node_max, info, prims)."""
+    if len(prim_ids) == 0:  # an empty scene still needs a root: an empty leaf
+        return (np.full((1, 3), np.inf), np.full((1, 3), -np.inf),
+                np.array([[0, 0, -1]], np.int32), np.zeros(0, np.int32))
+    return _build(np.ascontiguousarray(lo, dtype=np.float64),
+                  np.ascontiguousarray(hi, dtype=np.float64), prim_ids.astype(np.int32))

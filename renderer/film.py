@@ -1,0 +1,171 @@
+"""Partial films, their merge, and the finished film's images (EXR, PNG).
+
+A work unit returns a `PartialFilm` over its region: per pixel the sum of
+sample values, the sum of their squares and the sample weight (with filter
+importance sampling and a box filter every sample weighs 1, so the weight is
+the sample count). Merging is plain addition in unit order, and one division
+at the end (`Film.mean`).
+
+Bit-identical merges. Float addition is not associative, so the summation
+order is fixed by the *sample blocks* (`sample_blocks`): within a block the
+kernel sums samples in index order starting from zero; a pixel's total is the
+left fold of its block sums in block order. A unit that covers a whole pixel
+range of blocks computes that fold itself; a unit that covers one later block
+returns just that block's sum and the merge adds it next. Either way the bits
+are the same, whatever the tile size, the executor or the pass plan.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+__all__ = ["PartialFilm", "Film", "sample_blocks", "merge", "read_exr", "tonemap_srgb8"]
+
+# Block sizes grow 1, 1, 2, 4, ... (pbrt-v4's doubling waves) up to this cap.
+MAX_BLOCK = 64
+
+
+def sample_blocks(spp: int) -> list[tuple[int, int]]:
+    """The canonical sample blocks of a pixel: [(0,1), (1,2), (2,4), (4,8), ...]
+    with sizes capped at MAX_BLOCK and the last one cut at spp."""
+    blocks, start, size = [], 0, 1
+    while start < spp:
+        end = min(start + size, spp)
+        blocks.append((start, end))
+        if start > 0:
+            size = min(size * 2, MAX_BLOCK)
+        start = end
+    return blocks
+
+
+@dataclass
+class PartialFilm:
+    """A region's accumulated samples: `sum`, `sum_sq` (h, w, 3) and `weight` (h, w)."""
+
+    x0: int
+    y0: int
+    sum: np.ndarray
+    sum_sq: np.ndarray
+    weight: np.ndarray
+    stats: dict = field(default_factory=dict)  # samples, rays, seconds
+
+    @property
+    def height(self) -> int:
+        return self.sum.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.sum.shape[1]
+
+    @classmethod
+    def zeros(cls, x0: int, y0: int, width: int, height: int) -> "PartialFilm":
+        return cls(x0, y0, np.zeros((height, width, 3)), np.zeros((height, width, 3)),
+                   np.zeros((height, width)), {"samples": 0, "rays": 0, "seconds": 0.0})
+
+    def to_bytes(self) -> bytes:
+        """Serialize losslessly (npz) for the store and the result backend."""
+        buf = io.BytesIO()
+        np.savez(buf, origin=np.array([self.x0, self.y0]), sum=self.sum, sum_sq=self.sum_sq,
+                 weight=self.weight, stats=np.frombuffer(json.dumps(self.stats).encode(), np.uint8))
+        return buf.getvalue()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "PartialFilm":
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            x0, y0 = (int(v) for v in z["origin"])
+            return cls(x0, y0, z["sum"].copy(), z["sum_sq"].copy(), z["weight"].copy(),
+                       json.loads(z["stats"].tobytes().decode()))
+
+
+@dataclass
+class Film(PartialFilm):
+    """A whole frame's accumulated samples, with the estimates derived from them."""
+
+    def mean(self) -> np.ndarray:
+        """Per-pixel mean radiance (h, w, 3)."""
+        n = self.weight[..., None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n > 0, self.sum / np.maximum(n, 1e-300), 0.0)
+
+    def variance_of_mean(self) -> np.ndarray:
+        """Per-pixel variance of the mean estimate: the unbiased sample
+        variance divided by the sample count. Undefined with fewer than two
+        samples; reported as +inf there."""
+        n = self.weight[..., None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = self.sum / n
+            sample_var = np.maximum(self.sum_sq - n * mean * mean, 0.0) / (n - 1.0)
+            out = sample_var / n
+        return np.where(n >= 2, out, np.inf)
+
+    def add(self, part: PartialFilm) -> None:
+        """Merge one partial film into this frame (plain addition)."""
+        ys = slice(part.y0, part.y0 + part.height)
+        xs = slice(part.x0, part.x0 + part.width)
+        self.sum[ys, xs] += part.sum
+        self.sum_sq[ys, xs] += part.sum_sq
+        self.weight[ys, xs] += part.weight
+        for key in ("samples", "rays", "seconds"):
+            self.stats[key] = self.stats.get(key, 0) + part.stats.get(key, 0)
+
+    def write_exr(self, path: str | Path, metadata: dict | None = None) -> None:
+        """Write float32 R, G, B (mean radiance) and var.R/G/B (variance of
+        the mean) with `metadata` as string header attributes."""
+        import OpenEXR
+
+        mean = self.mean().astype(np.float32)
+        var = self.variance_of_mean().astype(np.float32)
+        channels = {"R": mean[..., 0].copy(), "G": mean[..., 1].copy(), "B": mean[..., 2].copy(),
+                    "var.R": var[..., 0].copy(), "var.G": var[..., 1].copy(),
+                    "var.B": var[..., 2].copy()}
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        for key, value in (metadata or {}).items():
+            header[f"rayfarm.{key}"] = value if isinstance(value, str) else json.dumps(value)
+        path = Path(path)
+        tmp = path.with_name(path.name + ".part")
+        with OpenEXR.File(header, channels) as exr:
+            exr.write(str(tmp))
+        tmp.replace(path)  # readers never see a half-written file
+
+    def write_png(self, path: str | Path) -> None:
+        """Write a tonemapped sRGB preview (exposure 1, clamped)."""
+        from PIL import Image
+
+        path = Path(path)
+        tmp = path.with_name(path.name + ".part")
+        Image.fromarray(tonemap_srgb8(self.mean())).save(tmp, format="PNG")
+        tmp.replace(path)
+
+
+def tonemap_srgb8(rgb: np.ndarray) -> np.ndarray:
+    """Linear radiance -> 8-bit sRGB (clamp to [0, 1], sRGB transfer curve)."""
+    x = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=1.0), 0.0, 1.0)
+    s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+    return (s * 255.0 + 0.5).astype(np.uint8)
+
+
+def merge(width: int, height: int, parts: Iterable[PartialFilm]) -> Film:
+    """Merge partial films in the order given (callers pass unit order)."""
+    film = Film.zeros(0, 0, width, height)
+    film = Film(0, 0, film.sum, film.sum_sq, film.weight, film.stats)
+    for part in parts:
+        film.add(part)
+    return film
+
+
+def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
+    """Read an EXR back: (channels by name as float32 (h, w) arrays, header)."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as exr:
+        part = exr.parts[0]
+        channels = {name: np.array(ch.pixels) for name, ch in part.channels.items()}
+        header = dict(part.header)
+    return channels, header
+

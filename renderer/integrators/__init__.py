@@ -1,0 +1,1 @@
+"""Integrators: one module per rendering method, each registering itself."""

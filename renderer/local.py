@@ -1,0 +1,83 @@
+"""The local executor: a process pool that runs units, and `render()` on top.
+
+Used by `rayfarm render` and by the service's embedded mode. Each child
+process is single-threaded Numba (one unit per process, one process per core,
+the same shape as the Celery prefork pool) and warms its kernels at start.
+
+    >>> film = render("cornell-box", RenderSpec(spp=4, depth=3))
+    >>> film.write_exr("out.exr")
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from typing import Callable
+
+from .film import Film, PartialFilm, merge
+from .plan import Unit, plan
+from .runtime import execute_unit, scene_text, warm_up
+from .scene_format import resolve_document
+from .spec import RenderSpec
+
+__all__ = ["LocalPool", "render"]
+
+
+def _init_child() -> None:
+    import numba
+
+    numba.set_num_threads(1)
+    warm_up()
+
+
+def _run(scene_key: str, text: str, spec: dict, unit: dict) -> bytes:
+    return execute_unit(scene_key, lambda: text, spec, unit)
+
+
+class LocalPool:
+    """A pool of single-threaded render processes (default: one per core)."""
+
+    def __init__(self, workers: int | None = None):
+        self.workers = workers or os.cpu_count() or 1
+        warm_up()  # compile here once, so the children only load Numba's cache
+        self._executor = ProcessPoolExecutor(
+            max_workers=self.workers, mp_context=multiprocessing.get_context("forkserver"),
+            initializer=_init_child)
+
+    def submit(self, scene_key: str, text: str, spec: dict, unit: dict) -> Future:
+        """Run one unit; the future's result is the partial film's bytes."""
+        return self._executor.submit(_run, scene_key, text, spec, unit)
+
+    def shutdown(self, cancel: bool = True) -> None:
+        self._executor.shutdown(wait=True, cancel_futures=cancel)
+
+    def __enter__(self) -> "LocalPool":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.shutdown()
+
+
+def render(scene_source, spec: RenderSpec, *, pool: LocalPool | None = None,
+           workers: int | None = None, progressive: bool = False,
+           progress: Callable[[Unit, PartialFilm], None] | None = None) -> Film:
+    """Render a scene locally through plan -> units -> merge, like the farm."""
+    doc = resolve_document(scene_source)
+    spec.validate()
+    key, text = scene_text(doc)
+    units = plan(spec, progressive=progressive)
+    own_pool = pool is None
+    pool = pool or LocalPool(workers)
+    try:
+        futures = {pool.submit(key, text, spec.to_dict(), u.to_dict()): u for u in units}
+        parts: dict[int, PartialFilm] = {}
+        for fut in as_completed(futures):
+            unit = futures[fut]
+            parts[unit.index] = PartialFilm.from_bytes(fut.result())
+            if progress is not None:
+                progress(unit, parts[unit.index])
+    finally:
+        if own_pool:
+            pool.shutdown()
+    return merge(spec.width, spec.height, (parts[u.index] for u in units))

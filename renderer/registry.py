@@ -1,0 +1,98 @@
+"""The one registry of rendering methods and pixel samplers.
+
+Every list of valid names anywhere in rayfarm (the API's validation, `GET
+/methods`, the CLI's choices) is read from here. A method declares its
+options as a table (name, type, default, allowed values, meaning) the way
+Mitsuba's plugins do; unknown options are refused with their names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from .errors import SpecError
+
+__all__ = ["Option", "Method", "Sampler", "METHODS", "SAMPLERS", "register_method",
+           "register_sampler"]
+
+
+@dataclass(frozen=True)
+class Option:
+    name: str
+    type: type
+    default: Any
+    description: str
+    choices: tuple | None = None
+
+
+@dataclass(frozen=True)
+class Method:
+    """A rendering method: `run(scene, spec, unit) -> PartialFilm`."""
+
+    name: str
+    description: str
+    run: Callable
+    options: tuple[Option, ...] = ()
+    family: str = "tile"  # how jobs split: "tile" = image tiles x sample passes
+    aliases: tuple[str, ...] = field(default=())
+
+    def check_options(self, options: dict) -> dict:
+        known = {o.name: o for o in self.options}
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            allowed = ", ".join(known) or "none"
+            raise SpecError("options", f"unknown option(s) for method '{self.name}': "
+                                       f"{', '.join(unknown)} (allowed: {allowed})")
+        out = {}
+        for name, opt in known.items():
+            value = options.get(name, opt.default)
+            if opt.choices is not None and value not in opt.choices:
+                raise SpecError(f"options.{name}", f"must be one of {', '.join(map(str, opt.choices))}, "
+                                                   f"got {value!r}")
+            out[name] = value
+        return out
+
+    def describe(self) -> dict:
+        return {"name": self.name, "description": self.description, "family": self.family,
+                "options": [{"name": o.name, "type": o.type.__name__, "default": o.default,
+                             "choices": list(o.choices) if o.choices else None,
+                             "description": o.description} for o in self.options]}
+
+
+@dataclass(frozen=True)
+class Sampler:
+    name: str
+    id: int  # the integer the kernels switch on
+    description: str
+
+    def describe(self) -> dict:
+        return {"name": self.name, "description": self.description}
+
+
+METHODS: dict[str, Method] = {}
+SAMPLERS: dict[str, Sampler] = {}
+
+
+def register_method(method: Method) -> Method:
+    for name in (method.name, *method.aliases):
+        if name in METHODS:
+            raise ValueError(f"method {name!r} registered twice")
+        METHODS[name] = method
+    return method
+
+
+def register_sampler(sampler: Sampler) -> Sampler:
+    if sampler.name in SAMPLERS:
+        raise ValueError(f"sampler {sampler.name!r} registered twice")
+    SAMPLERS[sampler.name] = sampler
+    return sampler
+
+
+def _register_builtins() -> None:
+    # Importing an integrator module registers it.
+    from .integrators import path  # noqa: F401
+    from . import samplers  # noqa: F401
+
+
+_register_builtins()

@@ -1,0 +1,397 @@
+"""The native scene format: parse, validate and resolve a JSON scene document.
+
+A scene is one JSON object (`docs/scene-format.md` documents every field)::
+
+    {
+      "camera":   {"type": "perspective", "origin": [0, 0, 3.9], "target": [0, 0, 0],
+                   "up": [0, 1, 0], "fov": 39.3077, "fov_axis": "x", "width": 256, "height": 256},
+      "materials": {"white": {"type": "diffuse", "albedo": [0.8, 0.8, 0.8]}},
+      "shapes":   [{"type": "rectangle", "to_world": [[...], [...], [...], [...]],
+                    "material": "white", "emitter": {"type": "area", "radiance": [1, 1, 1]}}],
+      "emitters": [{"type": "point", "position": [0, 0, 0], "intensity": [1, 1, 1]}]
+    }
+
+`resolve_document` turns any accepted input (a built-in name, a path, a dict)
+into a *resolved document*: validated, defaults filled in, mesh files read and
+inlined, every transform a 4x4 matrix. The resolved document is
+self-contained, so its canonical JSON hash (`scene_hash`) identifies the
+scene wherever it travels: the farm ships scenes to workers by that hash.
+
+Errors are `SceneError`s whose `location` names the offending field, e.g.
+``shapes[2].to_world``.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import SceneError
+
+__all__ = [
+    "builtin_scene_names",
+    "resolve_document",
+    "scene_hash",
+    "canonical_json",
+    "MATERIAL_TYPES",
+    "SHAPE_TYPES",
+]
+
+MATERIAL_TYPES = ("diffuse", "mirror", "dielectric")
+SHAPE_TYPES = ("rectangle", "cube", "sphere", "mesh")
+EMITTER_TYPES = ("point",)
+FOV_AXES = ("x", "y", "smaller", "larger")
+
+MAX_IMAGE_SIDE = 8192
+MAX_TRIANGLES = 5_000_000
+MAX_FILE_BYTES = 256 * 1024 * 1024
+
+
+# ----------------------------------------------------------------------------
+# Built-in scenes ship as JSON files inside the package.
+
+def _builtin_dir():
+    return resources.files("renderer") / "scenes"
+
+
+def builtin_scene_names() -> list[str]:
+    """Names of the built-in scenes, e.g. ``['cornell-box']``."""
+    return sorted(p.name[: -len(".json")] for p in _builtin_dir().iterdir()
+                  if p.name.endswith(".json"))
+
+
+def _load_builtin(name: str) -> dict:
+    text = (_builtin_dir() / f"{name}.json").read_text()
+    return json.loads(text)
+
+
+# ----------------------------------------------------------------------------
+# Small validators; each raises SceneError naming the location.
+
+def _require(obj: dict, key: str, loc: str) -> Any:
+    if key not in obj:
+        raise SceneError(f"missing required field '{key}'", loc)
+    return obj[key]
+
+
+def _number(value: Any, loc: str, *, lo: float | None = None, hi: float | None = None,
+            lo_open: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise SceneError(f"expected a finite number, got {json.dumps(value)[:60]}", loc)
+    v = float(value)
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise SceneError(f"must be {'>' if lo_open else '>='} {lo}, got {v}", loc)
+    if hi is not None and v > hi:
+        raise SceneError(f"must be <= {hi}, got {v}", loc)
+    return v
+
+
+def _vec3(value: Any, loc: str, *, nonneg: bool = False) -> list[float]:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value, value, value]  # a scalar means grey
+    if not isinstance(value, list) or len(value) != 3:
+        raise SceneError("expected a list of 3 numbers", loc)
+    return [_number(v, f"{loc}[{i}]", lo=0.0 if nonneg else None) for i, v in enumerate(value)]
+
+
+def _rotation(axis: list[float], angle_deg: float) -> np.ndarray:
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    t = math.radians(angle_deg)
+    c, s = math.cos(t), math.sin(t)
+    x, y, z = a
+    r = np.eye(4)
+    r[:3, :3] = [
+        [c + x * x * (1 - c), x * y * (1 - c) - z * s, x * z * (1 - c) + y * s],
+        [y * x * (1 - c) + z * s, c + y * y * (1 - c), y * z * (1 - c) - x * s],
+        [z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)],
+    ]
+    return r
+
+
+def _transform(value: Any, loc: str) -> list[list[float]]:
+    """A 4x4 row-major matrix, or a list of operations applied in order
+    (the first listed is applied first, as in Mitsuba's XML):
+    ``[{"scale": [sx, sy, sz]}, {"rotate": {"axis": [1, 0, 0], "angle": 90}},
+    {"translate": [x, y, z]}]``."""
+    if value is None:
+        return np.eye(4).tolist()
+    if (isinstance(value, list) and len(value) == 4
+            and all(isinstance(r, list) for r in value)):
+        rows = []
+        for i, row in enumerate(value):
+            if len(row) != 4:
+                raise SceneError("a matrix row needs 4 numbers", f"{loc}[{i}]")
+            rows.append([_number(v, f"{loc}[{i}][{j}]") for j, v in enumerate(row)])
+        m = np.asarray(rows)
+    elif isinstance(value, list):
+        m = np.eye(4)
+        for i, op in enumerate(value):
+            oloc = f"{loc}[{i}]"
+            if not isinstance(op, dict) or len(op) != 1:
+                raise SceneError("expected one of {'translate': ..}, {'scale': ..}, "
+                                 "{'rotate': {'axis': .., 'angle': ..}}", oloc)
+            (kind, arg), = op.items()
+            if kind == "translate":
+                t = np.eye(4)
+                t[:3, 3] = _vec3(arg, f"{oloc}.translate")
+            elif kind == "scale":
+                t = np.diag(_vec3(arg, f"{oloc}.scale") + [1.0])
+            elif kind == "rotate":
+                if not isinstance(arg, dict):
+                    raise SceneError("expected {'axis': [x, y, z], 'angle': degrees}", f"{oloc}.rotate")
+                axis = _vec3(_require(arg, "axis", f"{oloc}.rotate"), f"{oloc}.rotate.axis")
+                if np.linalg.norm(axis) == 0:
+                    raise SceneError("rotation axis must not be zero", f"{oloc}.rotate.axis")
+                t = _rotation(axis, _number(_require(arg, "angle", f"{oloc}.rotate"), f"{oloc}.rotate.angle"))
+            else:
+                raise SceneError(f"unknown transform operation '{kind}' "
+                                 "(allowed: translate, scale, rotate)", oloc)
+            m = t @ m
+    else:
+        raise SceneError("expected a 4x4 matrix or a list of transform operations", loc)
+    if abs(np.linalg.det(m[:3, :3])) < 1e-12:
+        raise SceneError("transform is singular", loc)
+    if not np.allclose(m[3], [0, 0, 0, 1]):
+        raise SceneError("last matrix row must be [0, 0, 0, 1] (no projective transforms)", loc)
+    return m.tolist()
+
+
+def _name_list(allowed) -> str:
+    return ", ".join(allowed)
+
+
+# ----------------------------------------------------------------------------
+
+def _resolve_camera(cam: Any) -> dict:
+    loc = "camera"
+    if not isinstance(cam, dict):
+        raise SceneError("expected an object", loc)
+    ctype = cam.get("type", "perspective")
+    if ctype != "perspective":
+        raise SceneError(f"unknown camera type '{ctype}' (allowed: perspective)", f"{loc}.type")
+    out = {
+        "type": "perspective",
+        "origin": _vec3(_require(cam, "origin", loc), f"{loc}.origin"),
+        "target": _vec3(_require(cam, "target", loc), f"{loc}.target"),
+        "up": _vec3(cam.get("up", [0, 1, 0]), f"{loc}.up"),
+        "fov": _number(_require(cam, "fov", loc), f"{loc}.fov", lo=0.0, hi=179.0, lo_open=True),
+        "fov_axis": cam.get("fov_axis", "x"),
+        "width": cam.get("width", 256),
+        "height": cam.get("height", 256),
+    }
+    if out["fov_axis"] not in FOV_AXES:
+        raise SceneError(f"unknown fov_axis '{out['fov_axis']}' (allowed: {_name_list(FOV_AXES)})",
+                         f"{loc}.fov_axis")
+    for key in ("width", "height"):
+        v = out[key]
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_IMAGE_SIDE:
+            raise SceneError(f"must be an integer in [1, {MAX_IMAGE_SIDE}]", f"{loc}.{key}")
+    forward = np.subtract(out["target"], out["origin"])
+    if np.linalg.norm(forward) == 0:
+        raise SceneError("target equals origin", f"{loc}.target")
+    if np.linalg.norm(np.cross(forward, out["up"])) < 1e-9 * np.linalg.norm(forward):
+        raise SceneError("up is parallel to the viewing direction", f"{loc}.up")
+    return out
+
+
+def _resolve_material(name: str, mat: Any) -> dict:
+    loc = f"materials.{name}"
+    if not isinstance(mat, dict):
+        raise SceneError("expected an object", loc)
+    mtype = _require(mat, "type", loc)
+    if mtype == "diffuse":
+        albedo = _vec3(mat.get("albedo", [0.5, 0.5, 0.5]), f"{loc}.albedo", nonneg=True)
+        if max(albedo) > 1.0:
+            raise SceneError("albedo components must be <= 1 (energy conservation)", f"{loc}.albedo")
+        return {"type": "diffuse", "albedo": albedo}
+    if mtype == "mirror":
+        tint = _vec3(mat.get("tint", [1.0, 1.0, 1.0]), f"{loc}.tint", nonneg=True)
+        if max(tint) > 1.0:
+            raise SceneError("tint components must be <= 1", f"{loc}.tint")
+        return {"type": "mirror", "tint": tint}
+    if mtype == "dielectric":
+        ior = _number(mat.get("ior", 1.5), f"{loc}.ior", lo=1.0, hi=4.0)
+        return {"type": "dielectric", "ior": ior}
+    raise SceneError(f"unknown material type '{mtype}' (allowed: {_name_list(MATERIAL_TYPES)})",
+                     f"{loc}.type")
+
+
+def _read_mesh_file(path: Path, loc: str) -> tuple[list, list]:
+    """Read a Wavefront OBJ (v and f records; polygons are fanned)."""
+    if not path.is_file():
+        raise SceneError(f"mesh file not found: {path.name}", loc)
+    if path.stat().st_size > MAX_FILE_BYTES:
+        raise SceneError("mesh file too large", loc)
+    if path.suffix.lower() != ".obj":
+        raise SceneError(f"unsupported mesh file type '{path.suffix}' (allowed: .obj)", loc)
+    vertices, faces = [], []
+    with path.open("r", errors="replace") as fh:
+        for lineno, line in enumerate(fh, 1):
+            parts = line.split()
+            if not parts:
+                continue
+            try:
+                if parts[0] == "v":
+                    vertices.append([float(x) for x in parts[1:4]])
+                elif parts[0] == "f":
+                    idx = []
+                    for p in parts[1:]:
+                        i = int(p.split("/")[0])
+                        idx.append(i - 1 if i > 0 else len(vertices) + i)
+                    for k in range(1, len(idx) - 1):
+                        faces.append([idx[0], idx[k], idx[k + 1]])
+            except (ValueError, IndexError):
+                raise SceneError(f"cannot parse line {lineno}: {line.strip()[:60]}", loc) from None
+    return vertices, faces
+
+
+def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -> dict:
+    loc = f"shapes[{i}]"
+    if not isinstance(shape, dict):
+        raise SceneError("expected an object", loc)
+    stype = _require(shape, "type", loc)
+    if stype not in SHAPE_TYPES:
+        raise SceneError(f"unknown shape type '{stype}' (allowed: {_name_list(SHAPE_TYPES)})", f"{loc}.type")
+    mat = _require(shape, "material", loc)
+    if mat not in materials:
+        raise SceneError(f"unknown material '{mat}' (defined: {_name_list(materials) or 'none'})",
+                         f"{loc}.material")
+    out: dict[str, Any] = {"type": stype, "material": mat,
+                           "to_world": _transform(shape.get("to_world"), f"{loc}.to_world"),
+                           "flip_normals": bool(shape.get("flip_normals", False))}
+    if "name" in shape:
+        out["name"] = str(shape["name"])
+    if stype == "sphere":
+        # An analytic sphere: centre and radius in local space (default the unit
+        # sphere), then to_world, which must be a similarity (no shear, uniform scale).
+        out["center"] = _vec3(shape.get("center", [0, 0, 0]), f"{loc}.center")
+        out["radius"] = _number(shape.get("radius", 1.0), f"{loc}.radius", lo=0.0, lo_open=True)
+        m = np.asarray(out["to_world"])[:3, :3]
+        mtm = m.T @ m
+        s2 = mtm[0, 0]
+        if not np.allclose(mtm, np.eye(3) * s2, rtol=1e-6, atol=1e-9 * max(s2, 1e-300)):
+            raise SceneError("a sphere's to_world must be a similarity transform "
+                             "(rotation, uniform scale, translation)", f"{loc}.to_world")
+    if stype == "mesh":
+        if "file" in shape:
+            if base_dir is None:
+                raise SceneError("mesh files need a scene file on disk (or inline vertices/faces)",
+                                 f"{loc}.file")
+            fpath = (base_dir / str(shape["file"])).resolve()
+            if base_dir.resolve() not in fpath.parents:
+                raise SceneError("mesh file must lie inside the scene's directory", f"{loc}.file")
+            vertices, faces = _read_mesh_file(fpath, f"{loc}.file")
+        else:
+            vertices = _require(shape, "vertices", loc)
+            faces = _require(shape, "faces", loc)
+        try:
+            v = np.asarray(vertices, dtype=np.float64)
+            f = np.asarray(faces, dtype=np.int64)
+        except (ValueError, TypeError):
+            raise SceneError("vertices must be [[x, y, z], ...] and faces [[i, j, k], ...]", loc) from None
+        if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
+            raise SceneError("vertices must be a list of finite [x, y, z]", f"{loc}.vertices")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+            raise SceneError("faces must be a non-empty list of [i, j, k] triangles", f"{loc}.faces")
+        if f.min() < 0 or f.max() >= len(v):
+            raise SceneError(f"face index out of range (mesh has {len(v)} vertices)", f"{loc}.faces")
+        if len(f) > MAX_TRIANGLES:
+            raise SceneError(f"too many triangles (limit {MAX_TRIANGLES})", f"{loc}.faces")
+        out["vertices"] = v.tolist()
+        out["faces"] = f.tolist()
+    em = shape.get("emitter")
+    if em is not None:
+        eloc = f"{loc}.emitter"
+        if not isinstance(em, dict) or em.get("type") != "area":
+            raise SceneError("a shape's emitter must be {'type': 'area', 'radiance': [r, g, b]}", eloc)
+        out["emitter"] = {"type": "area",
+                          "radiance": _vec3(_require(em, "radiance", eloc), f"{eloc}.radiance", nonneg=True)}
+    return out
+
+
+def _resolve_emitter(i: int, em: Any) -> dict:
+    loc = f"emitters[{i}]"
+    if not isinstance(em, dict):
+        raise SceneError("expected an object", loc)
+    etype = _require(em, "type", loc)
+    if etype != "point":
+        raise SceneError(f"unknown emitter type '{etype}' (allowed: point; area emitters "
+                         "are attached to shapes)", f"{loc}.type")
+    return {"type": "point",
+            "position": _vec3(_require(em, "position", loc), f"{loc}.position"),
+            "intensity": _vec3(_require(em, "intensity", loc), f"{loc}.intensity", nonneg=True)}
+
+
+def resolve_document(source: str | Path | dict, *, allow_files: bool = True) -> dict:
+    """Validate a scene and return its resolved, self-contained document.
+
+    `source` is a built-in scene name (``"cornell-box"``), a path to a JSON
+    scene file (only if `allow_files`), or an already-parsed dict.
+    """
+    base_dir: Path | None = None
+    if isinstance(source, dict):
+        doc = copy.deepcopy(source)
+    elif isinstance(source, (str, Path)) and str(source) in builtin_scene_names():
+        doc = _load_builtin(str(source))
+    elif isinstance(source, (str, Path)) and allow_files and Path(source).is_file():
+        path = Path(source)
+        if path.stat().st_size > MAX_FILE_BYTES:
+            raise SceneError("scene file too large")
+        try:
+            doc = json.loads(path.read_text())
+        except UnicodeDecodeError:
+            raise SceneError(f"{path.name} is not a text file") from None
+        except json.JSONDecodeError as exc:
+            raise SceneError(f"invalid JSON in {path.name} at line {exc.lineno}, "
+                             f"column {exc.colno}: {exc.msg}") from None
+        base_dir = path.parent
+    else:
+        raise SceneError(f"unknown scene '{source}' (built-in scenes: "
+                         f"{_name_list(builtin_scene_names())}; or give a path to a scene file)")
+    if not isinstance(doc, dict):
+        raise SceneError("a scene document must be a JSON object")
+    known = {"format", "camera", "materials", "shapes", "emitters", "name", "description"}
+    unknown = sorted(set(doc) - known)
+    if unknown:
+        raise SceneError(f"unknown top-level field(s): {', '.join(unknown)} "
+                         f"(allowed: {', '.join(sorted(known))})")
+    mats_in = doc.get("materials", {})
+    if not isinstance(mats_in, dict):
+        raise SceneError("expected an object mapping names to materials", "materials")
+    materials = {str(k): _resolve_material(str(k), v) for k, v in mats_in.items()}
+    shapes_in = _require(doc, "shapes", "")
+    if not isinstance(shapes_in, list):
+        raise SceneError("expected a list of shapes", "shapes")
+    emitters_in = doc.get("emitters", [])
+    if not isinstance(emitters_in, list):
+        raise SceneError("expected a list of emitters", "emitters")
+    resolved = {
+        "format": "rayfarm-scene/1",
+        "name": str(doc.get("name", "")),
+        "description": str(doc.get("description", "")),
+        "camera": _resolve_camera(_require(doc, "camera", "")),
+        "materials": materials,
+        "shapes": [_resolve_shape(i, s, materials, base_dir) for i, s in enumerate(shapes_in)],
+        "emitters": [_resolve_emitter(i, e) for i, e in enumerate(emitters_in)],
+    }
+    if not resolved["shapes"]:
+        raise SceneError("a scene needs at least one shape", "shapes")
+    return resolved
+
+
+def canonical_json(doc: dict) -> str:
+    """The canonical text of a resolved document (sorted keys, no spaces)."""
+    return json.dumps(doc, sort_keys=True, separators=(",", ":"))
+
+
+def scene_hash(doc: dict) -> str:
+    """Content hash of a resolved document: the scene's identity on the farm."""
+    return hashlib.sha256(canonical_json(doc).encode()).hexdigest()
