@@ -1,0 +1,51 @@
+"""Numba kernels over the structure-of-arrays scene: private building blocks.
+
+Every kernel is compiled with `kernel` (``njit(cache=True, error_model="numpy")``:
+cached on disk, and IEEE semantics for division so a zero ray component gives
+an infinite inverse instead of an exception).
+
+Numba's on-disk cache only checks the source file of the function it caches,
+so a change in a callee in another file would leave a stale caller behind.
+`_invalidate_stale_cache` guards against that: it hashes every kernel source
+file and drops the package's cached kernels when the hash changes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+from numba import njit
+
+__all__ = ["kernel", "kernel_inline", "kernel_parallel"]
+
+kernel = njit(cache=True, error_model="numpy")
+# For functions that take the whole SceneArrays tuple and are called per
+# bounce: inlined at Numba IR level, so no call copies the tuple's array structs.
+kernel_inline = njit(cache=True, error_model="numpy", inline="always")
+kernel_parallel = njit(cache=True, error_model="numpy", parallel=True)
+
+
+def _invalidate_stale_cache() -> None:
+    root = Path(__file__).resolve().parent.parent  # the renderer package
+    sources = sorted(root.rglob("*.py"))
+    digest = hashlib.sha256()
+    for src in sources:
+        digest.update(src.name.encode())
+        digest.update(src.read_bytes())
+    stamp_text = digest.hexdigest()
+    stamp = root / "__pycache__" / "kernels.stamp"
+    try:
+        if stamp.exists() and stamp.read_text() == stamp_text:
+            return
+        for cached in list(root.rglob("__pycache__/*.nbi")) + list(root.rglob("__pycache__/*.nbc")):
+            cached.unlink(missing_ok=True)
+        stamp.parent.mkdir(exist_ok=True)
+        tmp = stamp.with_suffix(".tmp")
+        tmp.write_text(stamp_text)
+        tmp.replace(stamp)
+    except OSError:
+        pass  # a read-only install simply keeps (and trusts) its cache
+
+
+_invalidate_stale_cache()

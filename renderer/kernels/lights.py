@@ -1,0 +1,135 @@
+"""Light sampling for next event estimation, and the matching pdfs.
+
+A light is picked uniformly (probability 1/L, as Mitsuba does), then:
+- mesh area lights: a triangle by area, a uniform point on it (area pdf 1/A);
+- sphere lights seen from outside: a direction uniform in the cone the sphere
+  subtends (pdf 1/(2 pi (1 - cos theta_max)), pbrt's Sphere::Sample);
+  from inside: a uniform point on the sphere (area pdf 1/(4 pi r^2));
+- point lights: the position itself (a delta: pdf 1, no MIS).
+Area pdfs are converted to solid angle with dist^2 / |cos theta_light|.
+Area lights emit only from their front side.
+"""
+
+import math
+
+from . import kernel, kernel_inline
+from .geometry import surface_at
+from .sampling import onb, uniform_sphere, uniform_triangle
+
+LIGHT_MESH, LIGHT_SPHERE, LIGHT_POINT = 0, 1, 2
+
+
+@kernel
+def _pick_triangle(sc, light, u):
+    """Binary search of the light's area CDF."""
+    lo = sc.light_start[light]
+    hi = lo + sc.light_count[light] - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if sc.light_tri_cdf[mid] <= u:
+            lo = mid + 1
+        else:
+            hi = mid
+    return sc.light_tris[lo]
+
+
+@kernel_inline
+def sample_light(sc, px, py, pz, u_pick, u1, u2):
+    """Sample an incident direction at point p towards a light.
+
+    Returns (wx, wy, wz, dist, pdf, Lr, Lg, Lb, delta): the unit direction
+    to the light point, its distance, the pdf in solid angle (or the
+    selection probability for point lights), the emitted radiance (or
+    intensity / dist^2 for point lights) and whether it is a delta light.
+    pdf == 0 means no contribution.
+    """
+    n_lights = sc.light_type.shape[0]
+    li = min(int(u_pick * n_lights), n_lights - 1)
+    p_pick = 1.0 / n_lights
+    ltype = sc.light_type[li]
+    if ltype == LIGHT_POINT:
+        dx = sc.light_pos[li, 0] - px
+        dy = sc.light_pos[li, 1] - py
+        dz = sc.light_pos[li, 2] - pz
+        d2 = dx * dx + dy * dy + dz * dz
+        dist = math.sqrt(d2)
+        if dist == 0.0:
+            return 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, True
+        inv = 1.0 / dist
+        return (dx * inv, dy * inv, dz * inv, dist, p_pick,
+                sc.light_rgb[li, 0] / d2, sc.light_rgb[li, 1] / d2, sc.light_rgb[li, 2] / d2, True)
+    if ltype == LIGHT_MESH:
+        tri = _pick_triangle(sc, li, u_pick * n_lights - li)
+        b0, b1 = uniform_triangle(u1, u2)
+        b2 = 1.0 - b0 - b1
+        qx = b0 * sc.tri_p[tri, 0, 0] + b1 * sc.tri_p[tri, 1, 0] + b2 * sc.tri_p[tri, 2, 0]
+        qy = b0 * sc.tri_p[tri, 0, 1] + b1 * sc.tri_p[tri, 1, 1] + b2 * sc.tri_p[tri, 2, 1]
+        qz = b0 * sc.tri_p[tri, 0, 2] + b1 * sc.tri_p[tri, 1, 2] + b2 * sc.tri_p[tri, 2, 2]
+        nx, ny, nz = sc.tri_n[tri, 0], sc.tri_n[tri, 1], sc.tri_n[tri, 2]
+        pdf_area = 1.0 / sc.light_area[li]
+    else:
+        s = sc.light_sphere[li]
+        cx, cy, cz, r = sc.sph[s, 0], sc.sph[s, 1], sc.sph[s, 2], sc.sph[s, 3]
+        fx, fy, fz = cx - px, cy - py, cz - pz
+        dc2 = fx * fx + fy * fy + fz * fz
+        if dc2 > r * r * 1.0000001:
+            # cone sampling from outside
+            dc = math.sqrt(dc2)
+            sin2_max = r * r / dc2
+            cos_max = math.sqrt(max(0.0, 1.0 - sin2_max))
+            one_minus_cos_max = sin2_max / (1.0 + cos_max)  # 1 - cos without cancellation
+            cos_t = 1.0 - u1 * one_minus_cos_max
+            sin2_t = max(0.0, 1.0 - cos_t * cos_t)
+            # distance to the nearest intersection along the sampled direction
+            dist = dc * cos_t - math.sqrt(max(0.0, r * r - dc2 * sin2_t))
+            phi = 2.0 * math.pi * u2
+            sin_t = math.sqrt(sin2_t)
+            wx_l, wy_l = sin_t * math.cos(phi), sin_t * math.sin(phi)
+            ax, ay, az = fx / dc, fy / dc, fz / dc
+            sx, sy, sz, tx, ty, tz = onb(ax, ay, az)
+            wx = wx_l * sx + wy_l * tx + cos_t * ax
+            wy = wx_l * sy + wy_l * ty + cos_t * ay
+            wz = wx_l * sz + wy_l * tz + cos_t * az
+            qx, qy, qz = px + dist * wx, py + dist * wy, pz + dist * wz
+            nx, ny, nz, _, _ = surface_at(sc, sc.tri_p.shape[0] + s, qx, qy, qz)
+            if nx * wx + ny * wy + nz * wz >= 0.0:
+                return 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False
+            pdf = p_pick / (2.0 * math.pi * one_minus_cos_max)
+            return (wx, wy, wz, dist, pdf, sc.light_rgb[li, 0], sc.light_rgb[li, 1],
+                    sc.light_rgb[li, 2], False)
+        ux, uy, uz = uniform_sphere(u1, u2)
+        qx, qy, qz = cx + r * ux, cy + r * uy, cz + r * uz
+        nx, ny, nz, _, _ = surface_at(sc, sc.tri_p.shape[0] + s, qx, qy, qz)
+        pdf_area = 1.0 / sc.light_area[li]
+    dx, dy, dz = qx - px, qy - py, qz - pz
+    d2 = dx * dx + dy * dy + dz * dz
+    dist = math.sqrt(d2)
+    if dist == 0.0:
+        return 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False
+    inv = 1.0 / dist
+    wx, wy, wz = dx * inv, dy * inv, dz * inv
+    cos_l = -(nx * wx + ny * wy + nz * wz)
+    if cos_l <= 0.0:  # back side of the emitter
+        return 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, False
+    pdf = p_pick * pdf_area * d2 / cos_l
+    return wx, wy, wz, dist, pdf, sc.light_rgb[li, 0], sc.light_rgb[li, 1], sc.light_rgb[li, 2], False
+
+
+@kernel_inline
+def light_pdf(sc, light, prim, px, py, pz, qx, qy, qz, cos_l):
+    """Solid-angle pdf with which `sample_light` at p would have produced the
+    point q on `prim` of area light `light` (cos_l = cosine at q, > 0)."""
+    n_lights = sc.light_type.shape[0]
+    p_pick = 1.0 / n_lights
+    dx, dy, dz = qx - px, qy - py, qz - pz
+    d2 = dx * dx + dy * dy + dz * dz
+    if sc.light_type[light] == LIGHT_SPHERE:
+        s = sc.light_sphere[light]
+        fx, fy, fz = sc.sph[s, 0] - px, sc.sph[s, 1] - py, sc.sph[s, 2] - pz
+        dc2 = fx * fx + fy * fy + fz * fz
+        r = sc.sph[s, 3]
+        if dc2 > r * r * 1.0000001:
+            sin2_max = r * r / dc2
+            cos_max = math.sqrt(max(0.0, 1.0 - sin2_max))
+            return p_pick / (2.0 * math.pi * (sin2_max / (1.0 + cos_max)))
+    return p_pick * d2 / (cos_l * sc.light_area[light])
