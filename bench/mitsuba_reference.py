@@ -1,0 +1,207 @@
+"""Reference renders of `cornell-box` with Mitsuba 3, for checking our kernels.
+
+Builds the Mitsuba scene from rayfarm's own scene document (so it is the very
+scene our renderer sees: same matrices, materials, emitter, camera), checks it
+against `mi.cornell_box()` and against the camera-ray table of
+/work/shared/scenes/cornell-box.md, then renders it with the `path`
+integrator at max_depth = depth + 1 (our depth convention), a box pixel
+filter and the `independent` sampler. Each depth is rendered as `--seeds`
+independent passes; the saved image is their mean and the standard error is
+the standard deviation of the pass means over sqrt(passes).
+
+    python bench/mitsuba_reference.py                      # depths 0, 1, 7
+    python bench/mitsuba_reference.py --depth 7:8192 --seeds 32 --out /tmp/refs
+
+Outputs (float32 .npy, shape (H, W, 3), row 0 at the top):
+    <out>/cornell_d{d}_spp{N}.npy          mean radiance
+    <out>/cornell_d{d}_spp{N}_stderr.npy   standard error of that mean
+Russian roulette is off (rr_depth > max_depth): unbiased either way, but
+without it the reference converges faster per sample.
+Needs `pip install -e '.[mitsuba]'`; the LLVM variant needs libLLVM >= 19
+(Debian: `apt-get install libllvm19`), otherwise `scalar_rgb` is used.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_OUT = "/work/shared-refs"
+DEFAULT_DEPTHS = "0:1024,1:4096,7:8192"
+
+# (film px, py) -> ray direction, from the table in shared/scenes/cornell-box.md
+RAY_TABLE = [
+    ((0.5, 0.5), (-0.3177954, 0.3177954, -0.8933153)),
+    ((255.5, 0.5), (0.3177954, 0.3177954, -0.8933153)),
+    ((128.0, 128.0), (0.0, 0.0, -1.0)),
+    ((128.5, 128.5), (0.0013951, -0.0013951, -0.9999981)),
+    ((0.5, 255.5), (-0.3177954, -0.3177954, -0.8933153)),
+    ((30.5, 128.5), (-0.2625024, -0.0013462, -0.9649304)),
+]
+
+
+def choose_variant(preferred: str | None = None) -> str:
+    """Set and return the Mitsuba variant: `llvm_ad_rgb` if it renders, else `scalar_rgb`."""
+    import mitsuba as mi
+
+    llvm = "/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1"
+    if "DRJIT_LIBLLVM_PATH" not in os.environ and os.path.exists(llvm):
+        os.environ["DRJIT_LIBLLVM_PATH"] = llvm  # older libLLVMs on the path crash Dr.Jit
+    candidates = [preferred] if preferred else ["llvm_ad_rgb", "scalar_rgb"]
+    for variant in candidates:
+        if variant not in mi.variants():
+            continue
+        try:
+            mi.set_variant(variant)
+            mi.render(mi.load_dict(mi.cornell_box()), spp=1)  # a variant may load yet fail to JIT
+            return variant
+        except Exception as exc:  # noqa: BLE001 - report and fall back
+            print(f"mitsuba variant {variant} unusable: {exc}", file=sys.stderr)
+    raise RuntimeError(f"no usable Mitsuba variant among {candidates}")
+
+
+def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1) -> dict:
+    """A Mitsuba scene dict for a resolved rayfarm scene document (rectangles,
+    cubes, diffuse materials, area emitters, a pinhole camera)."""
+    import mitsuba as mi
+
+    cam = doc["camera"]
+    T = mi.ScalarTransform4f
+    scene: dict = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": depth + 1, "rr_depth": depth + 2},
+        "sensor": {
+            "type": "perspective",
+            "fov": float(cam["fov"]),
+            "fov_axis": cam.get("fov_axis", "smaller"),
+            "near_clip": 0.001, "far_clip": 100.0,
+            "to_world": T().look_at(origin=cam["origin"], target=cam["target"], up=cam["up"]),
+            "sampler": {"type": "independent", "sample_count": spp},
+            "film": {"type": "hdrfilm", "width": int(cam["width"]), "height": int(cam["height"]),
+                     "rfilter": {"type": "box"}, "pixel_format": "rgb",
+                     "component_format": "float32"},
+        },
+    }
+    for name, mat in doc["materials"].items():
+        if mat["type"] != "diffuse":
+            raise ValueError(f"material {name}: only diffuse is translated, got {mat['type']}")
+        scene[f"mat-{name}"] = {"type": "diffuse", "id": f"mat-{name}",
+                                "reflectance": {"type": "rgb", "value": list(mat["albedo"])}}
+    for shape in doc["shapes"]:
+        if shape["type"] not in ("rectangle", "cube"):
+            raise ValueError(f"shape {shape['name']}: type {shape['type']} is not translated")
+        entry = {"type": shape["type"], "to_world": T(np.array(shape["to_world"], dtype=float)),
+                 "bsdf": {"type": "ref", "id": f"mat-{shape['material']}"}}
+        if shape.get("emitter"):
+            entry["emitter"] = {"type": "area", "radiance": {
+                "type": "rgb", "value": list(shape["emitter"]["radiance"])}}
+        scene[shape["name"]] = entry
+    if doc.get("emitters"):
+        raise ValueError("standalone emitters are not translated")
+    return scene
+
+
+def check_scene(scene) -> float:
+    """Compare camera rays with the table in cornell-box.md and shape bounds
+    with `mi.cornell_box()`; print both and return the largest deviation."""
+    import mitsuba as mi
+
+    sensor = scene.sensors()[0]
+    size = sensor.film().size()
+    worst = 0.0
+    print("camera rays (film px, py): mitsuba direction vs cornell-box.md")
+    for (px, py), expected in RAY_TABLE:
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(px / size[0], py / size[1]),
+                                   mi.Point2f(0.5, 0.5))
+        d = np.array(ray.d, dtype=float).reshape(-1)[:3]
+        err = float(np.abs(d - np.array(expected)).max())
+        worst = max(worst, err)
+        print(f"  ({px:6.1f},{py:6.1f})  {np.round(d, 7)}  {expected}  |diff| {err:.1e}")
+    builtin = mi.load_dict(mi.cornell_box())
+    bounds = lambda s: sorted(  # noqa: E731
+        tuple(np.round(np.concatenate([np.array(sh.bbox().min), np.array(sh.bbox().max)]).ravel(), 4))
+        for sh in s.shapes())
+    ours, theirs = bounds(scene), bounds(builtin)
+    shape_err = max(float(np.abs(np.array(a) - np.array(b)).max()) for a, b in zip(ours, theirs))
+    print(f"shape bounding boxes vs mi.cornell_box(): {len(ours)} vs {len(theirs)} shapes, "
+          f"max |diff| {shape_err:.1e}")
+    if len(ours) != len(theirs):
+        shape_err = math.inf
+    return max(worst, shape_err)
+
+
+def render_passes(scene, spp: int, passes: int, seed0: int = 0):
+    """Render `passes` independent passes of spp // passes samples each; return
+    (mean image, standard error of the mean, seconds)."""
+    import mitsuba as mi
+
+    per_pass = spp // passes
+    images = []
+    t0 = time.perf_counter()
+    for k in range(passes):
+        img = mi.render(scene, spp=per_pass, seed=seed0 + k)
+        images.append(np.array(img, dtype=np.float64)[..., :3])
+    seconds = time.perf_counter() - t0
+    stack = np.stack(images)
+    mean = stack.mean(axis=0)
+    stderr = stack.std(axis=0, ddof=1) / math.sqrt(passes) if passes > 1 else np.full_like(mean, np.nan)
+    return mean.astype(np.float32), stderr.astype(np.float32), seconds
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--depth", default=DEFAULT_DEPTHS,
+                        help=f"comma list of depth:spp (default {DEFAULT_DEPTHS})")
+    parser.add_argument("--seeds", type=int, default=16,
+                        help="independent passes per depth, for the standard error (default 16)")
+    parser.add_argument("--out", default=DEFAULT_OUT, help=f"output directory (default {DEFAULT_OUT})")
+    parser.add_argument("--variant", default=None, help="Mitsuba variant (default: llvm_ad_rgb, else scalar_rgb)")
+    parser.add_argument("--scene", default="cornell-box")
+    args = parser.parse_args(argv)
+
+    import mitsuba as mi
+
+    from renderer import resolve_document
+
+    variant = choose_variant(args.variant)
+    print(f"mitsuba {mi.__version__}, variant {variant}")
+    doc = resolve_document(args.scene)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    checked = False
+    for item in args.depth.split(","):
+        depth, spp = (int(v) for v in item.split(":"))
+        passes = max(1, min(args.seeds, spp))
+        spp -= spp % passes
+        scene = mi.load_dict(mitsuba_scene_dict(doc, depth))
+        if not checked:
+            worst = check_scene(scene)
+            if worst > 1e-5:
+                print(f"scene check FAILED (max deviation {worst:.2e})", file=sys.stderr)
+                return 1
+            checked = True
+        mean, stderr, seconds = render_passes(scene, spp, passes)
+        stem = out / f"{args.scene.replace('-box', '')}_d{depth}_spp{spp}"
+        np.save(f"{stem}.npy", mean)
+        np.save(f"{stem}_stderr.npy", stderr)
+        pixels = mean.shape[0] * mean.shape[1]
+        ch = mean.reshape(-1, 3).mean(axis=0)
+        ch_err = np.sqrt((stderr.reshape(-1, 3).astype(np.float64) ** 2).sum(axis=0)) / pixels
+        print(f"depth {depth} (max_depth {depth + 1}), {spp} spp in {passes} passes, "
+              f"{seconds:.1f} s, {pixels * spp / seconds / 1e6:.2f} M samples/s")
+        print(f"  image mean R G B = {ch[0]:.6f} {ch[1]:.6f} {ch[2]:.6f}  "
+              f"(+- {ch_err[0]:.1e} {ch_err[1]:.1e} {ch_err[2]:.1e})")
+        print(f"  median per-pixel stderr / mean (G): "
+              f"{float(np.median(stderr[..., 1] / np.maximum(mean[..., 1], 1e-12))):.4f}")
+        print(f"  wrote {stem}.npy and {stem}_stderr.npy")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
