@@ -1,0 +1,1 @@
+"""HTTP layer: dependencies, the error mapping and the routes by resource."""

@@ -1,0 +1,31 @@
+"""/healthz: is the service able to take and run jobs?"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import JSONResponse
+from sqlalchemy import text
+
+from ..deps import FarmDep
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/healthz")
+def healthz(farm: FarmDep) -> JSONResponse:
+    """200 with component states when the ledger answers and the scheduler
+    runs; 503 otherwise."""
+    report: dict = {"status": "ok", **farm.executor.health(),
+                    "scheduler": "running" if farm.scheduler.alive else "stopped",
+                    "scheduler_ticks": farm.scheduler.ticks}
+    if farm.scheduler.last_error:
+        report["scheduler_error"] = farm.scheduler.last_error
+    try:
+        with farm.sessions() as session:
+            session.execute(text("SELECT 1"))
+        report["database"] = "ok"
+    except Exception as exc:
+        report["database"] = f"error: {type(exc).__name__}"
+    if report["database"] != "ok" or not farm.scheduler.alive:
+        report["status"] = "unhealthy"
+    return JSONResponse(report, status_code=200 if report["status"] == "ok" else 503)

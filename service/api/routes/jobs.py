@@ -1,0 +1,63 @@
+"""/jobs: submit, list, inspect, cancel, download."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Response, status
+from fastapi.responses import FileResponse
+
+from ... import jobs
+from ...models import utcnow
+from ...schemas import JobCreate, JobPublic
+from ..deps import FarmDep, SessionDep
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=JobPublic)
+def create_job(body: JobCreate, session: SessionDep, farm: FarmDep,
+               response: Response) -> JobPublic:
+    """Submit a render job; it is queued and rendered in the background."""
+    job = jobs.create_job(session, farm.store, farm.settings, body, utcnow())
+    session.commit()
+    response.headers["Location"] = f"/jobs/{job.id}"
+    return JobPublic.from_job(job, utcnow())
+
+
+@router.get("", response_model=list[JobPublic])
+def list_jobs(session: SessionDep, status: str | None = None,
+              limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+              offset: Annotated[int, Query(ge=0)] = 0) -> list[JobPublic]:
+    """Jobs, newest first (optionally only those with `status`)."""
+    now = utcnow()
+    return [JobPublic.from_job(j, now)
+            for j in jobs.list_jobs(session, status=status, limit=limit, offset=offset)]
+
+
+@router.get("/{job_id}", response_model=JobPublic)
+def get_job(job_id: str, session: SessionDep) -> JobPublic:
+    """A job's status, progress (units done / total), timings and error."""
+    return JobPublic.from_job(jobs.get_job(session, job_id), utcnow())
+
+
+@router.delete("/{job_id}", response_model=JobPublic)
+def cancel_job(job_id: str, farm: FarmDep) -> JobPublic:
+    """Cancel a queued or running job (409 if it already finished)."""
+    return JobPublic.from_job(jobs.cancel_job_retrying(farm.sessions, job_id, utcnow), utcnow())
+
+
+@router.get("/{job_id}/result.exr", response_class=FileResponse,
+            responses={200: {"content": {"image/x-exr": {}}}, 404: {}})
+def result_exr(job_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
+    """The merged image: float R, G, B and var.R/G/B (404 until the job is done)."""
+    path = jobs.result_file(session, farm.store, job_id, "result.exr")
+    return FileResponse(path, media_type="image/x-exr", filename=f"{job_id}.exr")
+
+
+@router.get("/{job_id}/preview.png", response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}}}, 404: {}})
+def preview_png(job_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
+    """A tonemapped sRGB preview (404 until the job is done)."""
+    path = jobs.result_file(session, farm.store, job_id, "preview.png")
+    return FileResponse(path, media_type="image/png")

@@ -1,0 +1,21 @@
+"""/methods and /samplers: straight from the renderer's registry."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from renderer import METHODS, SAMPLERS
+
+router = APIRouter(tags=["registry"])
+
+
+@router.get("/methods")
+def list_methods() -> list[dict]:
+    """Rendering methods with their options (name, type, default, choices)."""
+    return [m.describe() for m in dict.fromkeys(METHODS.values())]  # aliases once
+
+
+@router.get("/samplers")
+def list_samplers() -> list[dict]:
+    """Pixel samplers."""
+    return [s.describe() for s in SAMPLERS.values()]

@@ -1,0 +1,78 @@
+"""The `rayfarm` command.
+
+    rayfarm serve --host 0.0.0.0 --port 8000     the HTTP service (+ scheduler)
+    rayfarm worker --concurrency 4                a Celery worker (needs RAYFARM_BROKER_URL)
+    rayfarm render ...                            render locally (the renderer's own CLI)
+
+Configuration comes from the environment (`RAYFARM_*`, see worker/settings.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+__all__ = ["main"]
+
+
+def _serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .main import create_app
+    from .settings import Settings
+
+    uvicorn.run(create_app(Settings()), host=args.host, port=args.port, log_level=args.loglevel)
+    return 0
+
+
+def _worker(args: argparse.Namespace) -> int:
+    from worker.celery_app import create_celery_app
+    from worker.keys import QUEUE
+    from worker.settings import Settings
+
+    settings = Settings()
+    if not settings.broker_url:
+        print("rayfarm worker: set RAYFARM_BROKER_URL (e.g. redis://localhost:6379/0)",
+              file=sys.stderr)
+        return 2
+    app = create_celery_app(settings)
+    # One single-threaded render process per core (prefork); a unique node
+    # name so several workers on one host don't collide.
+    app.worker_main([
+        "worker", "--pool=prefork", f"--concurrency={args.concurrency}",
+        f"--loglevel={args.loglevel.upper()}", f"--queues={QUEUE}",
+        f"--hostname=rayfarm-{os.getpid()}@%h", "--without-gossip", "--without-mingle",
+    ])
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="rayfarm", description="rayfarm: a render farm")
+    sub = parser.add_subparsers(dest="command", required=True)
+    serve = sub.add_parser("serve", help="run the HTTP service and its scheduler")
+    serve.add_argument("--host", default="127.0.0.1")
+    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument("--loglevel", default="info",
+                       choices=["critical", "error", "warning", "info", "debug"])
+    serve.set_defaults(run=_serve)
+    worker = sub.add_parser("worker", help="run a Celery worker (RAYFARM_BROKER_URL)")
+    worker.add_argument("--concurrency", type=int, default=os.cpu_count() or 1,
+                        help="render processes (default: one per core)")
+    worker.add_argument("--loglevel", default="info",
+                        choices=["critical", "error", "warning", "info", "debug"])
+    worker.set_defaults(run=_worker)
+    sub.add_parser("render", help="render a scene locally (see `rayfarm render --help`)",
+                   add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "render":
+        # The renderer owns its CLI; forward everything after "render".
+        from renderer.cli import main as render_main
+
+        return render_main(argv[1:]) or 0
+    args = _parser().parse_args(argv)
+    return args.run(args)

@@ -1,0 +1,39 @@
+"""The ledger's engine and sessions, built from settings (never at import).
+
+    engine, sessions = open_ledger(settings)
+    with sessions.begin() as session:
+        session.add(job)
+"""
+
+from __future__ import annotations
+
+from sqlalchemy import Engine, create_engine, event
+from sqlalchemy.orm import Session, sessionmaker
+
+from .models import Base
+from .settings import Settings
+
+__all__ = ["open_ledger"]
+
+
+def _sqlite_pragmas(dbapi_conn, _record) -> None:
+    # WAL lets the API read while the scheduler writes; busy_timeout makes a
+    # writer wait for the lock instead of failing at once.
+    cur = dbapi_conn.cursor()
+    cur.execute("PRAGMA journal_mode=WAL")
+    cur.execute("PRAGMA busy_timeout=30000")
+    cur.execute("PRAGMA foreign_keys=ON")
+    cur.close()
+
+
+def open_ledger(settings: Settings) -> tuple[Engine, sessionmaker[Session]]:
+    """Connect to the ledger (creating its tables) and return (engine, session factory)."""
+    url = settings.sqlalchemy_url
+    if url.startswith("sqlite"):
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+        event.listen(engine, "connect", _sqlite_pragmas)
+    else:
+        engine = create_engine(url, pool_pre_ping=True)
+    Base.metadata.create_all(engine)
+    return engine, sessionmaker(engine, expire_on_commit=False)

@@ -1,0 +1,52 @@
+"""The service's exceptions, as one small tree.
+
+    ServiceError                  anything the service refuses
+     ├── NotFound                 no such job, or its image is not there (yet)
+     │    └── ResultNotReady      the job exists but has no finished image
+     ├── Conflict                 the request contradicts the job's state
+     │    └── IllegalTransition   a status change the state table forbids
+     └── InvalidRequest           a field of the request is invalid (names it)
+
+The renderer's `SceneError` and `SpecError` are invalid requests too. Domain
+code raises these; `service.api.errors` maps them to HTTP in one place.
+"""
+
+from __future__ import annotations
+
+__all__ = ["ServiceError", "NotFound", "ResultNotReady", "Conflict", "IllegalTransition",
+           "InvalidRequest"]
+
+
+class ServiceError(Exception):
+    """Base class of everything the service refuses."""
+
+
+class NotFound(ServiceError):
+    pass
+
+
+class ResultNotReady(NotFound):
+    pass
+
+
+class Conflict(ServiceError):
+    pass
+
+
+class IllegalTransition(Conflict):
+    """`kind` ('job' or 'unit') `name` cannot go from `old` to `new`."""
+
+    def __init__(self, kind: str, name: str, old: str, new: str, allowed: frozenset[str]):
+        self.kind, self.name, self.old, self.new = kind, name, old, new
+        options = ", ".join(sorted(allowed)) or "none, it is final"
+        super().__init__(f"{kind} {name} cannot go from '{old}' to '{new}' "
+                         f"(allowed from '{old}': {options})")
+
+
+class InvalidRequest(ServiceError):
+    """An invalid request field; `field` is its name (dotted for nested ones),
+    `source` where it was sent (body, query, path)."""
+
+    def __init__(self, field: str, message: str, source: str = "body"):
+        self.field, self.message, self.source = field, message, source
+        super().__init__(f"{field}: {message}")

@@ -1,0 +1,27 @@
+"""Executors run work units: the embedded process pool or the Celery farm.
+
+Both have one interface (`Executor`), used by the scheduler thread only:
+`submit` a `Ticket`, `observe` the units in flight, `release` what was
+stored, `cancel` what is no longer wanted. `make_executor(settings, ...)`
+picks one: Celery when `broker_url` is set, else the local pool.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from ..settings import Settings
+from .base import Executor, Flight, Observation, Ticket
+
+__all__ = ["Executor", "Flight", "Observation", "Ticket", "make_executor"]
+
+
+def make_executor(settings: Settings, load_scene_text: Callable[[str], str]) -> Executor:
+    """The executor `settings` ask for; `load_scene_text(hash)` reads the store."""
+    if settings.broker_url:
+        from .celery_farm import CeleryExecutor
+
+        return CeleryExecutor(settings, load_scene_text)
+    from .local import LocalExecutor
+
+    return LocalExecutor(settings, load_scene_text)

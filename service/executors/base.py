@@ -1,0 +1,79 @@
+"""The executor interface and the plain data it exchanges with the scheduler."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Literal, Sequence
+
+__all__ = ["Ticket", "Flight", "Observation", "Executor"]
+
+
+@dataclass(frozen=True)
+class Ticket:
+    """Everything needed to run one unit: ids and parameters, no scene text."""
+
+    job_id: str
+    index: int
+    scene_hash: str
+    spec: dict
+    unit: dict
+
+
+@dataclass(frozen=True)
+class Flight:
+    """A unit the ledger believes is queued or running, with every task id it had."""
+
+    job_id: str
+    index: int
+    state: Literal["queued", "running"]
+    task_ids: tuple[str, ...]
+    enqueued_at: datetime
+    started_at: datetime | None
+
+
+@dataclass(frozen=True)
+class Observation:
+    """What an executor knows about a unit in flight.
+
+    `lost`: no task of the unit will ever report (worker died, message gone);
+    the scheduler enqueues it again without counting an attempt.
+    """
+
+    state: Literal["queued", "running", "done", "failed", "lost"]
+    film: bytes | None = None
+    worker: str | None = None
+    error: str | None = None
+
+
+class Executor(ABC):
+    """Runs units somewhere; called from the scheduler thread only."""
+
+    name: str
+
+    @abstractmethod
+    def submit(self, ticket: Ticket) -> str:
+        """Start running a unit; returns the new task id."""
+
+    @abstractmethod
+    def observe(self, flights: Sequence[Flight], now: datetime) -> list[Observation]:
+        """One observation per flight, in order. Any task id's result counts."""
+
+    @abstractmethod
+    def release(self, task_ids: Sequence[str]) -> None:
+        """Forget the results of these tasks (the unit's film is stored)."""
+
+    @abstractmethod
+    def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
+        """Stop these tasks if possible; their results will be ignored."""
+
+    @abstractmethod
+    def capacity(self) -> int:
+        """How many more units to submit now (the rest wait as `pending`)."""
+
+    def health(self) -> dict:
+        return {"executor": self.name}
+
+    def close(self) -> None:
+        pass

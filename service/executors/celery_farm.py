@@ -1,0 +1,162 @@
+"""The farm executor: units go to Celery workers through Redis.
+
+Redis is transport, not truth. A unit is *lost*, and enqueued again under a
+new task id (its attempt count unchanged), when
+- it started but its heartbeat key has been absent for a lease: the worker
+  died (a SIGKILL leaves the message unacknowledged for Redis's visibility
+  timeout, an hour by default; we don't wait for that);
+- it has been queued longer than a lease while the queue is empty: the
+  message itself is gone (e.g. Redis restarted without persistence).
+Results are collected from every task id a unit ever had; the first wins,
+and since units are deterministic a late duplicate changes nothing.
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+import time
+import uuid
+from datetime import datetime, timedelta
+from typing import Any, Callable, Sequence
+
+import redis
+
+from worker.celery_app import create_celery_app
+from worker.keys import QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, scene_key
+
+from ..settings import Settings
+from .base import Executor, Flight, Observation, Ticket
+
+__all__ = ["CeleryExecutor"]
+
+log = logging.getLogger(__name__)
+
+SCENE_TTL = 7 * 24 * 3600  # refreshed whenever a unit of the scene is enqueued
+CANCEL_TTL = 24 * 3600
+PRIORITY_SEP = "\x06\x16"  # kombu's Redis transport: queue<sep><priority> lists
+PRIORITY_STEPS = (0, 3, 6, 9)
+
+
+class CeleryExecutor(Executor):
+    name = "celery"
+
+    def __init__(self, settings: Settings, load_scene_text: Callable[[str], str]):
+        self.app = create_celery_app(settings)
+        self.lease = timedelta(seconds=settings.unit_lease_seconds)
+        self.lease_seconds = settings.unit_lease_seconds
+        self.redis = redis.Redis.from_url(settings.broker_url)
+        self._load_scene_text = load_scene_text
+        self._published: dict[str, float] = {}
+
+    # -- submitting ------------------------------------------------------------
+    def _publish_scene(self, scene_hash: str) -> None:
+        # Check at most every few seconds that the scene is still in Redis
+        # (it may have restarted), refreshing its expiry.
+        now = time.monotonic()
+        if now - self._published.get(scene_hash, -1e9) < 5.0:
+            return
+        key = scene_key(scene_hash)
+        if not self.redis.expire(key, SCENE_TTL):
+            self.redis.set(key, self._load_scene_text(scene_hash), ex=SCENE_TTL)
+        self._published[scene_hash] = now
+
+    def submit(self, ticket: Ticket) -> str:
+        self._publish_scene(ticket.scene_hash)
+        task_id = uuid.uuid4().hex
+        payload = {"job_id": ticket.job_id, "index": ticket.index,
+                   "scene_hash": ticket.scene_hash, "spec": ticket.spec, "unit": ticket.unit,
+                   "lease_seconds": self.lease_seconds}
+        self.app.send_task(TASK_RENDER_UNIT, args=[payload], queue=QUEUE, task_id=task_id)
+        return task_id
+
+    # -- observing -------------------------------------------------------------
+    def _metas(self, task_ids: list[str]) -> dict[str, dict | None]:
+        backend = self.app.backend
+        raw = self.redis.mget([backend.get_key_for_task(t) for t in task_ids]) if task_ids else []
+        return {t: (backend.decode(r) if r is not None else None) for t, r in zip(task_ids, raw)}
+
+    def queue_length(self) -> int:
+        pipe = self.redis.pipeline()
+        for pri in PRIORITY_STEPS:
+            pipe.llen(f"{QUEUE}{PRIORITY_SEP}{pri}" if pri else QUEUE)
+        return sum(pipe.execute())
+
+    def observe(self, flights: Sequence[Flight], now: datetime) -> list[Observation]:
+        if not flights:
+            return []
+        metas = self._metas([t for f in flights for t in f.task_ids])
+        beats = self.redis.mget([heartbeat_key(f.job_id, f.index) for f in flights])
+        queue_length: int | None = None
+        out = []
+        for flight, beat in zip(flights, beats):
+            obs = self._decide(flight, [metas[t] for t in flight.task_ids], beat, now)
+            if obs is None:  # queued for more than a lease: lost only if the queue is empty
+                if queue_length is None:
+                    queue_length = self.queue_length()
+                obs = Observation("lost") if queue_length == 0 else Observation("queued")
+            out.append(obs)
+        return out
+
+    def _decide(self, flight: Flight, metas: list[dict | None], beat: bytes | None,
+                now: datetime) -> Observation | None:
+        for meta in metas:
+            if meta and meta.get("status") == "SUCCESS":
+                result = meta.get("result") or {}
+                if "film" not in result:
+                    return Observation("failed", error=f"task returned no film: {sorted(result)}")
+                return Observation("done", film=base64.b64decode(result["film"]),
+                                   worker=result.get("worker"))
+        latest = metas[-1] if metas else None
+        status = latest.get("status") if latest else None
+        if status == "FAILURE":
+            return Observation("failed", error=_error_text(latest))
+        if beat is not None:
+            return Observation("running", worker=beat.decode(errors="replace"))
+        if status == "STARTED" or flight.state == "running":
+            started = flight.started_at if flight.state == "running" else None
+            if started is not None and now - started > self.lease:
+                return Observation("lost")
+            worker = (latest or {}).get("result") or {}
+            return Observation("running", worker=worker.get("hostname") if isinstance(worker, dict) else None)
+        if now - flight.enqueued_at > self.lease:
+            return None
+        return Observation("queued")
+
+    # -- cleaning up -----------------------------------------------------------
+    def release(self, task_ids: Sequence[str]) -> None:
+        for task_id in task_ids:
+            self.app.backend.forget(task_id)
+
+    def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
+        # The marker makes any worker skip the job's units still queued (also
+        # workers started later, which a revoke broadcast does not reach).
+        self.redis.set(cancel_key(job_id), "1", ex=CANCEL_TTL)
+        if task_ids:
+            self.app.control.revoke(list(task_ids))
+        self.release(task_ids)
+
+    def capacity(self) -> int:
+        return 1000  # the broker queues the rest; this only bounds one tick's work
+
+    def health(self) -> dict:
+        try:
+            self.redis.ping()
+            broker = "ok"
+        except redis.RedisError as exc:
+            broker = f"unreachable: {exc}"
+        return {"executor": self.name, "broker": broker}
+
+    def close(self) -> None:
+        self.redis.close()
+        self.app.close()
+
+
+def _error_text(meta: dict[str, Any]) -> str:
+    result = meta.get("result")
+    if isinstance(result, dict) and "exc_type" in result:
+        message = result.get("exc_message")
+        if isinstance(message, (list, tuple)):
+            message = " ".join(map(str, message))
+        return f"{result['exc_type']}: {message}"
+    return str(result)

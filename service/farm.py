@@ -1,0 +1,55 @@
+"""The running service's parts, assembled from settings: ledger, store,
+executor and scheduler. Built by the app's lifespan, closed with it.
+
+    with Farm.open(Settings(data_dir="/tmp/farm")) as farm:
+        farm.scheduler.tick()
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from sqlalchemy import Engine
+from sqlalchemy.orm import Session, sessionmaker
+
+from .db import open_ledger
+from .executors import Executor, make_executor
+from .scheduler import Scheduler
+from .settings import Settings
+from .store import Store
+
+__all__ = ["Farm"]
+
+
+@dataclass
+class Farm:
+    settings: Settings
+    engine: Engine
+    sessions: sessionmaker[Session]
+    store: Store
+    executor: Executor
+    scheduler: Scheduler
+
+    @classmethod
+    def open(cls, settings: Settings) -> "Farm":
+        """Connect to everything; the scheduler is built but not started."""
+        store = Store(settings.data_dir)
+        engine, sessions = open_ledger(settings)
+        try:
+            executor = make_executor(settings, store.scene_text)
+        except BaseException:
+            engine.dispose()
+            raise
+        return cls(settings, engine, sessions, store, executor,
+                   Scheduler(settings, sessions, store, executor))
+
+    def close(self) -> None:
+        self.scheduler.stop()
+        self.executor.close()
+        self.engine.dispose()
+
+    def __enter__(self) -> "Farm":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,42 @@
+"""Assembles the FastAPI app; nothing else lives here.
+
+    app = create_app(Settings(data_dir="/tmp/farm"))
+    uvicorn.run(app)
+"""
+
+from __future__ import annotations
+
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from starlette.concurrency import run_in_threadpool
+
+from .api.errors import install_error_handlers
+from .api.routes import dashboard, health, jobs, methods, scenes
+from .farm import Farm
+from .settings import Settings
+
+__all__ = ["create_app"]
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The rayfarm HTTP service; its lifespan opens the farm and runs the scheduler."""
+    settings = settings if settings is not None else Settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        farm = await run_in_threadpool(Farm.open, settings)  # the local pool warms up
+        app.state.farm = farm
+        farm.scheduler.start()
+        try:
+            yield
+        finally:
+            await run_in_threadpool(farm.close)
+
+    app = FastAPI(title="rayfarm", version="0.1.0", lifespan=lifespan,
+                  description="A render farm: submit render jobs, follow them, fetch the EXR.")
+    app.state.settings = settings
+    install_error_handlers(app)
+    for module in (jobs, scenes, methods, health, dashboard):
+        app.include_router(module.router)
+    return app

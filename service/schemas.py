@@ -1,0 +1,112 @@
+"""The API's schema families: `JobCreate` in, `Job` stored (models), `JobPublic` out.
+
+Bounds and allowed names shown in the OpenAPI schema are read from the
+renderer (`BOUNDS`, `METHODS`, `SAMPLERS`); the checks themselves are the
+renderer's (`RenderSpec.validate`), so the API and the CLI refuse the same
+things with the same words.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, StrictInt
+
+from renderer import BOUNDS, METHODS, SAMPLERS, RenderSpec
+
+from .models import Job
+
+__all__ = ["JobCreate", "JobPublic", "Progress", "ScenePublic"]
+
+_DEFAULTS = RenderSpec()
+
+
+def _bounded(name: str, description: str):
+    lo, hi = BOUNDS[name]
+    # Documented here, enforced by RenderSpec.validate (one set of words for every client).
+    return Annotated[StrictInt, Field(description=f"{description} ({lo}..{hi})",
+                                      json_schema_extra={"minimum": lo, "maximum": hi})]
+
+
+class JobCreate(BaseModel):
+    """A render request: `POST /jobs`."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"scene": "cornell-box", "method": "path", "spp": 16, "depth": 5, "tile_size": 32,
+         "seed": 0, "width": 128, "height": 128}]})
+
+    scene: str | dict[str, Any] = Field(
+        description="a built-in scene name (GET /scenes) or an inline scene document")
+    method: str = Field(description="rendering method (GET /methods)",
+                        json_schema_extra={"enum": list(METHODS)})
+    spp: _bounded("spp", "samples per pixel")
+    depth: _bounded("depth", "maximum path depth")
+    tile_size: _bounded("tile_size", "side of a work unit's tile in pixels") = _DEFAULTS.tile_size
+    seed: _bounded("seed", "random seed; same seed, same pixels") = _DEFAULTS.seed
+    sampler: str = Field(_DEFAULTS.sampler, description="pixel sampler",
+                         json_schema_extra={"enum": list(SAMPLERS)})
+    width: _bounded("width", "image width; default: the scene camera's") | None = None
+    height: _bounded("height", "image height; default: the scene camera's") | None = None
+    options: dict[str, Any] = Field(default_factory=dict,
+                                    description="method options (GET /methods lists them)")
+
+
+class Progress(BaseModel):
+    units_done: int
+    units_total: int
+    fraction: float
+
+
+class JobPublic(BaseModel):
+    """A job as the API shows it."""
+
+    id: str
+    status: str
+    scene: str
+    scene_hash: str
+    method: str
+    spp: int
+    depth: int
+    tile_size: int
+    seed: int
+    sampler: str
+    width: int
+    height: int
+    options: dict[str, Any]
+    progress: Progress
+    created: datetime
+    started: datetime | None
+    finished: datetime | None
+    seconds: float | None = Field(description="from start to finish (or until now)")
+    error: str | None
+    samples: int
+    rays: int
+    result_url: str | None
+    preview_url: str | None
+
+    @classmethod
+    def from_job(cls, job: Job, now: datetime) -> "JobPublic":
+        spec = job.spec
+        seconds = None
+        if job.started is not None:
+            seconds = ((job.finished or now) - job.started).total_seconds()
+        done = job.status == "done"
+        return cls(
+            id=job.id, status=job.status, scene=job.scene, scene_hash=job.scene_hash,
+            method=spec["method"], spp=spec["spp"], depth=spec["depth"],
+            tile_size=spec["tile_size"], seed=spec["seed"], sampler=spec["sampler"],
+            width=job.width, height=job.height, options=spec.get("options", {}),
+            progress=Progress(units_done=job.units_done, units_total=job.units_total,
+                              fraction=job.units_done / job.units_total if job.units_total else 0.0),
+            created=job.created, started=job.started, finished=job.finished, seconds=seconds,
+            error=job.error, samples=job.samples, rays=job.rays,
+            result_url=f"/jobs/{job.id}/result.exr" if done else None,
+            preview_url=f"/jobs/{job.id}/preview.png" if done else None)
+
+
+class ScenePublic(BaseModel):
+    name: str
+    description: str
+    width: int
+    height: int

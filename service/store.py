@@ -1,0 +1,83 @@
+"""The data directory: scenes by hash, unit films, finished images.
+
+    <data_dir>/store/scenes/<hash>.json        canonical scene text
+    <data_dir>/jobs/<job_id>/units/<i>.film    a unit's PartialFilm bytes
+    <data_dir>/jobs/<job_id>/result.exr        the merged image
+    <data_dir>/jobs/<job_id>/preview.png       its tonemapped preview
+
+Every write is atomic (temporary file + rename), so a reader sees a whole
+file or none. Paths are built only from validated ids, so nothing is ever
+written outside the data directory.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from pathlib import Path
+
+__all__ = ["Store"]
+
+_HASH = re.compile(r"[0-9a-f]{64}")
+_JOB_ID = re.compile(r"[0-9a-f]{6,32}")
+
+
+def _check(pattern: re.Pattern, value: str, what: str) -> str:
+    if not isinstance(value, str) or not pattern.fullmatch(value):
+        raise ValueError(f"not a valid {what}: {value!r}")
+    return value
+
+
+class Store:
+    """Files of the farm under one root directory."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root).resolve()
+        (self.root / "store" / "scenes").mkdir(parents=True, exist_ok=True)
+        (self.root / "jobs").mkdir(parents=True, exist_ok=True)
+
+    # -- paths ---------------------------------------------------------------
+    def scene_path(self, scene_hash: str) -> Path:
+        return self.root / "store" / "scenes" / f"{_check(_HASH, scene_hash, 'scene hash')}.json"
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.root / "jobs" / _check(_JOB_ID, job_id, "job id")
+
+    def unit_path(self, job_id: str, index: int) -> Path:
+        return self.job_dir(job_id) / "units" / f"{int(index)}.film"
+
+    def result_path(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "result.exr"
+
+    def preview_path(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "preview.png"
+
+    # -- reads and atomic writes ----------------------------------------------
+    def put_scene(self, scene_hash: str, text: str) -> None:
+        path = self.scene_path(scene_hash)
+        if not path.exists():  # content-addressed: an existing file is the same text
+            self._write_atomic(path, text.encode())
+
+    def scene_text(self, scene_hash: str) -> str:
+        return self.scene_path(scene_hash).read_text()
+
+    def put_unit_film(self, job_id: str, index: int, film: bytes) -> None:
+        self._write_atomic(self.unit_path(job_id, index), film)
+
+    def unit_film(self, job_id: str, index: int) -> bytes:
+        return self.unit_path(job_id, index).read_bytes()
+
+    @staticmethod
+    def _write_atomic(path: Path, data: bytes) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise

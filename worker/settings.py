@@ -1,0 +1,57 @@
+"""The one settings class of rayfarm, shared by the service and the worker.
+
+Read from the environment with the prefix ``RAYFARM_`` (``RAYFARM_BROKER_URL``,
+``RAYFARM_DATA_DIR``, ...). Nothing builds it at import time: the CLI and the
+tests construct it and hand it down::
+
+    settings = Settings(data_dir="/tmp/farm", broker_url="redis://localhost:6379/0")
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from renderer import DEFAULT_MAX_WORK
+
+__all__ = ["Settings"]
+
+
+class Settings(BaseSettings):
+    """Configuration of a rayfarm deployment (service and workers)."""
+
+    model_config = SettingsConfigDict(env_prefix="RAYFARM_", extra="ignore")
+
+    broker_url: str = Field(
+        "", description="Redis URL of the Celery broker and result backend; "
+                        "empty = run units on the service's embedded process pool")
+    database_url: str = Field(
+        "", description="SQLAlchemy URL of the job ledger; empty = SQLite file in data_dir")
+    data_dir: Path = Field(Path("./rayfarm-data"),
+                           description="where scenes, unit films and results are stored")
+    max_work: int = Field(DEFAULT_MAX_WORK, gt=0,
+                          description="largest accepted job: width x height x spp")
+    max_units: int = Field(65536, gt=0, description="largest accepted number of work units")
+    unit_lease_seconds: float = Field(
+        60.0, gt=0, description="a started unit whose heartbeat is absent this long, or a "
+                                "queued unit missing from an empty queue this long, is "
+                                "enqueued again")
+    max_attempts: int = Field(3, ge=1, description="attempts of a failing unit before its job fails")
+    local_workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1,
+                               description="processes of the embedded pool")
+    poll_interval: float = Field(0.2, gt=0, description="seconds between scheduler ticks")
+
+    @field_validator("broker_url", "database_url")
+    @classmethod
+    def _strip(cls, value: str) -> str:
+        return value.strip()
+
+    @property
+    def sqlalchemy_url(self) -> str:
+        """The ledger's URL: `database_url`, or SQLite at ``<data_dir>/rayfarm.sqlite3``."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'rayfarm.sqlite3').resolve()}"

@@ -1,0 +1,111 @@
+"""The farm's one task: render a work unit.
+
+The task takes ids and parameters only; the scene's canonical text travels by
+content hash (`rayfarm:scene:<hash>` in Redis, read only when this process
+has not built that scene yet). It returns the partial film's bytes, base64
+encoded for the JSON result backend, and the worker's name. While it runs, a
+heartbeat key with a TTL of one lease tells the service the unit is alive.
+"""
+
+from __future__ import annotations
+
+import base64
+import logging
+import os
+import threading
+from typing import Any
+
+import redis
+from celery import Celery
+
+from renderer import execute_unit
+
+from .keys import TASK_RENDER_UNIT, cancel_key, heartbeat_key, scene_key
+
+__all__ = ["register_tasks", "render_unit", "Heartbeat", "SceneUnavailable"]
+
+log = logging.getLogger(__name__)
+
+
+class SceneUnavailable(RuntimeError):
+    """The scene's text is not in Redis (expired, or Redis lost it)."""
+
+
+class Heartbeat:
+    """Keep `key` alive (value `value`, TTL `ttl` seconds) while the block runs.
+
+    >>> with Heartbeat(client, "rayfarm:hb:abc:3", ttl=60, value="worker-1"):
+    ...     render()
+    """
+
+    def __init__(self, client: redis.Redis, key: str, ttl: float, value: str):
+        self.client, self.key, self.value = client, key, value
+        self.ttl_ms = max(int(ttl * 1000), 1000)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name="rayfarm-heartbeat", daemon=True)
+
+    def _set(self) -> None:
+        try:
+            self.client.set(self.key, self.value, px=self.ttl_ms)
+        except redis.RedisError as exc:  # the render goes on; the lease may run out
+            log.warning("heartbeat %s not refreshed: %s", self.key, exc)
+
+    def _beat(self) -> None:
+        # Three refreshes per lease, so one slow round trip never lets it lapse.
+        while not self._stop.wait(self.ttl_ms / 3000):
+            self._set()
+
+    def __enter__(self) -> "Heartbeat":
+        self._set()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        try:
+            self.client.delete(self.key)
+        except redis.RedisError:
+            pass
+
+
+_clients: dict[tuple[int, str], redis.Redis] = {}
+
+
+def _redis(url: str) -> redis.Redis:
+    """One client per process (prefork children must not share sockets)."""
+    key = (os.getpid(), url)
+    if key not in _clients:
+        _clients[key] = redis.Redis.from_url(url)
+    return _clients[key]
+
+
+def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> dict[str, Any]:
+    """Run one unit described by `payload` and return ``{"film": b64, "worker": name}``.
+
+    `payload`: ``job_id``, ``index``, ``scene_hash``, ``spec`` (a RenderSpec
+    dict), ``unit`` (a Unit dict) and ``lease_seconds`` (the heartbeat's TTL).
+    """
+    job_id, index, scene = payload["job_id"], int(payload["index"]), payload["scene_hash"]
+    if client.exists(cancel_key(job_id)):
+        return {"canceled": True, "worker": worker}
+
+    def load_scene_text() -> str:
+        text = client.get(scene_key(scene))
+        if text is None:
+            raise SceneUnavailable(f"scene {scene[:12]} is not in the broker")
+        return text.decode()
+
+    with Heartbeat(client, heartbeat_key(job_id, index), float(payload["lease_seconds"]), worker):
+        film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"])
+    return {"film": base64.b64encode(film).decode("ascii"), "worker": worker}
+
+
+def register_tasks(app: Celery) -> None:
+    """Register the farm's task on `app` under its public name."""
+
+    @app.task(name=TASK_RENDER_UNIT, bind=True)
+    def _render_unit_task(self, payload: dict[str, Any]) -> dict[str, Any]:
+        client = _redis(self.app.conf.broker_url)
+        worker = self.request.hostname or f"pid-{os.getpid()}"
+        return render_unit(client, worker, payload)
