@@ -61,6 +61,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
     eta_scale = 1.0
     specular = True  # the camera is a delta "lobe" too: count emission in full
     prev_pdf = 0.0
+    vx, vy, vz = ox, oy, oz  # the previous path vertex, on its surface (not offset)
     rays = 0
     n_lights = sc.light_type.shape[0]
     # unpacked once: see geometry.py on passing SceneArrays into hot calls
@@ -81,7 +82,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
         if light >= 0 and cos_o > 0.0:
             w = 1.0
             if not specular:
-                pl = light_pdf(sc, light, prim, ox, oy, oz, hx, hy, hz, cos_o)
+                pl = light_pdf(sc, light, prim, vx, vy, vz, hx, hy, hz, cos_o)
                 w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pl * pl)
             lr += br * w * sc.light_rgb[light, 0]
             lg += bg * w * sc.light_rgb[light, 1]
@@ -121,6 +122,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
             bb *= ab
             prev_pdf = pdf
             specular = False
+            vx, vy, vz = hx, hy, hz
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
             dx, dy, dz = wx, wy, wz
         elif mtype == MAT_MIRROR:

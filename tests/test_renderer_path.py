@@ -1,0 +1,134 @@
+"""The path tracer against answers known in closed form, and its invariances.
+
+Tolerances are z-tests: |estimate - truth| <= Z * standard error, where the
+standard error comes from the film's own per-pixel variance channels
+(pixels use independent random numbers, so the variance of the image mean is
+the sum of the pixels' variances of the mean over pixels^2). Z = 4.5 gives a
+two-sided false-alarm rate of 7e-6 per check; the seeds are fixed, so a run
+is repeatable. Where an estimator has zero variance (e.g. the first bounces
+of the point-light furnace) the check is exact up to float rounding.
+"""
+
+import numpy as np
+import pytest
+
+from renderer import RenderSpec, load_scene, merge, plan, render, run_unit
+
+Z = 4.5
+CORNELL_LIGHT = (18.387, 13.9873, 6.75357)
+
+
+def render_inline(scene, spec):
+    """plan -> run every unit in this process -> merge, in unit order."""
+    return merge(spec.width, spec.height, [run_unit(scene, spec, u) for u in plan(spec)])
+
+
+def image_mean_and_stderr(film, channel=0):
+    mean = film.mean()[..., channel]
+    var = film.variance_of_mean()[..., channel]
+    return mean.mean(), np.sqrt(var.sum()) / mean.size
+
+
+@pytest.fixture(scope="module")
+def furnace_point():
+    return load_scene("furnace-point")
+
+
+@pytest.fixture(scope="module")
+def furnace_emitter():
+    return load_scene("furnace-emitter")
+
+
+@pytest.fixture(scope="module")
+def cornell():
+    return load_scene("cornell-box")
+
+
+@pytest.mark.parametrize("depth", [0, 1, 2, 3, 5, 8])
+def test01_furnace_point_light_mean_is_one_minus_half_to_the_depth(furnace_point, depth):
+    spec = RenderSpec(spp=256, depth=depth, width=16, height=16, tile_size=16, seed=11)
+    film = render_inline(furnace_point, spec)
+    mean, stderr = image_mean_and_stderr(film)
+    expected = 1.0 - 0.5 ** depth
+    assert abs(mean - expected) <= Z * stderr + 1e-12, (mean, expected, stderr)
+    if depth <= 2:  # NEE to a point light from cosine-sampled bounces: no variance at all
+        assert np.allclose(film.mean(), expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("depth", [0, 1, 2, 4, 8])
+def test02_furnace_emitter_mean_is_one_minus_half_to_the_depth_plus_one(furnace_emitter, depth):
+    spec = RenderSpec(spp=256, depth=depth, width=16, height=16, tile_size=16, seed=12)
+    film = render_inline(furnace_emitter, spec)
+    for c in range(3):
+        mean, stderr = image_mean_and_stderr(film, c)
+        expected = 1.0 - 0.5 ** (depth + 1)
+        assert abs(mean - expected) <= Z * stderr + 1e-12, (c, mean, expected, stderr)
+
+
+def test03_furnace_standard_error_is_honest(furnace_emitter):
+    """The var channels predict the spread of independent renders: eight seeds'
+    image means scatter as the films' own standard errors say."""
+    means, errs = [], []
+    for seed in range(8):
+        film = render_inline(furnace_emitter, RenderSpec(spp=64, depth=4, width=16, height=16,
+                                                         tile_size=16, seed=100 + seed))
+        m, e = image_mean_and_stderr(film)
+        means.append(m)
+        errs.append(e)
+    observed = np.std(means, ddof=1)
+    predicted = np.sqrt(np.mean(np.square(errs)))
+    # the sample std of 8 normals lies within [0.35, 1.75] x sigma with prob > 0.998
+    assert 0.35 * predicted <= observed <= 1.75 * predicted, (observed, predicted)
+
+
+def test04_cornell_light_pixel_equals_emitter_radiance_at_depth_0(cornell):
+    spec = RenderSpec(spp=16, depth=0, width=256, height=256, tile_size=32, seed=3)
+    unit = next(u for u in plan(spec) if u.x0 <= 128 < u.x1 and u.y0 <= 36 < u.y1)
+    film = merge(256, 256, [run_unit(cornell, spec, unit)])
+    assert tuple(film.mean()[36, 128]) == pytest.approx(CORNELL_LIGHT, rel=1e-12)
+    assert np.allclose(film.variance_of_mean()[36, 128], 0, atol=1e-12)
+    # at depth 0 nothing but the emitter shows: the tile's pixels below the light are black
+    assert np.all(film.mean()[unit.y1 - 1, unit.x0:unit.x1] == 0)
+
+
+def test05_tiling_invariance_is_bit_exact(cornell):
+    base = dict(spp=5, depth=4, width=48, height=40, seed=7)
+    a = render_inline(cornell, RenderSpec(tile_size=16, **base))
+    b = render_inline(cornell, RenderSpec(tile_size=64, **base))
+    c = render_inline(cornell, RenderSpec(tile_size=7, **base))
+    for other in (b, c):
+        assert np.array_equal(a.sum, other.sum)
+        assert np.array_equal(a.sum_sq, other.sum_sq)
+        assert np.array_equal(a.weight, other.weight)
+    assert a.mean().max() > 0
+
+
+def test06_progressive_passes_merge_to_the_same_bits(cornell):
+    spec = RenderSpec(spp=11, depth=3, width=24, height=24, tile_size=8, seed=5)
+    whole = render_inline(cornell, spec)
+    passes = merge(24, 24, [run_unit(cornell, spec, u) for u in plan(spec, progressive=True)])
+    assert len(plan(spec, progressive=True)) > len(plan(spec))
+    assert np.array_equal(whole.sum, passes.sum)
+    assert np.array_equal(whole.sum_sq, passes.sum_sq)
+
+
+def test07_local_process_pool_equals_inline(cornell):
+    spec = RenderSpec(spp=4, depth=3, width=32, height=32, tile_size=16, seed=9)
+    pooled = render("cornell-box", spec, workers=2)
+    assert np.array_equal(pooled.sum, render_inline(cornell, spec).sum)
+
+
+def test08_seed_changes_the_noise_not_the_mean(cornell):
+    a = render_inline(cornell, RenderSpec(spp=4, depth=2, width=16, height=16, tile_size=16, seed=1))
+    b = render_inline(cornell, RenderSpec(spp=4, depth=2, width=16, height=16, tile_size=16, seed=2))
+    assert not np.array_equal(a.sum, b.sum)
+
+
+def test09_cornell_is_lit_like_the_scene_says(cornell):
+    """Coarse sanity of the layout at depth 1: red wall on the left, green on
+    the right, row 0 at the top (the light's rows are bright)."""
+    spec = RenderSpec(spp=16, depth=1, width=32, height=32, tile_size=32, seed=4)
+    img = render_inline(cornell, spec).mean()
+    left, right = img[16, 1], img[16, 30]
+    assert left[0] > 3 * left[1] and right[1] > 2 * right[0]
+    assert img[4:6, 14:18].mean() > img[26:28, 14:18].mean()
