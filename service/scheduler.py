@@ -105,10 +105,9 @@ class Scheduler:
         if not self._tracked:
             return
         with self.sessions() as session:
-            live = set(session.execute(
+            live = {(job_id, index) for job_id, index in session.execute(
                 select(WorkUnit.job_id, WorkUnit.index).join(Job, Job.id == WorkUnit.job_id)
-                .where(WorkUnit.state.in_(states.IN_FLIGHT), Job.status.in_(states.ACTIVE_JOB)))
-                .tuples())
+                .where(WorkUnit.state.in_(states.IN_FLIGHT), Job.status.in_(states.ACTIVE_JOB)))}
         for key in [k for k in self._tracked if k not in live]:
             self.executor.cancel(key[0], self._tracked.pop(key))
 

@@ -1,0 +1,242 @@
+"""Shared fixtures of the service and farm tests: real parts, tiny renders.
+
+- `local_client`: one embedded-mode service (FastAPI + scheduler + local
+  process pool) for the whole session; Numba kernels load once per process.
+- `redis_url`: the real Redis at 127.0.0.1:6379, database 15, flushed per test.
+- `spawn_worker` / `spawn_serve`: `rayfarm worker` / `rayfarm serve` as child
+  processes in their own process groups, killed (the whole group) afterwards.
+- `reference_channels`: an undisturbed render of a job body, in this process.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+FARM_REDIS_DB = 15
+TINY = {"scene": "cornell-box", "method": "path", "spp": 4, "depth": 3, "tile_size": 8,
+        "seed": 7, "width": 32, "height": 32}
+
+
+def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.05):
+    """Poll `predicate` until it returns something truthy; fail after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(interval)
+
+
+def rayfarm_command() -> list[str]:
+    """The `rayfarm` console script of this interpreter's environment."""
+    script = Path(sys.executable).parent / "rayfarm"
+    if script.exists():
+        return [str(script)]
+    found = shutil.which("rayfarm")
+    if found is None:
+        pytest.fail("the rayfarm console script is not installed (pip install -e .)")
+    return [found]
+
+
+def poll_job(get_json: Callable[[str], dict], job_id: str, timeout: float = 120.0) -> dict:
+    """Poll GET /jobs/{id} until the job is final; returns it."""
+    def final():
+        job = get_json(f"/jobs/{job_id}")
+        return job if job["status"] in ("done", "failed", "canceled") else None
+    return wait_for(final, timeout, f"job {job_id} to finish")
+
+
+def channels_of(exr_path: Path) -> dict[str, np.ndarray]:
+    from renderer import read_exr
+
+    channels, _header = read_exr(exr_path)
+    return channels
+
+
+def assert_bit_identical(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> None:
+    for name in ("R", "G", "B", "var.R", "var.G", "var.B"):
+        assert a[name].dtype == b[name].dtype and a[name].shape == b[name].shape, name
+        assert a[name].tobytes() == b[name].tobytes(), f"channel {name} differs"
+
+
+# -- the embedded service ---------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def local_settings(tmp_path_factory):
+    from service.settings import Settings
+
+    return Settings(data_dir=tmp_path_factory.mktemp("local-farm"), broker_url="",
+                    database_url="", local_workers=2, poll_interval=0.05)
+
+
+@pytest.fixture(scope="session")
+def local_client(local_settings):
+    from fastapi.testclient import TestClient
+
+    from service.main import create_app
+
+    with TestClient(create_app(local_settings)) as client:
+        yield client
+
+
+# -- reference renders ---------------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def reference_channels(tmp_path_factory):
+    """Render a job body undisturbed, in this process, through plan -> units ->
+    merge; returns its EXR channels as read back from disk."""
+    from renderer import RenderSpec, merge, plan, resolve_document, run_unit, build_scene
+
+    cache: dict[str, dict] = {}
+    out_dir = tmp_path_factory.mktemp("reference")
+
+    def render(body: dict) -> dict[str, np.ndarray]:
+        key = repr(sorted(body.items()))
+        if key not in cache:
+            doc = resolve_document(body["scene"], allow_files=False)
+            spec = RenderSpec(method=body["method"], spp=body["spp"], depth=body["depth"],
+                              width=body.get("width", doc["camera"]["width"]),
+                              height=body.get("height", doc["camera"]["height"]),
+                              tile_size=body.get("tile_size", 64), seed=body.get("seed", 0),
+                              sampler=body.get("sampler", "random")).validate()
+            scene = build_scene(doc)
+            film = merge(spec.width, spec.height,
+                         [run_unit(scene, spec, u) for u in plan(spec)])
+            path = out_dir / f"ref-{len(cache)}.exr"
+            film.write_exr(path)
+            cache[key] = channels_of(path)
+        return cache[key]
+
+    return render
+
+
+# -- the real farm: Redis and child processes ---------------------------------------------
+
+@pytest.fixture
+def redis_url():
+    import redis
+
+    url = f"redis://127.0.0.1:6379/{FARM_REDIS_DB}"
+    client = redis.Redis.from_url(url)
+    try:
+        client.ping()
+    except redis.RedisError as exc:
+        pytest.skip(f"no Redis at 127.0.0.1:6379 ({exc})")
+    client.flushdb()
+    yield url
+    client.flushdb()
+    client.close()
+
+
+class Child:
+    """A child process in its own process group, with its output in a log file."""
+
+    def __init__(self, args: list[str], env: dict, log_path: Path):
+        self.log_path = log_path
+        self._log = open(log_path, "wb")
+        self.proc = subprocess.Popen(args, env=env, stdout=self._log, stderr=subprocess.STDOUT,
+                                     start_new_session=True, cwd=ROOT)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def kill_group(self, sig: int = signal.SIGKILL) -> None:
+        """Signal the whole process group (a prefork worker and its children)."""
+        try:
+            os.killpg(self.proc.pid, sig)
+        except ProcessLookupError:
+            pass
+
+    def stop(self, timeout: float = 20.0) -> None:
+        if self.proc.poll() is None:
+            self.kill_group(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                pass
+        self.kill_group(signal.SIGKILL)  # stragglers of the group, if any
+        try:
+            self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            pass
+        self._log.close()
+
+
+def farm_env(redis_url: str, **extra: str) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
+    env.update({"RAYFARM_BROKER_URL": redis_url, "PYTHONUNBUFFERED": "1", **extra})
+    return env
+
+
+@pytest.fixture
+def spawn_worker(redis_url, tmp_path):
+    """Start `rayfarm worker` processes; each is stopped (whole group) at teardown."""
+    children: list[Child] = []
+
+    def spawn(concurrency: int = 2, **env: str) -> Child:
+        log = tmp_path / f"worker-{len(children)}.log"
+        child = Child([*rayfarm_command(), "worker", "--concurrency", str(concurrency),
+                       "--loglevel", "info"], farm_env(redis_url, **env), log)
+        children.append(child)
+        wait_for(lambda: " ready." in child.log() or child.proc.poll() is not None, 60,
+                 "the worker to be ready")
+        assert child.proc.poll() is None, f"worker exited:\n{child.log()}"
+        return child
+
+    yield spawn
+    for child in children:
+        child.stop()
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.fixture
+def spawn_serve(redis_url, tmp_path):
+    """Start `rayfarm serve` on a free port; returns (child, base_url)."""
+    import httpx
+
+    children: list[Child] = []
+
+    def spawn(**env: str) -> tuple[Child, str]:
+        port = free_port()
+        child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
+                      farm_env(redis_url, RAYFARM_DATA_DIR=str(tmp_path / "serve-data"), **env),
+                      tmp_path / f"serve-{len(children)}.log")
+        children.append(child)
+        base = f"http://127.0.0.1:{port}"
+
+        def healthy():
+            if child.proc.poll() is not None:
+                pytest.fail(f"rayfarm serve exited:\n{child.log()}")
+            try:
+                return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+        wait_for(healthy, 60, "rayfarm serve to be healthy", interval=0.2)
+        return child, base
+
+    yield spawn
+    for child in children:
+        child.stop()

@@ -1,0 +1,222 @@
+"""The HTTP API in embedded mode (local process pool, SQLite): real parts."""
+
+from __future__ import annotations
+
+import copy
+import io
+
+import pytest
+from PIL import Image
+
+from renderer import BOUNDS, METHODS, SAMPLERS, builtin_scene_names, resolve_document
+
+from conftest import TINY, assert_bit_identical, channels_of, poll_job
+
+
+def submit(client, body: dict) -> dict:
+    response = client.post("/jobs", json=body)
+    assert response.status_code == 201, response.text
+    assert response.headers["location"] == f"/jobs/{response.json()['id']}"
+    return response.json()
+
+
+def get_json(client):
+    def get(path: str) -> dict:
+        response = client.get(path)
+        assert response.status_code == 200, response.text
+        return response.json()
+    return get
+
+
+def assert_422(response, field: str, *words: str) -> str:
+    """422 in FastAPI's shape, naming `field` in loc and message, with `words`."""
+    assert response.status_code == 422, response.text
+    detail = response.json()["detail"]
+    assert isinstance(detail, list) and detail, detail
+    loc, msg = detail[0]["loc"], detail[0]["msg"]
+    assert field.split(".")[0] in loc, (loc, msg)
+    for word in words:
+        assert word in msg, (word, msg)
+    return msg
+
+
+def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_channels):
+    job = submit(local_client, TINY)
+    assert job["status"] == "queued" and job["width"] == 32 and job["method"] == "path"
+    job = poll_job(get_json(local_client), job["id"])
+    assert job["status"] == "done", job
+    assert job["progress"] == {"units_done": 16, "units_total": 16, "fraction": 1.0}
+    assert job["samples"] == 32 * 32 * 4
+    assert job["started"] and job["finished"] and job["seconds"] >= 0
+    response = local_client.get(job["result_url"])
+    assert response.status_code == 200 and response.headers["content-type"] == "image/x-exr"
+    exr = tmp_path / "result.exr"
+    exr.write_bytes(response.content)
+    from renderer import read_exr
+
+    channels, header = read_exr(exr)
+    assert {"R", "G", "B", "var.R", "var.G", "var.B"} <= set(channels)
+    assert channels["R"].shape == (32, 32)
+    assert header["rayfarm.job_id"] == job["id"]
+    assert header["rayfarm.scene"] == "cornell-box"
+    assert header["rayfarm.spp"] == "4" and header["rayfarm.tile_size"] == "8"
+    assert header["rayfarm.scene_hash"] == job["scene_hash"]
+    # The farm's merge of stored unit films is the renderer's own render, bit for bit.
+    assert_bit_identical(channels, reference_channels(TINY))
+    png = local_client.get(job["preview_url"])
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert Image.open(io.BytesIO(png.content)).size == (32, 32)
+
+
+def test02_width_and_height_default_to_the_scene_camera(local_client):
+    body = {k: v for k, v in TINY.items() if k not in ("width", "height")}
+    job = submit(local_client, body)
+    camera = resolve_document("cornell-box")["camera"]
+    assert (job["width"], job["height"]) == (camera["width"], camera["height"])
+    assert local_client.delete(f"/jobs/{job['id']}").json()["status"] == "canceled"
+
+
+def test03_results_are_404_until_done_and_cancel_is_409_after(local_client):
+    body = dict(TINY, width=256, height=256, spp=64, tile_size=16)
+    job = submit(local_client, body)
+    for kind in ("result.exr", "preview.png"):
+        response = local_client.get(f"/jobs/{job['id']}/{kind}")
+        assert response.status_code == 404 and "exists once it is done" in response.json()["detail"]
+    canceled = local_client.delete(f"/jobs/{job['id']}")
+    assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
+    assert canceled.json()["finished"] is not None
+    again = local_client.delete(f"/jobs/{job['id']}")
+    assert again.status_code == 409 and "canceled" in again.json()["detail"]
+    assert local_client.get(f"/jobs/{job['id']}/result.exr").status_code == 404
+
+
+def test04_unknown_job_is_404(local_client):
+    assert local_client.get("/jobs/0123456789ab").status_code == 404
+    assert local_client.delete("/jobs/0123456789ab").status_code == 404
+    assert local_client.get("/jobs/../../etc/passwd/result.exr").status_code == 404
+
+
+def _bound_cases():
+    for name, (lo, hi) in BOUNDS.items():
+        yield pytest.param(name, lo - 1, (str(lo), str(hi)), id=f"{name}-below")
+        if name != "seed":
+            yield pytest.param(name, hi + 1, (str(lo), str(hi)), id=f"{name}-above")
+
+
+@pytest.mark.parametrize("field,value,words", list(_bound_cases()))
+def test05_out_of_bounds_fields_are_422_naming_field_and_bounds(local_client, field, value, words):
+    response = local_client.post("/jobs", json=dict(TINY, **{field: value}))
+    assert_422(response, field, field, *words)
+
+
+@pytest.mark.parametrize("field,registry", [
+    ("scene", builtin_scene_names()), ("method", list(METHODS)), ("sampler", list(SAMPLERS))])
+def test06_unknown_names_are_422_listing_the_allowed_ones(local_client, field, registry):
+    response = local_client.post("/jobs", json=dict(TINY, **{field: "no-such-thing"}))
+    msg = assert_422(response, field, field, "no-such-thing", "allowed")
+    for name in registry:
+        assert name in msg
+
+
+def test07_work_above_max_work_is_422(local_client, local_settings):
+    spp = BOUNDS["spp"][1]
+    body = dict(TINY, width=256, height=256, spp=spp)
+    assert 256 * 256 * spp > local_settings.max_work
+    assert_422(local_client.post("/jobs", json=body), "spp", str(local_settings.max_work))
+
+
+def test08_too_many_units_is_422_on_tile_size(local_client):
+    body = dict(TINY, width=8192, height=8192, spp=1, tile_size=4)
+    assert_422(local_client.post("/jobs", json=body), "tile_size", "tile_size", "65536")
+
+
+@pytest.mark.parametrize("body,field", [
+    ({"spp": "4"}, "spp"),                   # strings are not integers
+    ({"depth": 2.5}, "depth"),
+    ({"options": {"no_such_option": 1}}, "options"),
+    ({"colour": "red"}, "colour"),           # unknown request fields are refused
+    ({"scene": 42}, "scene"),
+])
+def test09_wrong_types_and_unknown_fields_are_422(local_client, body, field):
+    response = local_client.post("/jobs", json=dict(TINY, **body))
+    assert response.status_code == 422, response.text
+    assert any(field in map(str, d["loc"]) for d in response.json()["detail"]), response.json()
+
+
+def _inline(mutate) -> dict:
+    doc = copy.deepcopy(resolve_document("cornell-box"))
+    mutate(doc)
+    return doc
+
+
+@pytest.mark.parametrize("mutate,location", [
+    (lambda d: d["shapes"][2].__setitem__("material", "gold"), "shapes[2].material"),
+    (lambda d: d["shapes"][0].__setitem__("to_world", [[0] * 4] * 4), "shapes[0].to_world"),
+    (lambda d: d["camera"].__setitem__("fov", 500), "camera.fov"),
+    (lambda d: d["materials"]["red"].__setitem__("albedo", [2, 0, 0]), "materials.red.albedo"),
+    (lambda d: d.__setitem__("shapes", "many"), "shapes"),
+    (lambda d: d["shapes"][1].__setitem__("type", "torus"), "shapes[1].type"),
+])
+def test10_malformed_inline_scene_is_422_naming_the_location(local_client, mutate, location):
+    response = local_client.post("/jobs", json=dict(TINY, scene=_inline(mutate)))
+    msg = assert_422(response, "scene", f"scene.{location}")
+    assert response.json()["detail"][0]["loc"] == ["body", "scene", location]
+    assert msg
+
+
+def test11_inline_scene_renders_like_the_builtin(local_client, tmp_path):
+    body = dict(TINY, scene=_inline(lambda d: d.__setitem__("name", "my-box")))
+    job = submit(local_client, body)
+    assert job["scene"] == "inline:my-box"
+    job = poll_job(get_json(local_client), job["id"])
+    assert job["status"] == "done", job
+    (tmp_path / "a.exr").write_bytes(local_client.get(job["result_url"]).content)
+    builtin = poll_job(get_json(local_client), submit(local_client, TINY)["id"])
+    (tmp_path / "b.exr").write_bytes(local_client.get(builtin["result_url"]).content)
+    # Only the name differs: same geometry, same pixels.
+    assert_bit_identical(channels_of(tmp_path / "a.exr"), channels_of(tmp_path / "b.exr"))
+
+
+def test12_service_stays_healthy_after_garbage(local_client):
+    garbage = [b"not json", b"[]", b"{}", b'{"scene": {"camera": [1]}}', b"null",
+               b'{"scene": {"shapes": [{"type": "mesh", "material": "x"}]}}']
+    for payload in garbage:
+        response = local_client.post("/jobs", content=payload,
+                                     headers={"content-type": "application/json"})
+        assert response.status_code == 422, (payload, response.text)
+    deep = {"camera": {"origin": [[[[]]]], "target": [0, 0, 0], "fov": 40}, "shapes": []}
+    assert local_client.post("/jobs", json=dict(TINY, scene=deep)).status_code == 422
+    health = local_client.get("/healthz")
+    assert health.status_code == 200 and health.json()["status"] == "ok"
+    assert health.json()["scheduler"] == "running" and health.json()["database"] == "ok"
+    job = poll_job(get_json(local_client), submit(local_client, TINY)["id"])
+    assert job["status"] == "done"
+
+
+def test13_list_jobs_newest_first_and_filter_by_status(local_client):
+    first = submit(local_client, TINY)
+    second = submit(local_client, TINY)
+    ids = [j["id"] for j in local_client.get("/jobs").json()]
+    assert ids.index(second["id"]) < ids.index(first["id"])
+    poll_job(get_json(local_client), second["id"])
+    poll_job(get_json(local_client), first["id"])
+    done = local_client.get("/jobs", params={"status": "done"}).json()
+    assert done and all(j["status"] == "done" for j in done)
+    assert_422(local_client.get("/jobs", params={"status": "sleeping"}), "status", "allowed")
+
+
+def test14_registries_scenes_docs_and_dashboard(local_client):
+    methods = local_client.get("/methods").json()
+    assert [m["name"] for m in methods] == [m.name for m in dict.fromkeys(METHODS.values())]
+    assert methods[0] == next(iter(METHODS.values())).describe()
+    assert [s["name"] for s in local_client.get("/samplers").json()] == list(SAMPLERS)
+    scenes = local_client.get("/scenes").json()
+    assert [s["name"] for s in scenes] == builtin_scene_names()
+    assert local_client.get("/docs").status_code == 200
+    schemas = local_client.get("/openapi.json").json()["components"]["schemas"]
+    assert {"JobCreate", "JobPublic"} <= set(schemas)
+    assert schemas["JobCreate"]["properties"]["spp"]["maximum"] == BOUNDS["spp"][1]
+    job = submit(local_client, TINY)
+    page = local_client.get("/")
+    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+    assert job["id"] in page.text and 'http-equiv="refresh"' in page.text

@@ -1,0 +1,110 @@
+"""The state machine of jobs and units (service/states.py), by transition."""
+
+from __future__ import annotations
+
+import itertools
+from datetime import datetime, timedelta, timezone
+
+import pytest
+
+from service import states
+from service.errors import Conflict, IllegalTransition
+from service.models import Job, WorkUnit
+
+T0 = datetime(2026, 1, 1, tzinfo=timezone.utc)
+T1 = T0 + timedelta(seconds=5)
+
+
+def make_job(status: str) -> Job:
+    return Job(id="abc123abc123", status=status, created=T0)
+
+
+def make_unit(state: str) -> WorkUnit:
+    return WorkUnit(job_id="abc123abc123", index=3, state=state, attempts=1, task_ids=[])
+
+
+def test01_the_tables_are_exactly_these():
+    # A change to the allowed transitions must be deliberate: it changes this test.
+    assert {k: set(v) for k, v in states.JOB_TRANSITIONS.items()} == {
+        "queued": {"running", "failed", "canceled"},
+        "running": {"done", "failed", "canceled"},
+        "done": set(), "failed": set(), "canceled": set()}
+    assert {k: set(v) for k, v in states.UNIT_TRANSITIONS.items()} == {
+        "pending": {"queued", "canceled"},
+        "queued": {"queued", "running", "done", "failed", "canceled"},
+        "running": {"queued", "done", "failed", "canceled"},
+        "done": set(), "failed": set(), "canceled": set()}
+
+
+@pytest.mark.parametrize("old,new", itertools.product(states.JOB_STATUSES, repeat=2))
+def test02_every_job_pair_is_allowed_exactly_when_the_table_says(old, new):
+    job = make_job(old)
+    if new in states.JOB_TRANSITIONS[old]:
+        states.change_job(job, new, T1)
+        assert job.status == new
+    else:
+        with pytest.raises(IllegalTransition) as info:
+            states.change_job(job, new, T1)
+        assert job.status == old, "a refused transition changes nothing"
+        assert f"'{old}'" in str(info.value) and f"'{new}'" in str(info.value)
+
+
+@pytest.mark.parametrize("old,new", itertools.product(states.UNIT_STATES, repeat=2))
+def test03_every_unit_pair_is_allowed_exactly_when_the_table_says(old, new):
+    unit = make_unit(old)
+    if new in states.UNIT_TRANSITIONS[old]:
+        states.change_unit(unit, new, T1)
+        assert unit.state == new
+    else:
+        with pytest.raises(IllegalTransition):
+            states.change_unit(unit, new, T1)
+        assert unit.state == old
+
+
+def test04_job_queued_to_running_sets_started():
+    job = make_job("queued")
+    states.change_job(job, "running", T1)
+    assert job.started == T1 and job.finished is None
+
+
+@pytest.mark.parametrize("final", ["done", "failed", "canceled"])
+def test05_job_running_to_final_sets_finished(final):
+    job = make_job("running")
+    states.change_job(job, final, T1, error="why" if final != "done" else None)
+    assert job.finished == T1
+    assert job.error == ("why" if final != "done" else None)
+
+
+def test06_job_done_to_canceled_is_a_conflict():
+    job = make_job("done")
+    with pytest.raises(Conflict, match="none, it is final"):
+        states.change_job(job, "canceled", T1)
+
+
+def test07_unit_queued_to_queued_is_a_new_enqueue():
+    unit = make_unit("running")
+    unit.started_at = T0
+    states.change_unit(unit, "queued", T1)
+    assert unit.enqueued_at == T1 and unit.started_at is None
+    states.change_unit(unit, "queued", T1 + timedelta(seconds=1))
+    assert unit.enqueued_at == T1 + timedelta(seconds=1)
+
+
+def test08_unit_queued_to_running_sets_started_at():
+    unit = make_unit("queued")
+    states.change_unit(unit, "running", T1)
+    assert unit.started_at == T1
+
+
+def test09_unit_done_to_done_is_illegal():
+    # The scheduler relies on this: a unit completes exactly once.
+    unit = make_unit("running")
+    states.change_unit(unit, "done", T1)
+    assert unit.finished_at == T1
+    with pytest.raises(IllegalTransition):
+        states.change_unit(unit, "done", T1)
+
+
+def test10_unit_pending_to_running_is_illegal():
+    with pytest.raises(IllegalTransition):
+        states.change_unit(make_unit("pending"), "running", T1)
