@@ -28,7 +28,7 @@ import numpy as np
 from numba import prange
 
 from ..film import PartialFilm, sample_blocks
-from ..kernels import kernel, kernel_parallel
+from ..kernels import kernel, kernel_inline, kernel_parallel
 from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR, dielectric_sample, \
     diffuse_eval, diffuse_sample, reflect
 from ..kernels.geometry import STACK_SIZE, intersect_arrays, occluded_arrays, offset_origin, \
@@ -53,7 +53,7 @@ def camera_ray(cam, width, height, fx, fy):
     return dx * inv, dy * inv, dz * inv
 
 
-@kernel
+@kernel_inline
 def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
     """Radiance arriving at o from direction -d: (r, g, b, rays traced)."""
     lr, lg, lb = 0.0, 0.0, 0.0
@@ -69,6 +69,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
                                            sc.tri_p, sc.sph)
     tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
     sph_flip, sph_mat, sph_light = sc.sph_flip, sc.sph_mat, sc.sph_light
+    light_rgb, mat_type, mat_rgb, mat_param = sc.light_rgb, sc.mat_type, sc.mat_rgb, sc.mat_param
     for bounce in range(depth + 1):
         t, prim = intersect_arrays(bmin, bmax, info, prims, tri_p, sph, stack,
                                    ox, oy, oz, dx, dy, dz, np.inf)
@@ -84,17 +85,17 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
             if not specular:
                 pl = light_pdf(sc, light, prim, vx, vy, vz, hx, hy, hz, cos_o)
                 w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pl * pl)
-            lr += br * w * sc.light_rgb[light, 0]
-            lg += bg * w * sc.light_rgb[light, 1]
-            lb += bb * w * sc.light_rgb[light, 2]
+            lr += br * w * light_rgb[light, 0]
+            lg += bg * w * light_rgb[light, 1]
+            lb += bb * w * light_rgb[light, 2]
         if bounce == depth:
             break
         base = 2 + DIMS_PER_BOUNCE * bounce
-        mtype = sc.mat_type[mat]
+        mtype = mat_type[mat]
         if mtype == MAT_DIFFUSE:
             if cos_o <= 0.0:
                 break  # one-sided: the back of a diffuse surface is black
-            ar, ag, ab = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
+            ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
             if n_lights > 0:
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
                     sc, hx, hy, hz, uniform(key, base), uniform(key, base + 1),
@@ -129,14 +130,14 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
             if cos_o <= 0.0:
                 break
             dx, dy, dz = reflect(dx, dy, dz, nx, ny, nz)
-            br *= sc.mat_rgb[mat, 0]
-            bg *= sc.mat_rgb[mat, 1]
-            bb *= sc.mat_rgb[mat, 2]
+            br *= mat_rgb[mat, 0]
+            bg *= mat_rgb[mat, 1]
+            bb *= mat_rgb[mat, 2]
             specular = True
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
         else:  # MAT_DIELECTRIC
             dx, dy, dz, weight, es, side = dielectric_sample(
-                dx, dy, dz, nx, ny, nz, sc.mat_param[mat, 0], uniform(key, base + 5))
+                dx, dy, dz, nx, ny, nz, mat_param[mat, 0], uniform(key, base + 5))
             br *= weight
             bg *= weight
             bb *= weight
@@ -161,6 +162,7 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth,
                  out_sum, out_sq, out_w, row_rays):
     """Accumulate the samples of `blocks` for the pixels of a tile (see film.py
     for why sums are formed per block). Rows run in parallel under prange."""
+    ox, oy, oz = cam[0], cam[1], cam[2]
     for row in prange(y1 - y0):
         stack = np.empty(STACK_SIZE, np.int64)
         y = y0 + row
@@ -175,7 +177,7 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth,
                     key = sample_key(seed, pixel, s)
                     dx, dy, dz = camera_ray(cam, width, height, x + uniform(key, 0),
                                             y + uniform(key, 1))
-                    r, g, b, nr = li_path(sc, stack, cam[0], cam[1], cam[2], dx, dy, dz, key, depth)
+                    r, g, b, nr = li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth)
                     rays += nr
                     sr += r
                     sg += g
