@@ -12,7 +12,7 @@ of the point-light furnace) the check is exact up to float rounding.
 import numpy as np
 import pytest
 
-from renderer import RenderSpec, load_scene, merge, plan, render, run_unit
+from renderer import RenderSpec, build_scene, load_scene, merge, plan, render, resolve_document, run_unit
 
 Z = 4.5
 CORNELL_LIGHT = (18.387, 13.9873, 6.75357)
@@ -132,3 +132,38 @@ def test09_cornell_is_lit_like_the_scene_says(cornell):
     left, right = img[16, 1], img[16, 30]
     assert left[0] > 3 * left[1] and right[1] > 2 * right[0]
     assert img[4:6, 14:18].mean() > img[26:28, 14:18].mean()
+
+
+def _sphere_in_white_furnace(material):
+    """A unit sphere of `material` inside a black sphere of radius 10 that
+    emits radiance 1 inwards: whatever light the sphere reflects or
+    transmits came from that uniform sky."""
+    return build_scene(resolve_document({
+        "camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "fov": 40, "width": 16, "height": 16},
+        "materials": {"black": {"type": "diffuse", "albedo": 0},
+                      "glass": {"type": "dielectric", "ior": 1.5},
+                      "mirror": {"type": "mirror", "tint": 0.8}},
+        "shapes": [{"type": "sphere", "radius": 10, "material": "black", "flip_normals": True,
+                    "emitter": {"type": "area", "radiance": 1}},
+                   {"type": "sphere", "radius": 1, "material": material}]}))
+
+
+def test10_glass_sphere_vanishes_in_a_white_furnace():
+    """Smooth glass conserves energy and the 1/eta^2 radiance scaling on entry
+    is undone on exit: with enough depth every pixel sees exactly the sky.
+    (Forgetting either scaling gives 1/2.25 or 2.25 where the sphere is.)"""
+    scene = _sphere_in_white_furnace("glass")
+    film = render_inline(scene, RenderSpec(spp=16, depth=64, width=16, height=16, tile_size=16))
+    assert np.allclose(film.mean(), 1.0, rtol=0, atol=1e-9)
+    # depth 1 allows two segments: straight through the sphere needs three, so
+    # only the Fresnel reflection (about 4 % head-on) is left at the centre
+    shallow = render_inline(scene, RenderSpec(spp=16, depth=1, width=16, height=16, tile_size=16))
+    assert shallow.mean()[8, 8, 0] < 0.5
+
+
+def test11_mirror_sphere_reflects_the_sky_times_its_tint():
+    scene = _sphere_in_white_furnace("mirror")
+    img = render_inline(scene, RenderSpec(spp=16, depth=8, width=16, height=16, tile_size=16)).mean()
+    assert img[8, 8] == pytest.approx([0.8, 0.8, 0.8], abs=1e-12)  # fully on the sphere
+    assert img[0, 0] == pytest.approx([1.0, 1.0, 1.0], abs=1e-12)  # the sky itself
+    assert np.all((img >= 0.8 - 1e-12) & (img <= 1.0 + 1e-12))
