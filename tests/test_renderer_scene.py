@@ -1,0 +1,115 @@
+"""The scene format: what it accepts, and the errors that name the problem."""
+
+import json
+
+import numpy as np
+import pytest
+
+from renderer import SceneError, build_scene, builtin_scene_names, load_scene, resolve_document, \
+    scene_hash
+
+MINIMAL = {
+    "camera": {"origin": [0, 0, 5], "target": [0, 0, 0], "fov": 40},
+    "materials": {"m": {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}},
+    "shapes": [{"type": "rectangle", "material": "m"}],
+}
+
+
+def test01_builtin_scenes_resolve_and_build():
+    assert {"cornell-box", "furnace-point", "furnace-emitter"} <= set(builtin_scene_names())
+    for name in builtin_scene_names():
+        assert build_scene(resolve_document(name)).arrays.bvh_min.shape[0] >= 1
+
+
+def test02_cornell_box_is_the_reference_scene():
+    """Geometry numbers straight from shared/scenes/cornell-box.md."""
+    scene = load_scene("cornell-box")
+    a = scene.arrays
+    assert a.tri_p.shape[0] == 6 * 2 + 2 * 12
+    assert a.light_area[0] == pytest.approx(0.1748, rel=1e-9)
+    assert tuple(a.light_rgb[0]) == (18.387, 13.9873, 6.75357)
+    light = a.tri_p[a.tri_light >= 0].reshape(-1, 3)
+    assert np.allclose(np.unique(light, axis=0),
+                       [[-0.23, 0.99, -0.18], [-0.23, 0.99, 0.2], [0.23, 0.99, -0.18], [0.23, 0.99, 0.2]])
+    assert np.allclose(a.tri_n[a.tri_light >= 0], [0, -1, 0])
+    # small box corners (spec: 8 corners of translate*rotate_y(-17)*scale(0.3))
+    small = np.unique(np.round(a.tri_p[12:24].reshape(-1, 3), 5), axis=0)
+    assert [0.13582, -1, 0.0054] in np.round(small, 4).tolist() or \
+        np.any(np.all(np.abs(small - [0.13582, -1, 0.005397]) < 1e-5, axis=1))
+    assert scene.camera["fov"] == 39.3077 and scene.camera["width"] == scene.camera["height"] == 256
+
+
+def test03_camera_rays_match_mitsuba_table():
+    from renderer.integrators.path import camera_ray
+    from renderer.scene import camera_array
+
+    cam = camera_array(load_scene("cornell-box").camera, 256, 256)
+    table = {(0.5, 0.5): (-0.3177954, 0.3177954, -0.8933153),
+             (255.5, 0.5): (0.3177954, 0.3177954, -0.8933153),
+             (128.5, 128.5): (0.0013951, -0.0013951, -0.9999981),
+             (30.5, 128.5): (-0.2625024, -0.0013462, -0.9649304)}
+    for (px, py), expected in table.items():
+        assert camera_ray(cam, 256, 256, px, py) == pytest.approx(expected, abs=2e-7)
+
+
+def test04_hash_is_content_identity():
+    a = resolve_document(MINIMAL)
+    b = resolve_document(json.loads(json.dumps(MINIMAL)))
+    assert scene_hash(a) == scene_hash(b)
+    changed = json.loads(json.dumps(MINIMAL))
+    changed["materials"]["m"]["albedo"] = [0.5, 0.5, 0.4]
+    assert scene_hash(resolve_document(changed)) != scene_hash(a)
+
+
+@pytest.mark.parametrize("mutate, location, words", [
+    (lambda d: d["shapes"][0].update(material="nope"), "shapes[0].material", "unknown material"),
+    (lambda d: d["shapes"][0].update(type="torus"), "shapes[0].type", "allowed"),
+    (lambda d: d["materials"]["m"].update(albedo=[2, 0, 0]), "materials.m.albedo", "<= 1"),
+    (lambda d: d["materials"].update(g={"type": "glass"}), "materials.g.type", "unknown material type"),
+    (lambda d: d["camera"].update(fov=0), "camera.fov", "> 0"),
+    (lambda d: d["camera"].update(width=0), "camera.width", "integer"),
+    (lambda d: d["camera"].update(up=[0, 0, 1]), "camera.up", "parallel"),
+    (lambda d: d["shapes"][0].update(to_world=[[1, 0]] * 4), "shapes[0].to_world[0]", "4 numbers"),
+    (lambda d: d["shapes"][0].update(to_world=[[0] * 4] * 4), "shapes[0].to_world", "singular"),
+    (lambda d: d["shapes"][0].update(emitter={"type": "area"}), "shapes[0].emitter", "radiance"),
+    (lambda d: d["shapes"].append({"type": "mesh", "material": "m", "vertices": [[0, 0, 0]],
+                                   "faces": [[0, 1, 2]]}), "shapes[1].faces", "out of range"),
+    (lambda d: d["shapes"].append({"type": "sphere", "material": "m",
+                                   "to_world": [{"scale": [1, 2, 1]}]}), "shapes[1].to_world",
+     "similarity"),
+    (lambda d: d.update(lights=[]), "", "unknown top-level"),
+])
+def test05_invalid_documents_name_the_problem(mutate, location, words):
+    doc = json.loads(json.dumps(MINIMAL))
+    mutate(doc)
+    with pytest.raises(SceneError) as err:
+        resolve_document(doc)
+    assert err.value.location == location
+    assert words in err.value.message
+
+
+def test06_malformed_scene_file_gets_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"camera": {"origin": [0, 0, 5],,}}')
+    with pytest.raises(SceneError, match=r"invalid JSON in bad.json at line 1, column"):
+        resolve_document(bad)
+    with pytest.raises(SceneError, match="unknown scene"):
+        resolve_document(tmp_path / "missing.json")
+
+
+def test07_mesh_from_obj_file_and_transform_ops(tmp_path):
+    (tmp_path / "tri.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 4 3\n")
+    doc = json.loads(json.dumps(MINIMAL))
+    doc["shapes"] = [{"type": "mesh", "file": "tri.obj", "material": "m",
+                      "to_world": [{"scale": [2, 2, 2]}, {"translate": [0, 0, -1]}]}]
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(doc))
+    scene = load_scene(path)
+    assert scene.arrays.tri_p.shape == (2, 3, 3)
+    assert scene.arrays.tri_p[:, :, 2].max() == -1.0 and scene.arrays.tri_p[:, :, 0].max() == 2.0
+    # the resolved document is self-contained: the mesh is inlined
+    assert "vertices" in scene.doc["shapes"][0] and "file" not in scene.doc["shapes"][0]
+    doc["shapes"][0]["file"] = "../outside.obj"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(SceneError, match="inside the scene's directory"):
+        load_scene(path)
