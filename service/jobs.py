@@ -24,7 +24,8 @@ from .schemas import JobCreate
 from .settings import Settings
 from .store import Store
 
-__all__ = ["create_job", "get_job", "list_jobs", "cancel_job", "cancel_job_retrying", "result_file", "new_job_id"]
+__all__ = ["create_job", "get_job", "list_jobs", "list_units", "cancel_job", "cancel_job_retrying",
+           "result_file", "new_job_id"]
 
 
 def new_job_id() -> str:
@@ -96,6 +97,13 @@ def list_jobs(session: Session, *, status: str | None = None, limit: int = 100,
                                  source="query")
         query = query.where(Job.status == status)
     return list(session.scalars(query))
+
+
+def list_units(session: Session, job_id: str) -> list[WorkUnit]:
+    """A job's units in plan order (empty until the scheduler planned it)."""
+    job = get_job(session, job_id)
+    return list(session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)
+                                .order_by(WorkUnit.index)))
 
 
 def cancel_job(session: Session, job_id: str, now: datetime) -> Job:

@@ -15,9 +15,9 @@ from pydantic import BaseModel, ConfigDict, Field, StrictInt
 
 from renderer import BOUNDS, METHODS, SAMPLERS, RenderSpec
 
-from .models import Job
+from .models import Job, WorkUnit
 
-__all__ = ["JobCreate", "JobPublic", "Progress", "ScenePublic"]
+__all__ = ["JobCreate", "JobPublic", "Progress", "ScenePublic", "UnitPublic"]
 
 _DEFAULTS = RenderSpec()
 
@@ -110,3 +110,30 @@ class ScenePublic(BaseModel):
     description: str
     width: int
     height: int
+
+
+class UnitPublic(BaseModel):
+    """A work unit as the API shows it: where it ran, how often, how long."""
+
+    index: int
+    state: str
+    region: dict[str, int] = Field(description="x0, y0, x1, y1, sample_start, sample_end, pass")
+    attempts: int
+    tasks: int = Field(description="task ids the unit had (more than attempts: re-enqueued)")
+    worker: str | None
+    enqueued_at: datetime | None
+    started_at: datetime | None
+    finished_at: datetime | None
+    seconds: float | None = Field(description="render time reported by the worker")
+    error: str | None
+
+    @classmethod
+    def from_unit(cls, unit: WorkUnit) -> "UnitPublic":
+        u = unit.unit
+        return cls(index=unit.index, state=unit.state,
+                   region={"x0": u["x0"], "y0": u["y0"], "x1": u["x1"], "y1": u["y1"],
+                           "sample_start": u["sample_start"], "sample_end": u["sample_end"],
+                           "pass": u.get("pass_index", 0)},
+                   attempts=unit.attempts, tasks=len(unit.task_ids), worker=unit.worker,
+                   enqueued_at=unit.enqueued_at, started_at=unit.started_at,
+                   finished_at=unit.finished_at, seconds=unit.seconds, error=unit.error)

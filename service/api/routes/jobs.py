@@ -9,7 +9,7 @@ from fastapi.responses import FileResponse
 
 from ... import jobs
 from ...models import utcnow
-from ...schemas import JobCreate, JobPublic
+from ...schemas import JobCreate, JobPublic, UnitPublic
 from ..deps import FarmDep, SessionDep
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -39,6 +39,12 @@ def list_jobs(session: SessionDep, status: str | None = None,
 def get_job(job_id: str, session: SessionDep) -> JobPublic:
     """A job's status, progress (units done / total), timings and error."""
     return JobPublic.from_job(jobs.get_job(session, job_id), utcnow())
+
+
+@router.get("/{job_id}/units", response_model=list[UnitPublic])
+def list_units(job_id: str, session: SessionDep) -> list[UnitPublic]:
+    """A job's work units: state, attempts, worker, timings."""
+    return [UnitPublic.from_unit(u) for u in jobs.list_units(session, job_id)]
 
 
 @router.delete("/{job_id}", response_model=JobPublic)

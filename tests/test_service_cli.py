@@ -1,0 +1,40 @@
+"""The `rayfarm` command: subcommands, forwarding to the renderer's CLI."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from service.cli import main
+
+from conftest import rayfarm_command
+
+
+def test01_console_script_lists_the_subcommands():
+    out = subprocess.run([*rayfarm_command(), "--help"], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 0
+    for sub in ("serve", "worker", "render"):
+        assert sub in out.stdout
+
+
+def test02_render_forwards_argv_to_the_renderer_cli(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["render", "--help"])
+    assert info.value.code == 0
+    assert "usage: rayfarm render" in capsys.readouterr().out
+
+
+def test03_render_runs_a_tiny_job(tmp_path):
+    out = tmp_path / "tiny.exr"
+    code = main(["render", "cornell-box", "--spp", "2", "--depth", "2", "--width", "8",
+                 "--height", "8", "--tile-size", "8", "--workers", "1", "--quiet",
+                 "--out", str(out)])
+    assert code == 0 and out.is_file()
+
+
+def test04_worker_without_broker_refuses_with_a_hint(monkeypatch, capsys):
+    monkeypatch.delenv("RAYFARM_BROKER_URL", raising=False)
+    assert main(["worker"]) == 2
+    assert "RAYFARM_BROKER_URL" in capsys.readouterr().err
