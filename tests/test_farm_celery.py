@@ -96,7 +96,7 @@ def test03_sigkilled_worker_mid_job_the_job_still_finishes_bit_identical(
         time.sleep(0.5)  # nothing renders now: progress stands still
         assert get(f"/jobs/{job_id}")["progress"]["units_done"] <= at_kill["progress"]["units_done"] + 1
         second = spawn_worker(concurrency=2)
-        job = poll_job(get, job_id, timeout=180)
+        job = poll_job(get, job_id, timeout=60)
         assert job["status"] == "done", job
         assert job["samples"] == 48 * 48 * 512, "a unit was counted twice or lost"
         units = get(f"/jobs/{job_id}/units")
@@ -106,3 +106,30 @@ def test03_sigkilled_worker_mid_job_the_job_still_finishes_bit_identical(
         assert any(u["worker"].startswith(f"rayfarm-{second.pid}@") for u in units)
         (tmp_path / "killed.exr").write_bytes(client.get(job["result_url"]).content)
     assert_bit_identical(channels_of(tmp_path / "killed.exr"), reference_channels(body))
+
+
+def test04_messages_lost_by_the_broker_are_enqueued_again(redis_url, spawn_worker, tmp_path,
+                                                         reference_channels):
+    import redis
+
+    from worker.keys import QUEUE
+
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
+                        unit_lease_seconds=2)
+    with TestClient(create_app(settings)) as client:
+        get = client_json(client)
+        job_id = client.post("/jobs", json=TINY).json()["id"]
+        wait_for(lambda: len(get(f"/jobs/{job_id}/units")) == 16
+                 and all(u["state"] == "queued" for u in get(f"/jobs/{job_id}/units")),
+                 30, "the units to be queued")
+        broker = redis.Redis.from_url(redis_url)
+        assert broker.llen(QUEUE) == 16
+        broker.delete(QUEUE)  # as if Redis restarted without persistence
+        broker.close()
+        spawn_worker(concurrency=2)
+        job = poll_job(get, job_id, timeout=60)
+        assert job["status"] == "done", job
+        units = get(f"/jobs/{job_id}/units")
+        assert all(u["tasks"] >= 2 and u["attempts"] == 1 for u in units)
+        (tmp_path / "lost.exr").write_bytes(client.get(job["result_url"]).content)
+    assert_bit_identical(channels_of(tmp_path / "lost.exr"), reference_channels(TINY))
