@@ -3,12 +3,14 @@ exactly-once completion, restart recovery, cancel. Real pool, real ledger."""
 
 from __future__ import annotations
 
+import uuid
 from pathlib import Path
 
 import pytest
 from sqlalchemy import select
+from sqlalchemy.orm.exc import StaleDataError
 
-from service import jobs
+from service import jobs, states
 from service.executors import Ticket
 from service.farm import Farm
 from service.models import Job, WorkUnit, utcnow
@@ -18,10 +20,31 @@ from service.settings import Settings
 from conftest import TINY, assert_bit_identical, channels_of, wait_for
 
 
-@pytest.fixture
-def settings(tmp_path) -> Settings:
-    return Settings(data_dir=tmp_path / "data", broker_url="", database_url="",
-                    local_workers=2, poll_interval=0.05)
+POSTGRES = "postgresql+psycopg://127.0.0.1:5432/test"
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def settings(request, tmp_path):
+    """The ledger on SQLite (the default) and on PostgreSQL (in a schema of
+    its own, dropped afterwards), when a server answers at 127.0.0.1:5432."""
+    common = dict(data_dir=tmp_path / "data", broker_url="", local_workers=2,
+                  poll_interval=0.05)
+    if request.param == "sqlite":
+        yield Settings(database_url="", **common)
+        return
+    psycopg = pytest.importorskip("psycopg")
+    schema = f"rayfarm_test_{uuid.uuid4().hex[:10]}"
+    try:
+        admin = psycopg.connect("postgresql://127.0.0.1:5432/test", autocommit=True,
+                                connect_timeout=3)
+    except psycopg.Error as exc:
+        pytest.skip(f"no PostgreSQL at 127.0.0.1:5432 ({exc})")
+    admin.execute(f'CREATE SCHEMA "{schema}"')
+    try:
+        yield Settings(database_url=f"{POSTGRES}?options=-csearch_path%3D{schema}", **common)
+    finally:
+        admin.execute(f'DROP SCHEMA "{schema}" CASCADE')
+        admin.close()
 
 
 def create(farm: Farm, body: dict) -> str:
@@ -144,3 +167,18 @@ def test05_data_stays_inside_data_dir(settings):
         assert not [f for f in files if f.endswith((".tmp", ".part"))]
         with pytest.raises(ValueError):
             farm.store.unit_path("../../etc", 0)
+
+
+def test06_a_write_based_on_a_stale_read_fails_instead_of_overwriting(settings):
+    with Farm.open(settings) as farm:
+        job_id = create(farm, TINY)
+        farm.scheduler.tick()
+        session = farm.sessions()
+        stale = session.get(Job, job_id)  # e.g. the scheduler, about to mark it done
+        assert stale.status == "running"
+        jobs.cancel_job_retrying(farm.sessions, job_id, utcnow)  # the API, meanwhile
+        states.change_job(stale, "done", utcnow())
+        with pytest.raises(StaleDataError):
+            session.commit()
+        session.close()
+        assert job_row(farm, job_id).status == "canceled"

@@ -14,7 +14,7 @@ router = APIRouter(tags=["health"])
 @router.get("/healthz")
 def healthz(farm: FarmDep) -> JSONResponse:
     """200 with component states when the ledger answers and the scheduler
-    runs; 503 otherwise."""
+    runs (status "degraded" while the broker is unreachable); 503 otherwise."""
     report: dict = {"status": "ok", **farm.executor.health(),
                     "scheduler": "running" if farm.scheduler.alive else "stopped",
                     "scheduler_ticks": farm.scheduler.ticks}
@@ -28,4 +28,6 @@ def healthz(farm: FarmDep) -> JSONResponse:
         report["database"] = f"error: {type(exc).__name__}"
     if report["database"] != "ok" or not farm.scheduler.alive:
         report["status"] = "unhealthy"
-    return JSONResponse(report, status_code=200 if report["status"] == "ok" else 503)
+    elif report.get("broker", "ok") != "ok":
+        report["status"] = "degraded"  # jobs are accepted and wait for the broker
+    return JSONResponse(report, status_code=503 if report["status"] == "unhealthy" else 200)
