@@ -114,13 +114,18 @@ class Scheduler:
     def _advance(self, job_id: str, budget: int) -> tuple[int, bool]:
         """Plan, collect and enqueue for one job; returns (budget left, all units done)."""
         released: list[tuple[str, ...]] = []
-        with self.sessions.begin() as session:
+        enqueue_error: Exception | None = None
+        with self.sessions.begin() as session:  # the plan stands even if enqueuing fails
             job = session.get(Job, job_id)
             if job is None or job.status not in states.ACTIVE_JOB:
                 return budget, False
-            now = self.clock()
             if job.status == "queued":
-                self._plan(session, job, now)
+                self._plan(session, job, self.clock())
+        with self.sessions.begin() as session:
+            job = session.get(Job, job_id)
+            if job is None or job.status != "running":
+                return budget, False
+            now = self.clock()
             flying = list(session.scalars(
                 select(WorkUnit).where(WorkUnit.job_id == job.id,
                                        WorkUnit.state.in_(states.IN_FLIGHT))
@@ -137,12 +142,18 @@ class Scheduler:
                     select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending")
                     .order_by(WorkUnit.index).limit(max(budget, 0)))
                 for unit in pending:
+                    try:
+                        self._enqueue(job, unit, now)
+                    except Exception as exc:  # broker down: keep what was sent, retry later
+                        enqueue_error = exc
+                        break
                     unit.attempts = 1
-                    self._enqueue(job, unit, now)
                     budget -= 1
             complete = job.status == "running" and job.units_done == job.units_total
         for task_ids in released:  # only once the ledger says done (or failed)
             self.executor.release(task_ids)
+        if enqueue_error is not None:
+            raise enqueue_error
         return budget, complete
 
     def _plan(self, session: Session, job: Job, now: datetime) -> None:
