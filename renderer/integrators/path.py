@@ -53,6 +53,21 @@ def camera_ray(cam, width, height, fx, fy):
     return dx * inv, dy * inv, dz * inv
 
 
+@kernel
+def shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist):
+    """A shadow ray from the offset origin to the light point q = h + dist w:
+    (origin, unit direction, tmax). Distance and direction are measured from
+    the *offset* origin, and tmax stops a relative 1e-9 short of q, so the
+    light's own surface never shadows its sample (with dist from h, a 2e-7
+    offset towards an overhead light made q itself an occluder)."""
+    qx, qy, qz = hx + dist * wx, hy + dist * wy, hz + dist * wz
+    sx, sy, sz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
+    dx, dy, dz = qx - sx, qy - sy, qz - sz
+    d = np.sqrt(dx * dx + dy * dy + dz * dz)
+    inv = 1.0 / d
+    return sx, sy, sz, dx * inv, dy * inv, dz * inv, d * (1.0 - 1e-9)
+
+
 @kernel_inline
 def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
     """Radiance arriving at o from direction -d: (r, g, b, rays traced)."""
@@ -103,10 +118,10 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
                     f, pb = diffuse_eval(cos_o, cos_i)
-                    sx, sy, sz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
+                    sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist)
                     rays += 1
                     if not occluded_arrays(bmin, bmax, info, prims, tri_p, sph, stack,
-                                           sx, sy, sz, wx, wy, wz, dist * (1.0 - 1e-7)):
+                                           sx, sy, sz, tx, ty, tz, tmax):
                         if delta:
                             weight = f * cos_i / pl
                         else:
