@@ -38,3 +38,38 @@ def test04_worker_without_broker_refuses_with_a_hint(monkeypatch, capsys):
     monkeypatch.delenv("RAYFARM_BROKER_URL", raising=False)
     assert main(["worker"]) == 2
     assert "RAYFARM_BROKER_URL" in capsys.readouterr().err
+
+
+def test05_serve_in_embedded_mode_renders_over_http(tmp_path, reference_channels):
+    import os
+
+    import httpx
+
+    from conftest import Child, assert_bit_identical, channels_of, free_port, poll_job, wait_for
+    from conftest import TINY
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
+    env.update(RAYFARM_DATA_DIR=str(tmp_path / "data"), RAYFARM_POLL_INTERVAL="0.05",
+               RAYFARM_LOCAL_WORKERS="2")
+    port = free_port()
+    serve = Child([*rayfarm_command(), "serve", "--port", str(port)], env, tmp_path / "serve.log")
+    base = f"http://127.0.0.1:{port}"
+    try:
+        def healthy():
+            assert serve.proc.poll() is None, serve.log()
+            try:
+                return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
+            except httpx.HTTPError:
+                return False
+        wait_for(healthy, 60, "rayfarm serve", interval=0.2)
+        with httpx.Client(base_url=base, timeout=30) as client:
+            assert client.get("/healthz").json()["executor"] == "local"
+            job_id = client.post("/jobs", json=TINY).json()["id"]
+            job = poll_job(lambda path: client.get(path).json(), job_id)
+            assert job["status"] == "done", job
+            (tmp_path / "out.exr").write_bytes(client.get(job["result_url"]).content)
+    finally:
+        serve.stop()
+    assert serve.proc.returncode is not None
+    assert "Traceback" not in serve.log(), serve.log()
+    assert_bit_identical(channels_of(tmp_path / "out.exr"), reference_channels(TINY))
