@@ -28,6 +28,7 @@ LIGHT_MESH, LIGHT_SPHERE, LIGHT_POINT = 0, 1, 2
 
 SceneArrays = namedtuple("SceneArrays", [
     "tri_p",        # (T, 3, 3) float64 vertices
+    "tri_isect",    # (T, 9) v0, e1 = v1 - v0, e2 = v2 - v0: what ray tests read
     "tri_n",        # (T, 3) unit geometric normal (the emitting / front side)
     "tri_mat",      # (T,) int32 material index
     "tri_light",    # (T,) int32 light index or -1
@@ -47,8 +48,7 @@ SceneArrays = namedtuple("SceneArrays", [
     "light_sphere",  # (L,) int32 sphere index (sphere lights)
     "light_tris",   # (K,) int32 triangle ids of mesh lights, grouped per light
     "light_tri_cdf",  # (K,) float64 area CDF within each light's group, ending at 1
-    "bvh_min",      # (N, 3) node bounds
-    "bvh_max",      # (N, 3)
+    "bvh_nodes",    # (N, 6) node bounds: min xyz, max xyz
     "bvh_info",     # (N, 3) int32: leaf: [first, count, -1]; inner: [right child, 0, axis]
     "bvh_prims",    # (P,) int32 primitive ids in leaf order
 ])
@@ -212,9 +212,12 @@ def build_scene(doc: dict) -> Scene:
     valid = np.concatenate([keep, np.ones(len(sph_arr), bool)])
     prim_ids = np.nonzero(valid)[0].astype(np.int32)
     bvh_min, bvh_max, bvh_info, bvh_prims = build_bvh(lo, hi, prim_ids)
+    tri_isect = np.concatenate([tri_p[:, 0], tri_p[:, 1] - tri_p[:, 0], tri_p[:, 2] - tri_p[:, 0]],
+                               axis=1).reshape(-1, 9)
 
     arrays = SceneArrays(
-        tri_p=np.ascontiguousarray(tri_p), tri_n=np.ascontiguousarray(tri_n),
+        tri_p=np.ascontiguousarray(tri_p), tri_isect=np.ascontiguousarray(tri_isect),
+        tri_n=np.ascontiguousarray(tri_n),
         tri_mat=np.asarray(tri_mat, np.int32), tri_light=np.asarray(tri_light, np.int32),
         sph=sph_arr, sph_flip=np.asarray(sph_flip, np.int32), sph_mat=np.asarray(sph_mat, np.int32),
         sph_light=np.asarray(sph_light, np.int32),
@@ -225,7 +228,8 @@ def build_scene(doc: dict) -> Scene:
         light_start=light_start, light_count=light_count, light_area=light_area,
         light_sphere=np.asarray(light_sphere, np.int32),
         light_tris=np.asarray(light_tris, np.int32), light_tri_cdf=np.asarray(light_cdf, np.float64),
-        bvh_min=bvh_min, bvh_max=bvh_max, bvh_info=bvh_info, bvh_prims=bvh_prims,
+        bvh_nodes=np.ascontiguousarray(np.concatenate([bvh_min, bvh_max], axis=1)),
+        bvh_info=bvh_info, bvh_prims=bvh_prims,
     )
     return Scene(doc=doc, hash=scene_hash(doc), arrays=arrays)
 

@@ -18,7 +18,7 @@ MINIMAL = {
 def test01_builtin_scenes_resolve_and_build():
     assert {"cornell-box", "furnace-point", "furnace-emitter"} <= set(builtin_scene_names())
     for name in builtin_scene_names():
-        assert build_scene(resolve_document(name)).arrays.bvh_min.shape[0] >= 1
+        assert build_scene(resolve_document(name)).arrays.bvh_nodes.shape[0] >= 1
 
 
 def test02_cornell_box_is_the_reference_scene():

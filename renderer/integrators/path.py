@@ -31,8 +31,7 @@ from ..film import PartialFilm, sample_blocks
 from ..kernels import kernel, kernel_inline, kernel_parallel
 from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR, dielectric_sample, \
     diffuse_eval, diffuse_sample, reflect
-from ..kernels.geometry import STACK_SIZE, intersect_arrays, occluded_arrays, offset_origin, \
-    surface_at_arrays
+from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
 from ..kernels.lights import light_pdf, sample_light
 from ..kernels.rng import sample_key, uniform
 from ..registry import Method, register_method
@@ -80,14 +79,13 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
     rays = 0
     n_lights = sc.light_type.shape[0]
     # unpacked once: see geometry.py on passing SceneArrays into hot calls
-    bmin, bmax, info, prims, tri_p, sph = (sc.bvh_min, sc.bvh_max, sc.bvh_info, sc.bvh_prims,
-                                           sc.tri_p, sc.sph)
+    nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
     sph_flip, sph_mat, sph_light = sc.sph_flip, sc.sph_mat, sc.sph_light
     light_rgb, mat_type, mat_rgb, mat_param = sc.light_rgb, sc.mat_type, sc.mat_rgb, sc.mat_param
     for bounce in range(depth + 1):
-        t, prim = intersect_arrays(bmin, bmax, info, prims, tri_p, sph, stack,
-                                   ox, oy, oz, dx, dy, dz, np.inf)
+        t, prim = intersect_arrays(nodes, info, prims, tri, sph, stack,
+                                   ox, oy, oz, dx, dy, dz, np.inf, False)
         rays += 1
         if prim < 0:
             break
@@ -120,8 +118,8 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
                     f, pb = diffuse_eval(cos_o, cos_i)
                     sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist)
                     rays += 1
-                    if not occluded_arrays(bmin, bmax, info, prims, tri_p, sph, stack,
-                                           sx, sy, sz, tx, ty, tz, tmax):
+                    if intersect_arrays(nodes, info, prims, tri, sph, stack,
+                                        sx, sy, sz, tx, ty, tz, tmax, True)[1] < 0:
                         if delta:
                             weight = f * cos_i / pl
                         else:
@@ -174,12 +172,12 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
 
 @kernel_parallel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth,
-                 out_sum, out_sq, out_w, row_rays):
+                 out_sum, out_sq, out_w, row_rays, stacks):
     """Accumulate the samples of `blocks` for the pixels of a tile (see film.py
     for why sums are formed per block). Rows run in parallel under prange."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     for row in prange(y1 - y0):
-        stack = np.empty(STACK_SIZE, np.int64)
+        stack = stacks[row]
         y = y0 + row
         rays = 0
         for x in range(x0, x1):
@@ -232,10 +230,11 @@ def render_tile(scene, spec, unit) -> PartialFilm:
     w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
     film = PartialFilm.zeros(unit.x0, unit.y0, w, h)
     row_rays = np.zeros(h, np.int64)
+    stacks = np.empty((h, STACK_SIZE), np.int64)  # kernels allocate nothing (see kernels/)
     cam = camera_array(scene.camera, spec.width, spec.height)
     _render_tile(scene.arrays, cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width, spec.height,
                  unit_blocks(spec.spp, unit.sample_start, unit.sample_end), spec.seed, spec.depth,
-                 film.sum, film.sum_sq, film.weight, row_rays)
+                 film.sum, film.sum_sq, film.weight, row_rays, stacks)
     film.stats.update(samples=unit.samples, rays=int(row_rays.sum()))
     return film
 

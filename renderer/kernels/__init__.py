@@ -19,12 +19,15 @@ from numba import njit
 
 __all__ = ["kernel", "kernel_inline", "kernel_parallel"]
 
-kernel = njit(cache=True, error_model="numpy")
+# `_nrt=False` turns off Numba's reference counting in the kernels. Kernels
+# allocate nothing (callers pass every buffer in), and with the runtime on,
+# each use of the SceneArrays tuple increfs and decrefs all of its arrays
+# through atomic calls: measured 586 ns per light sample instead of 55 ns.
+kernel = njit(cache=True, error_model="numpy", _nrt=False)
 # For functions that take the whole SceneArrays tuple and are called per
-# bounce: inlined at Numba IR level, so no call copies the tuple's array structs.
-kernel_inline = njit(cache=True, error_model="numpy", inline="always")
-kernel_parallel = njit(cache=True, error_model="numpy", parallel=True)
-
+# bounce: inlined at Numba IR level as well.
+kernel_inline = njit(cache=True, error_model="numpy", _nrt=False, inline="always")
+kernel_parallel = njit(cache=True, error_model="numpy", _nrt=False, parallel=True)
 
 def _invalidate_stale_cache() -> None:
     root = Path(__file__).resolve().parent.parent  # the renderer package

@@ -11,17 +11,17 @@ import math
 
 import numpy as np
 
-from . import kernel
+from . import kernel, kernel_inline
 
 STACK_SIZE = 64
 
 
 @kernel
-def tri_hit(tri_p, i, ox, oy, oz, dx, dy, dz, tmax):
-    """Moller-Trumbore; returns t in (0, tmax) or -1."""
-    ax, ay, az = tri_p[i, 0, 0], tri_p[i, 0, 1], tri_p[i, 0, 2]
-    e1x, e1y, e1z = tri_p[i, 1, 0] - ax, tri_p[i, 1, 1] - ay, tri_p[i, 1, 2] - az
-    e2x, e2y, e2z = tri_p[i, 2, 0] - ax, tri_p[i, 2, 1] - ay, tri_p[i, 2, 2] - az
+def tri_hit(tri, i, ox, oy, oz, dx, dy, dz, tmax):
+    """Moller-Trumbore against row i of `tri_isect` (v0, e1, e2); t in (0, tmax) or -1."""
+    ax, ay, az = tri[i, 0], tri[i, 1], tri[i, 2]
+    e1x, e1y, e1z = tri[i, 3], tri[i, 4], tri[i, 5]
+    e2x, e2y, e2z = tri[i, 6], tri[i, 7], tri[i, 8]
     px = dy * e2z - dz * e2y
     py = dz * e2x - dx * e2z
     pz = dx * e2y - dy * e2x
@@ -73,39 +73,54 @@ def sphere_hit(sph, i, ox, oy, oz, dx, dy, dz, tmax):
 
 
 @kernel
-def _prim_hit(tri_p, sph, prim, ox, oy, oz, dx, dy, dz, tmax):
-    n_tri = tri_p.shape[0]
+def _prim_hit(tri, sph, prim, ox, oy, oz, dx, dy, dz, tmax):
+    n_tri = tri.shape[0]
     if prim < n_tri:
-        return tri_hit(tri_p, prim, ox, oy, oz, dx, dy, dz, tmax)
+        return tri_hit(tri, prim, ox, oy, oz, dx, dy, dz, tmax)
     return sphere_hit(sph, prim - n_tri, ox, oy, oz, dx, dy, dz, tmax)
 
 
-@kernel
-def _box_hit(bmin, bmax, node, ox, oy, oz, ix, iy, iz, tmax):
-    t0x = (bmin[node, 0] - ox) * ix
-    t1x = (bmax[node, 0] - ox) * ix
-    t0y = (bmin[node, 1] - oy) * iy
-    t1y = (bmax[node, 1] - oy) * iy
-    t0z = (bmin[node, 2] - oz) * iz
-    t1z = (bmax[node, 2] - oz) * iz
-    lo = max(max(min(t0x, t1x), min(t0y, t1y)), max(min(t0z, t1z), 0.0))
-    hi = min(min(max(t0x, t1x), max(t0y, t1y)), min(max(t0z, t1z), tmax))
-    # widened by 2 ulps so a ray grazing a flat box (zero thickness) still enters
-    return lo <= hi * 1.0000000000000004
+@kernel_inline
+def _fmin(a, b):
+    return a if a < b else b
+
+
+@kernel_inline
+def _fmax(a, b):
+    return a if a > b else b
 
 
 @kernel
 def intersect(sc, stack, ox, oy, oz, dx, dy, dz, tmax):
     """Closest hit along the ray before tmax: (t, prim) or (inf, -1)."""
-    return intersect_arrays(sc.bvh_min, sc.bvh_max, sc.bvh_info, sc.bvh_prims, sc.tri_p, sc.sph,
-                            stack, ox, oy, oz, dx, dy, dz, tmax)
+    return intersect_arrays(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph,
+                            stack, ox, oy, oz, dx, dy, dz, tmax, False)
 
 
-# Hot loops call the *_arrays forms with the arrays they need: passing the
-# whole SceneArrays tuple into a non-inlined call copies every array struct.
 @kernel
-def intersect_arrays(bmin, bmax, info, prims, tri_p, sph, stack, ox, oy, oz, dx, dy, dz, tmax):
+def occluded(sc, stack, ox, oy, oz, dx, dy, dz, tmax):
+    """True if anything lies along the ray in (0, tmax): a shadow ray."""
+    return intersect_arrays(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph,
+                            stack, ox, oy, oz, dx, dy, dz, tmax, True)[1] >= 0
+
+
+# Hot loops call intersect_arrays with the arrays it needs: passing the whole
+# SceneArrays tuple into a non-inlined call copies every array struct.
+@kernel
+def intersect_arrays(nodes, info, prims, tri, sph, stack, ox, oy, oz, dx, dy, dz, tmax, any_hit):
+    """BVH traversal: the closest hit (t, prim) before tmax, or (inf, -1);
+    with `any_hit`, stop at the first hit found (shadow rays).
+
+    Slabs: t = bound / d - o / d, with the near and far bound columns chosen
+    once per ray from the direction's signs; children are visited near-first
+    along the split axis.
+    """
     ix, iy, iz = 1.0 / dx, 1.0 / dy, 1.0 / dz
+    oix, oiy, oiz = ox * ix, oy * iy, oz * iz
+    nx0 = 3 if dx < 0.0 else 0
+    ny0 = 4 if dy < 0.0 else 1
+    nz0 = 5 if dz < 0.0 else 2
+    nx1, ny1, nz1 = 3 - nx0, 5 - ny0, 7 - nz0
     best_t = tmax
     best = -1
     stack[0] = 0
@@ -113,60 +128,36 @@ def intersect_arrays(bmin, bmax, info, prims, tri_p, sph, stack, ox, oy, oz, dx,
     while sp > 0:
         sp -= 1
         node = stack[sp]
-        if not _box_hit(bmin, bmax, node, ox, oy, oz, ix, iy, iz, best_t):
+        lo = _fmax(_fmax(nodes[node, nx0] * ix - oix, nodes[node, ny0] * iy - oiy),
+                   _fmax(nodes[node, nz0] * iz - oiz, 0.0))
+        hi = _fmin(_fmin(nodes[node, nx1] * ix - oix, nodes[node, ny1] * iy - oiy),
+                   _fmin(nodes[node, nz1] * iz - oiz, best_t))
+        # widened by 2 ulps so a ray grazing a flat box (zero thickness) still enters
+        if not lo <= hi * 1.0000000000000004:
             continue
         axis = info[node, 2]
         if axis < 0:
             first = info[node, 0]
             for k in range(first, first + info[node, 1]):
                 prim = prims[k]
-                t = _prim_hit(tri_p, sph, prim, ox, oy, oz, dx, dy, dz, best_t)
+                t = _prim_hit(tri, sph, prim, ox, oy, oz, dx, dy, dz, best_t)
                 if t > 0.0:
                     best_t = t
                     best = prim
+                    if any_hit:
+                        return best_t, best
         else:
-            left = node + 1
-            right = info[node, 0]
             neg = (dx < 0.0) if axis == 0 else ((dy < 0.0) if axis == 1 else (dz < 0.0))
             if neg:  # visit the right (far-coordinate) child first
-                stack[sp] = left
-                stack[sp + 1] = right
+                stack[sp] = node + 1
+                stack[sp + 1] = info[node, 0]
             else:
-                stack[sp] = right
-                stack[sp + 1] = left
+                stack[sp] = info[node, 0]
+                stack[sp + 1] = node + 1
             sp += 2
     if best < 0:
         return np.inf, -1
     return best_t, best
-
-
-@kernel
-def occluded(sc, stack, ox, oy, oz, dx, dy, dz, tmax):
-    """True if anything lies along the ray in (0, tmax): a shadow ray."""
-    return occluded_arrays(sc.bvh_min, sc.bvh_max, sc.bvh_info, sc.bvh_prims, sc.tri_p, sc.sph,
-                           stack, ox, oy, oz, dx, dy, dz, tmax)
-
-
-@kernel
-def occluded_arrays(bmin, bmax, info, prims, tri_p, sph, stack, ox, oy, oz, dx, dy, dz, tmax):
-    ix, iy, iz = 1.0 / dx, 1.0 / dy, 1.0 / dz
-    sp = 1
-    stack[0] = 0
-    while sp > 0:
-        sp -= 1
-        node = stack[sp]
-        if not _box_hit(bmin, bmax, node, ox, oy, oz, ix, iy, iz, tmax):
-            continue
-        if info[node, 2] < 0:
-            first = info[node, 0]
-            for k in range(first, first + info[node, 1]):
-                if _prim_hit(tri_p, sph, prims[k], ox, oy, oz, dx, dy, dz, tmax) > 0.0:
-                    return True
-        else:
-            stack[sp] = node + 1
-            stack[sp + 1] = info[node, 0]
-            sp += 2
-    return False
 
 
 @kernel
