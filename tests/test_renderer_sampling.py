@@ -1,0 +1,112 @@
+"""Sampling routines against their pdfs (chi-square, see chi2util.py).
+
+Each test draws 10^6 directions from a kernel and checks them against the
+pdf the integrators divide by. Family-wise alpha = 0.01, Sidak-corrected
+over the tests of this module. A deliberately wrong pdf must be rejected,
+so the test can fail.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from numba import njit
+
+from chi2util import chi2_pvalue, expected_counts, histogram, sidak
+from renderer import build_scene, resolve_document
+from renderer.kernels.bsdf import diffuse_sample
+from renderer.kernels.lights import sample_light
+from renderer.kernels.rng import sample_key, uniform
+from renderer.kernels.sampling import uniform_hemisphere
+
+N = 1_000_000
+ALPHA = sidak(0.01, 4)
+
+
+@njit
+def _draw_cosine(n, nx, ny, nz):
+    out = np.empty((n, 3))
+    for i in range(n):
+        key = sample_key(7, i, 0)
+        wx, wy, wz, _, _ = diffuse_sample(nx, ny, nz, uniform(key, 0), uniform(key, 1))
+        out[i, 0], out[i, 1], out[i, 2] = wx, wy, wz
+    return out
+
+
+@njit
+def _draw_uniform(n):
+    out = np.empty((n, 3))
+    for i in range(n):
+        key = sample_key(8, i, 0)
+        out[i, 0], out[i, 1], out[i, 2] = uniform_hemisphere(uniform(key, 0), uniform(key, 1))
+    return out
+
+
+@njit
+def _draw_light(sc, n, px, py, pz):
+    out = np.empty((n, 3))
+    pdfs = np.empty(n)
+    for i in range(n):
+        key = sample_key(9, i, 0)
+        r = sample_light(sc, px, py, pz, uniform(key, 0), uniform(key, 1), uniform(key, 2))
+        out[i, 0], out[i, 1], out[i, 2] = r[0], r[1], r[2]
+        pdfs[i] = r[4]
+    return out, pdfs
+
+
+def cosine_pdf(d):
+    return np.maximum(d[:, 2], 0.0) / np.pi
+
+
+def test01_cosine_hemisphere_sampling_matches_cos_over_pi():
+    counts = histogram(_draw_cosine(N, 0.0, 0.0, 1.0))
+    assert chi2_pvalue(counts, expected_counts(cosine_pdf, N)) > ALPHA
+    # the same samples are not uniform on the hemisphere: the test has teeth
+    uniform_pdf = lambda d: np.where(d[:, 2] > 0, 1 / (2 * np.pi), 0.0)  # noqa: E731
+    assert chi2_pvalue(counts, expected_counts(uniform_pdf, N)) < ALPHA
+
+
+def test02_uniform_hemisphere_sampling_matches_one_over_two_pi():
+    counts = histogram(_draw_uniform(N))
+    uniform_pdf = lambda d: np.where(d[:, 2] > 0, 1 / (2 * np.pi), 0.0)  # noqa: E731
+    assert chi2_pvalue(counts, expected_counts(uniform_pdf, N)) > ALPHA
+    assert chi2_pvalue(counts, expected_counts(cosine_pdf, N)) < ALPHA
+
+
+def _light_scene(shape):
+    return build_scene(resolve_document({
+        "camera": {"origin": [0, 0, -5], "target": [0, 0, 0], "fov": 30},
+        "materials": {"m": {"type": "diffuse", "albedo": 0.5}},
+        "shapes": [dict(shape, material="m", emitter={"type": "area", "radiance": 1})]})).arrays
+
+
+def test03_sphere_light_cone_sampling_matches_its_pdf():
+    """From the origin, a sphere of radius 1 centred at (0, 0, 2) subtends a
+    cone of half-angle 30 degrees around +z: the pdf is uniform inside."""
+    sc = _light_scene({"type": "sphere", "center": [0, 0, 2], "radius": 1})
+    dirs, pdfs = _draw_light(sc, N, 0.0, 0.0, 0.0)
+    cos_max = math.sqrt(1 - 0.25)
+    pdf_value = 1 / (2 * np.pi * (1 - cos_max))
+    assert np.allclose(pdfs, pdf_value)
+    cone_pdf = lambda d: np.where(d[:, 2] >= cos_max, pdf_value, 0.0)  # noqa: E731
+    assert chi2_pvalue(histogram(dirs), expected_counts(cone_pdf, N, sub=16)) > ALPHA
+    wide = lambda d: np.where(d[:, 2] >= 0.8, 1 / (2 * np.pi * 0.2), 0.0)  # noqa: E731
+    assert chi2_pvalue(histogram(dirs), expected_counts(wide, N, sub=16)) < ALPHA
+
+
+def test04_rectangle_light_sampling_matches_its_solid_angle_pdf():
+    """A 2 x 2 square light in the plane z = 1 facing the origin: the
+    solid-angle pdf of direction d is dist^2 / (cos_light * area)."""
+    sc = _light_scene({"type": "rectangle", "to_world": [{"rotate": {"axis": [1, 0, 0], "angle": 180}},
+                                                         {"translate": [0, 0, 1]}]})
+    dirs, pdfs = _draw_light(sc, N, 0.0, 0.0, 0.0)
+
+    def rect_pdf(d):
+        z = np.maximum(d[:, 2], 1e-12)
+        x, y = d[:, 0] / z, d[:, 1] / z  # where the ray meets z = 1
+        inside = (d[:, 2] > 0) & (np.abs(x) <= 1) & (np.abs(y) <= 1)
+        dist2 = x * x + y * y + 1
+        return np.where(inside, dist2 / (d[:, 2] * 4.0), 0.0)
+
+    assert np.allclose(pdfs, rect_pdf(dirs), rtol=1e-9)
+    assert chi2_pvalue(histogram(dirs), expected_counts(rect_pdf, N, sub=16)) > ALPHA
