@@ -52,8 +52,9 @@ def rayfarm_command() -> list[str]:
     return [found]
 
 
-def poll_job(get_json: Callable[[str], dict], job_id: str, timeout: float = 120.0) -> dict:
-    """Poll GET /jobs/{id} until the job is final; returns it."""
+def poll_job(get_json: Callable[[str], dict], job_id: str, timeout: float = 300.0) -> dict:
+    """Poll GET /jobs/{id} until the job is final; returns it. The timeout is
+    generous: after a renderer edit, Numba recompiles in every fresh process."""
     def final():
         job = get_json(f"/jobs/{job_id}")
         return job if job["status"] in ("done", "failed", "canceled") else None
@@ -196,7 +197,7 @@ def spawn_worker(redis_url, tmp_path):
         child = Child([*rayfarm_command(), "worker", "--concurrency", str(concurrency),
                        "--loglevel", "info"], farm_env(redis_url, **env), log)
         children.append(child)
-        wait_for(lambda: " ready." in child.log() or child.proc.poll() is not None, 60,
+        wait_for(lambda: " ready." in child.log() or child.proc.poll() is not None, 120,
                  "the worker to be ready")
         assert child.proc.poll() is None, f"worker exited:\n{child.log()}"
         return child
@@ -234,7 +235,7 @@ def spawn_serve(redis_url, tmp_path):
                 return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
             except httpx.HTTPError:
                 return False
-        wait_for(healthy, 60, "rayfarm serve to be healthy", interval=0.2)
+        wait_for(healthy, 300, "rayfarm serve to be healthy", interval=0.2)
         return child, base
 
     yield spawn

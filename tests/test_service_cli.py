@@ -61,7 +61,7 @@ def test05_serve_in_embedded_mode_renders_over_http(tmp_path, reference_channels
                 return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
             except httpx.HTTPError:
                 return False
-        wait_for(healthy, 60, "rayfarm serve", interval=0.2)
+        wait_for(healthy, 300, "rayfarm serve", interval=0.2)
         with httpx.Client(base_url=base, timeout=30) as client:
             assert client.get("/healthz").json()["executor"] == "local"
             job_id = client.post("/jobs", json=TINY).json()["id"]

@@ -63,7 +63,7 @@ def unit_rows(farm: Farm, job_id: str) -> list[WorkUnit]:
                                     .order_by(WorkUnit.index)))
 
 
-def tick_until(farm: Farm, predicate, timeout: float = 120.0, what: str = "the job"):
+def tick_until(farm: Farm, predicate, timeout: float = 300.0, what: str = "the job"):
     def step():
         farm.scheduler.tick()
         return predicate()
