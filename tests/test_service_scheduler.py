@@ -20,7 +20,7 @@ from service.settings import Settings
 from conftest import TINY, assert_bit_identical, channels_of, wait_for
 
 
-POSTGRES = "postgresql+psycopg://127.0.0.1:5432/test"
+POSTGRES = "postgresql://127.0.0.1:5432/test"  # the driver is added by Settings
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

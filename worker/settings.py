@@ -51,7 +51,12 @@ class Settings(BaseSettings):
 
     @property
     def sqlalchemy_url(self) -> str:
-        """The ledger's URL: `database_url`, or SQLite at ``<data_dir>/rayfarm.sqlite3``."""
-        if self.database_url:
-            return self.database_url
+        """The ledger's URL: `database_url`, or SQLite at ``<data_dir>/rayfarm.sqlite3``.
+        A plain ``postgresql://`` URL gets the installed psycopg (3) driver."""
+        url = self.database_url
+        for plain in ("postgresql://", "postgres://"):
+            if url.startswith(plain):
+                return "postgresql+psycopg://" + url[len(plain):]
+        if url:
+            return url
         return f"sqlite:///{(self.data_dir / 'rayfarm.sqlite3').resolve()}"
