@@ -166,6 +166,14 @@ class Child:
         except ProcessLookupError:
             pass
 
+    def group_alive(self) -> bool:
+        """Does any process of the group still exist?"""
+        try:
+            os.killpg(self.proc.pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+
     def stop(self, timeout: float = 20.0) -> None:
         if self.proc.poll() is None:
             self.kill_group(signal.SIGTERM)
