@@ -4,6 +4,10 @@ Binned SAH (16 bins per axis, as in pbrt-v4's BVHAggregate) over primitive
 bounds; nodes are stored depth-first, so an inner node's left child is the
 next node and `info[node, 0]` is its right child. Leaves hold at most
 MAX_LEAF primitives.
+
+TRAVERSAL_COST is 2, not pbrt's 1/8: in these scalar Numba kernels a node's
+slab test costs about as much as a triangle test, and on cornell-box the
+shallower tree (31 nodes instead of 43) rendered ~20 % more samples/s.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ __all__ = ["build_bvh"]
 
 N_BINS = 16
 MAX_LEAF = 4
-TRAVERSAL_COST = 0.125  # relative to one primitive test
+TRAVERSAL_COST = 2.0  # relative to one primitive test (see module doc)
 
 
 @njit(cache=True)
