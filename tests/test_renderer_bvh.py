@@ -44,7 +44,7 @@ def test01_closest_hit_and_any_hit_agree_with_brute_force(scene):
         bt, bprim = brute_force(arrays, o, d)
         assert t == bt
         # coplanar surfaces (the small box's bottom lies on the floor) tie exactly
-        assert prim == bprim or _prim_hit(arrays.tri_isect, arrays.sph, bprim, *o, *d, np.inf) == t
+        assert prim == bprim or _prim_hit(arrays.tri_isect, arrays.sph, prim, *o, *d, np.inf) == t
         if prim >= 0:
             hits += 1
             assert occluded(arrays, stack, *o, *d, t * 1.0001)
