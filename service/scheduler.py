@@ -88,12 +88,11 @@ class Scheduler:
             job_ids = list(session.scalars(select(Job.id).where(Job.status.in_(states.ACTIVE_JOB))
                                            .order_by(Job.created, Job.id)))
         self._cancel_departed()
-        budget = self.executor.capacity()
         for job_id in job_ids:
             if self._stop.is_set():
                 break
             try:
-                budget, complete = self._advance(job_id, budget)
+                complete = self._advance(job_id)
                 if complete:
                     self._finish(job_id)
             except StaleDataError:
@@ -111,20 +110,20 @@ class Scheduler:
         for key in [k for k in self._tracked if k not in live]:
             self.executor.cancel(key[0], self._tracked.pop(key))
 
-    def _advance(self, job_id: str, budget: int) -> tuple[int, bool]:
-        """Plan, collect and enqueue for one job; returns (budget left, all units done)."""
+    def _advance(self, job_id: str) -> bool:
+        """Plan, collect and enqueue for one job; returns whether all its units are done."""
         released: list[tuple[str, ...]] = []
         enqueue_error: Exception | None = None
         with self.sessions.begin() as session:  # the plan stands even if enqueuing fails
             job = session.get(Job, job_id)
             if job is None or job.status not in states.ACTIVE_JOB:
-                return budget, False
+                return False
             if job.status == "queued":
                 self._plan(session, job, self.clock())
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
             if job is None or job.status != "running":
-                return budget, False
+                return False
             now = self.clock()
             flying = list(session.scalars(
                 select(WorkUnit).where(WorkUnit.job_id == job.id,
@@ -138,9 +137,10 @@ class Scheduler:
                 if self._collect(session, job, unit, obs, now, released):
                     break  # the job failed
             if job.status == "running":
+                # Asked after collecting: finished units free their slots at once.
                 pending = session.scalars(
                     select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending")
-                    .order_by(WorkUnit.index).limit(max(budget, 0)))
+                    .order_by(WorkUnit.index).limit(max(self.executor.capacity(), 0)))
                 for unit in pending:
                     try:
                         self._enqueue(job, unit, now)
@@ -148,13 +148,12 @@ class Scheduler:
                         enqueue_error = exc
                         break
                     unit.attempts = 1
-                    budget -= 1
             complete = job.status == "running" and job.units_done == job.units_total
         for task_ids in released:  # only once the ledger says done (or failed)
             self.executor.release(task_ids)
         if enqueue_error is not None:
             raise enqueue_error
-        return budget, complete
+        return complete
 
     def _plan(self, session: Session, job: Job, now: datetime) -> None:
         units = plan(RenderSpec.from_dict(job.spec))

@@ -118,9 +118,12 @@ def test03_restarted_service_resumes_from_the_ledger(settings, reference_channel
     body = dict(TINY, tile_size=4)  # 64 units
     with Farm.open(settings) as farm:
         job_id = create(farm, body)
-        tick_until(farm, lambda: job_row(farm, job_id).units_done >= 1, what="a first unit")
-        in_flight = [u for u in unit_rows(farm, job_id) if u.state in ("queued", "running")]
-        assert job_row(farm, job_id).units_done < 64 and in_flight
+        def mid_job():
+            units = unit_rows(farm, job_id)
+            return any(u.state == "done" for u in units) and \
+                [u for u in units if u.state in ("queued", "running")]
+        in_flight = tick_until(farm, mid_job, what="some units done, some in flight")
+        assert job_row(farm, job_id).units_done < 64
     # A new service process: new pool, the same database and data directory.
     with Farm.open(settings) as farm:
         tick_until(farm, finished(farm, job_id))
