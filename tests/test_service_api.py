@@ -70,7 +70,7 @@ def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_ch
 
 def test02_width_and_height_default_to_the_scene_camera(local_client):
     body = {k: v for k, v in TINY.items() if k not in ("width", "height")}
-    job = submit(local_client, body)
+    job = submit(local_client, dict(body, spp=64))  # seconds of work: still running at DELETE
     camera = resolve_document("cornell-box")["camera"]
     assert (job["width"], job["height"]) == (camera["width"], camera["height"])
     assert local_client.delete(f"/jobs/{job['id']}").json()["status"] == "canceled"
