@@ -186,6 +186,9 @@ def test12_service_stays_healthy_after_garbage(local_client):
         assert response.status_code == 422, (payload, response.text)
     deep = {"camera": {"origin": [[[[]]]], "target": [0, 0, 0], "fov": 40}, "shapes": []}
     assert local_client.post("/jobs", json=dict(TINY, scene=deep)).status_code == 422
+    # A material given as a list once escaped the scene validator as a TypeError.
+    odd = _inline(lambda d: d["shapes"][0].__setitem__("material", ["white"]))
+    assert_422(local_client.post("/jobs", json=dict(TINY, scene=odd)), "scene", "scene")
     health = local_client.get("/healthz")
     assert health.status_code == 200 and health.json()["status"] == "ok"
     assert health.json()["scheduler"] == "running" and health.json()["database"] == "ok"
