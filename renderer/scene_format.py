@@ -261,6 +261,8 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
     if stype not in SHAPE_TYPES:
         raise SceneError(f"unknown shape type '{stype}' (allowed: {_name_list(SHAPE_TYPES)})", f"{loc}.type")
     mat = _require(shape, "material", loc)
+    if not isinstance(mat, str):
+        raise SceneError("expected a material name (a string)", f"{loc}.material")
     if mat not in materials:
         raise SceneError(f"unknown material '{mat}' (defined: {_name_list(materials) or 'none'})",
                          f"{loc}.material")
@@ -294,9 +296,12 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
             faces = _require(shape, "faces", loc)
         try:
             v = np.asarray(vertices, dtype=np.float64)
-            f = np.asarray(faces, dtype=np.int64)
+            f_raw = np.asarray(faces, dtype=np.float64)
         except (ValueError, TypeError):
             raise SceneError("vertices must be [[x, y, z], ...] and faces [[i, j, k], ...]", loc) from None
+        if f_raw.size and (not np.all(np.isfinite(f_raw)) or np.any(f_raw != np.round(f_raw))):
+            raise SceneError("face indices must be integers", f"{loc}.faces")
+        f = f_raw.astype(np.int64)
         if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
             raise SceneError("vertices must be a list of finite [x, y, z]", f"{loc}.vertices")
         if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:

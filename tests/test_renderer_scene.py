@@ -78,6 +78,9 @@ def test04_hash_is_content_identity():
                                    "to_world": [{"scale": [1, 2, 1]}]}), "shapes[1].to_world",
      "similarity"),
     (lambda d: d.update(lights=[]), "", "unknown top-level"),
+    (lambda d: d["shapes"][0].update(material=["m"]), "shapes[0].material", "material name"),
+    (lambda d: d["shapes"].append({"type": "mesh", "material": "m", "vertices": [[0, 0, 0]] * 3,
+                                   "faces": [[0.5, 1, 2]]}), "shapes[1].faces", "integers"),
 ])
 def test05_invalid_documents_name_the_problem(mutate, location, words):
     doc = json.loads(json.dumps(MINIMAL))
