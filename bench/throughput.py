@@ -10,6 +10,10 @@ of `--repeat`:
    pool (`renderer.render`, one single-threaded renderer per core; the shape
    of the service's embedded executor). Camera samples/s and rays/s come
    from the merged film's stats over the wall-clock time.
+1b. service: the same job submitted over HTTP to a `rayfarm serve` process
+   (embedded executor, SQLite ledger, a temporary data dir), timed from the
+   POST until GET /jobs/{id} says done: planning, the ledger, storing unit
+   films, merging and writing the EXR and PNG included.
 2. kernel: one `renderer.run_unit` over the whole image in this process,
    Numba threads = all cores. farm overhead = farm wall time / kernel wall time.
 3. Mitsuba 3 (only if importable; `pip install -e '.[mitsuba]'`): the same
@@ -54,6 +58,58 @@ def bench_farm(spec, workers: int, repeat: int) -> dict:
         seconds, film = best_of(repeat, lambda: render("cornell-box", spec, pool=pool))
     return {"seconds": seconds, "samples": film.stats["samples"], "rays": film.stats["rays"],
             "unit_seconds": film.stats["seconds"], "mean": film.mean().mean(axis=(0, 1)).tolist()}
+
+
+def bench_service(spec, workers: int, repeat: int) -> dict:
+    """Submit the job to a fresh `rayfarm serve` and time it until done."""
+    import socket
+    import tempfile
+
+    import httpx
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    data_dir = tempfile.mkdtemp(prefix="rayfarm-bench-")
+    env = {**os.environ, "RAYFARM_DATA_DIR": data_dir, "RAYFARM_LOCAL_WORKERS": str(workers),
+           "RAYFARM_BROKER_URL": "", "RAYFARM_DATABASE_URL": ""}
+    rayfarm = Path(sys.executable).with_name("rayfarm")
+    server = subprocess.Popen([str(rayfarm), "serve", "--host", "127.0.0.1", "--port", str(port)],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        with httpx.Client(base_url=base, timeout=30) as client:
+            deadline = time.monotonic() + 300
+            while True:
+                try:
+                    if client.get("/healthz").status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                if time.monotonic() > deadline:
+                    raise RuntimeError("rayfarm serve did not come up")
+                time.sleep(0.2)
+
+            def run(spp: int, seed: int) -> float:
+                body = {"scene": "cornell-box", "method": spec.method, "spp": spp, "depth": spec.depth,
+                        "tile_size": spec.tile_size, "seed": seed, "width": spec.width,
+                        "height": spec.height}
+                t0 = time.perf_counter()
+                job = client.post("/jobs", json=body).raise_for_status().json()
+                while True:
+                    state = client.get(f"/jobs/{job['id']}").raise_for_status().json()
+                    if state["status"] == "done":
+                        return time.perf_counter() - t0
+                    if state["status"] in ("failed", "canceled"):
+                        raise RuntimeError(f"benchmark job {state['status']}: {state.get('error')}")
+                    time.sleep(0.02)
+
+            run(1, 0)  # warm-up: every pool process has loaded its kernels
+            seconds = min(run(spec.spp, spec.seed) for _ in range(repeat))
+    finally:
+        server.terminate()
+        server.wait(60)
+    return {"seconds": seconds, "samples": spec.width * spec.height * spec.spp}
 
 
 def bench_kernel(spec, threads: int, repeat: int) -> dict:
@@ -137,11 +193,16 @@ def main(argv: list[str] | None = None) -> int:
           f"(sum of unit times {farm['unit_seconds']:.3f} s)")
     print(f"  image mean R G B = {' '.join(f'{v:.6f}' for v in farm['mean'])}")
 
+    service = bench_service(spec, args.workers, args.repeat)
+    print(f"service (rayfarm serve, embedded executor, submit -> done): {service['seconds']:.3f} s  "
+          f"{service['samples'] / service['seconds'] / 1e6:.3f} M camera samples/s")
+
     kernel = bench_kernel(spec, args.workers, args.repeat)
     print(f"kernel, whole image in-process: {kernel['seconds']:.3f} s  "
           f"{kernel['samples'] / kernel['seconds'] / 1e6:.3f} M camera samples/s  "
           f"{kernel['rays'] / kernel['seconds'] / 1e6:.3f} M rays/s")
-    print(f"farm overhead: farm time / kernel time = {farm['seconds'] / kernel['seconds']:.2f}x")
+    print(f"farm overhead: local pool time / kernel time = {farm['seconds'] / kernel['seconds']:.2f}x; "
+          f"service time / kernel time = {service['seconds'] / kernel['seconds']:.2f}x")
 
     if args.no_mitsuba:
         return 0
