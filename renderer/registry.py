@@ -54,7 +54,8 @@ class Method:
         return out
 
     def describe(self) -> dict:
-        return {"name": self.name, "description": self.description, "family": self.family,
+        return {"name": self.name, "aliases": list(self.aliases), "description": self.description,
+                "family": self.family,
                 "options": [{"name": o.name, "type": o.type.__name__, "default": o.default,
                              "choices": list(o.choices) if o.choices else None,
                              "description": o.description} for o in self.options]}

@@ -1,16 +1,21 @@
-"""`path`: unidirectional path tracing, NEE + BSDF sampling combined by MIS.
+"""The path-tracing family: one kernel, four ways to estimate direct light.
 
-| option | type | default | meaning |
-|---|---|---|---|
-| (none yet) | | | |
+| method | direct light at a non-specular vertex | option (default) |
+|---|---|---|
+| `path-bsdf` | only emitters that BSDF-sampled rays happen to hit | `hemisphere`: `cosine` or `uniform` |
+| `path-nee` | a shadow ray to a point sampled on a light (next event estimation); emission hit by BSDF rays counts only after specular bounces | |
+| `path-onesample` | one of the two, chosen with probability 1/2, divided by the mixture pdf 1/2 p_light + 1/2 p_bsdf (single-sample MIS) | |
+| `path-mis` (alias `path`) | both, weighted by Veach's multiple importance sampling | `heuristic`: `power` or `balance` |
 
-At every diffuse vertex the estimator takes two samples of the direct light:
-one towards a point chosen on a light (next event estimation) and one along
-the BSDF-sampled continuation ray; each is weighted with Veach's power
-heuristic (beta = 2) against the other's pdf, so the pair is unbiased and
-never much worse than the better strategy. Perfect mirrors and glass are
-delta lobes: no NEE there, and emission reached through them counts in full
-(`specular` below). Point lights are reached only by NEE.
+When to use which: `path-mis` is the robust default; `path-nee` is as good on
+diffuse scenes with small lights; `path-bsdf` is the lecture's baseline (it
+finds large lights, misses small ones and never sees point lights: "cannot
+intersect point lights"); `path-onesample` traces fewer shadow rays than MIS
+at the price of more noise. All four are unbiased for area lights and share
+the continuation: the BSDF-sampled ray carries the indirect light.
+
+Perfect mirrors and glass are delta lobes: no light sampling there, and
+emission reached through them counts in full (`specular` below).
 
 Depth (the lecture's convention): `depth` counts surface bounces; depth 0
 shows emitters seen directly, depth 1 is direct illumination; a path has at
@@ -19,10 +24,13 @@ surviving throughput by the survival probability, so it adds noise, not bias.
 
 Random dimensions of a camera sample: 0-1 the film position, then 8 per
 bounce b at 2 + 8 b: +0 light choice, +1..2 light point, +3..4 BSDF
-direction, +5 glass reflect/refract, +6 Russian roulette.
+direction, +5 glass reflect/refract, +6 Russian roulette, +7 the one-sample
+strategy choice.
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import numpy as np
 from numba import prange
@@ -34,7 +42,8 @@ from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR, dielectric_s
 from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
 from ..kernels.lights import light_pdf, sample_light
 from ..kernels.rng import sample_key, uniform
-from ..registry import Method, register_method
+from ..kernels.sampling import INV_PI, to_world, uniform_hemisphere
+from ..registry import METHODS, Method, Option, register_method
 from ..scene import camera_array
 
 DIMS_PER_BOUNCE = 8
@@ -67,13 +76,38 @@ def shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist):
     return sx, sy, sz, dx * inv, dy * inv, dz * inv, d * (1.0 - 1e-9)
 
 
+# Strategies of the path family (one kernel, switched at run time).
+BSDF_ONLY, NEE, ONE_SAMPLE, MIS = 0, 1, 2, 3
+POWER, BALANCE = 0, 1
+COSINE, UNIFORM = 0, 1
+
+
+@kernel
+def mis_weight(pa, pb, heuristic):
+    """Veach's weight of strategy a against b: power (beta = 2) or balance."""
+    if heuristic == BALANCE:
+        return pa / (pa + pb)
+    return pa * pa / (pa * pa + pb * pb)
+
+
 @kernel_inline
-def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
-    """Radiance arriving at o from direction -d: (r, g, b, rays traced)."""
+def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, hemisphere):
+    """Radiance arriving at o from direction -d: (r, g, b, rays traced).
+
+    `strategy` decides how direct light is estimated at non-specular vertices:
+    BSDF_ONLY (emission found by BSDF-sampled rays counts in full; no light
+    sampling, so point lights stay dark), NEE (a shadow ray to a sampled light
+    point; emission found by BSDF rays counts only after specular bounces),
+    ONE_SAMPLE (either of the two, chosen with probability 1/2, weighted by
+    the mixture pdf 1/2 p_light + 1/2 p_bsdf), MIS (both, weighted by the
+    `heuristic`). `hemisphere` picks cosine or uniform sampling of diffuse
+    lobes.
+    """
     lr, lg, lb = 0.0, 0.0, 0.0
     br, bg, bb = 1.0, 1.0, 1.0
     eta_scale = 1.0
     specular = True  # the camera is a delta "lobe" too: count emission in full
+    chose_bsdf = True  # one-sample MIS: which strategy the previous vertex drew
     prev_pdf = 0.0
     vx, vy, vz = ox, oy, oz  # the previous path vertex, on its surface (not offset)
     rays = 0
@@ -95,9 +129,15 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
         cos_o = -(dx * nx + dy * ny + dz * nz)
         if light >= 0 and cos_o > 0.0:
             w = 1.0
-            if not specular:
-                pl = light_pdf(sc, light, prim, vx, vy, vz, hx, hy, hz, cos_o)
-                w = prev_pdf * prev_pdf / (prev_pdf * prev_pdf + pl * pl)
+            if not specular and strategy != BSDF_ONLY:
+                if strategy == NEE or (strategy == ONE_SAMPLE and not chose_bsdf):
+                    w = 0.0  # this light was (or will be) counted by light sampling
+                else:
+                    pl = light_pdf(sc, light, prim, vx, vy, vz, hx, hy, hz, cos_o)
+                    if strategy == MIS:
+                        w = mis_weight(prev_pdf, pl, heuristic)
+                    else:  # ONE_SAMPLE drew the BSDF: f L cos / (1/2 pb + 1/2 pl) in all
+                        w = prev_pdf / (0.5 * prev_pdf + 0.5 * pl)
             lr += br * w * light_rgb[light, 0]
             lg += bg * w * light_rgb[light, 1]
             lb += bb * w * light_rgb[light, 2]
@@ -109,31 +149,49 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
             if cos_o <= 0.0:
                 break  # one-sided: the back of a diffuse surface is black
             ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
-            if n_lights > 0:
+            use_light = strategy == NEE or strategy == MIS
+            light_scale = 1.0
+            if strategy == ONE_SAMPLE:
+                chose_bsdf = uniform(key, base + 7) >= 0.5
+                use_light = not chose_bsdf
+                light_scale = 2.0  # the light strategy was drawn with probability 1/2
+            if use_light and n_lights > 0:
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
                     sc, hx, hy, hz, uniform(key, base), uniform(key, base + 1),
                     uniform(key, base + 2))
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
                     f, pb = diffuse_eval(cos_o, cos_i)
+                    if hemisphere == UNIFORM:
+                        pb = 0.5 * INV_PI
                     sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist)
                     rays += 1
                     if intersect_arrays(nodes, info, prims, tri, sph, stack,
                                         sx, sy, sz, tx, ty, tz, tmax, True)[1] < 0:
-                        if delta:
-                            weight = f * cos_i / pl
-                        else:
-                            weight = f * cos_i * pl / (pl * pl + pb * pb)
+                        if delta or strategy == NEE:
+                            # delta lights: one-sample picks them with probability 1/2 pl
+                            weight = light_scale * f * cos_i / pl
+                        elif strategy == MIS:
+                            weight = f * cos_i * mis_weight(pl, pb, heuristic) / pl
+                        else:  # ONE_SAMPLE: one-sample MIS divides by the mixture pdf
+                            weight = f * cos_i / (0.5 * pl + 0.5 * pb)
                         lr += br * ar * er * weight
                         lg += bg * ag * eg * weight
                         lb += bb * ab * eb * weight
-            wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, uniform(key, base + 3),
-                                                    uniform(key, base + 4))
-            if pdf <= 0.0:
+            if hemisphere == UNIFORM:
+                lx, ly, lz = uniform_hemisphere(uniform(key, base + 3), uniform(key, base + 4))
+                wx, wy, wz = to_world(lx, ly, lz, nx, ny, nz)
+                pdf = 0.5 * INV_PI
+                scale = lz * INV_PI / pdf  # f cos / pdf = albedo * 2 cos
+            else:
+                wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, uniform(key, base + 3),
+                                                        uniform(key, base + 4))
+                scale = 1.0  # f cos / pdf = albedo exactly
+            if pdf <= 0.0 or scale <= 0.0:
                 break
-            br *= ar
-            bg *= ag
-            bb *= ab
+            br *= ar * scale
+            bg *= ag * scale
+            bb *= ab * scale
             prev_pdf = pdf
             specular = False
             vx, vy, vz = hx, hy, hz
@@ -172,7 +230,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth):
 
 @kernel_parallel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth,
-                 out_sum, out_sq, out_w, row_rays, stacks):
+                 strategy, heuristic, hemisphere, out_sum, out_sq, out_w, row_rays, stacks):
     """Accumulate the samples of `blocks` for the pixels of a tile (see film.py
     for why sums are formed per block). Rows run in parallel under prange."""
     ox, oy, oz = cam[0], cam[1], cam[2]
@@ -190,7 +248,8 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth,
                     key = sample_key(seed, pixel, s)
                     dx, dy, dz = camera_ray(cam, width, height, x + uniform(key, 0),
                                             y + uniform(key, 1))
-                    r, g, b, nr = li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth)
+                    r, g, b, nr = li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth,
+                                          strategy, heuristic, hemisphere)
                     rays += nr
                     sr += r
                     sg += g
@@ -225,8 +284,11 @@ def unit_blocks(spp: int, sample_start: int, sample_end: int) -> np.ndarray:
     return np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
 
 
-def render_tile(scene, spec, unit) -> PartialFilm:
+def render_tile(scene, spec, unit, *, strategy: int) -> PartialFilm:
     """Run the kernel over one unit's tile and sample range."""
+    options = METHODS[spec.method].check_options(spec.options)
+    heuristic = BALANCE if options.get("heuristic") == "balance" else POWER
+    hemisphere = UNIFORM if options.get("hemisphere") == "uniform" else COSINE
     w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
     film = PartialFilm.zeros(unit.x0, unit.y0, w, h)
     row_rays = np.zeros(h, np.int64)
@@ -234,14 +296,38 @@ def render_tile(scene, spec, unit) -> PartialFilm:
     cam = camera_array(scene.camera, spec.width, spec.height)
     _render_tile(scene.arrays, cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width, spec.height,
                  unit_blocks(spec.spp, unit.sample_start, unit.sample_end), spec.seed, spec.depth,
-                 film.sum, film.sum_sq, film.weight, row_rays, stacks)
+                 strategy, heuristic, hemisphere, film.sum, film.sum_sq, film.weight, row_rays,
+                 stacks)
     film.stats.update(samples=unit.samples, rays=int(row_rays.sum()))
     return film
 
 
 register_method(Method(
-    name="path",
-    description="Path tracing: next event estimation and BSDF sampling combined by "
-                "multiple importance sampling (power heuristic), Russian roulette.",
-    run=render_tile,
+    name="path-bsdf",
+    description="Backward path tracing with BSDF sampling only: emitters count when a "
+                "sampled ray hits them; point lights are never reached.",
+    run=partial(render_tile, strategy=BSDF_ONLY),
+    options=(Option("hemisphere", str, "cosine", "diffuse lobe sampling: cosine-weighted "
+                    "(pdf cos/pi) or uniform (pdf 1/2pi)", ("cosine", "uniform")),),
+))
+register_method(Method(
+    name="path-nee",
+    description="Path tracing with next event estimation: a shadow ray to a sampled light "
+                "point at every non-specular vertex.",
+    run=partial(render_tile, strategy=NEE),
+))
+register_method(Method(
+    name="path-onesample",
+    description="Single-sample importance sampling: at each non-specular vertex light or "
+                "BSDF sampling with probability 1/2, weighted by the mixture pdf.",
+    run=partial(render_tile, strategy=ONE_SAMPLE),
+))
+register_method(Method(
+    name="path-mis",
+    aliases=("path",),
+    description="Path tracing: light and BSDF sampling combined by multiple importance "
+                "sampling; Russian roulette.",
+    run=partial(render_tile, strategy=MIS),
+    options=(Option("heuristic", str, "power", "MIS weights: Veach's power (beta = 2) or "
+                    "balance heuristic", ("power", "balance")),),
 ))

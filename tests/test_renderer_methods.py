@@ -1,0 +1,147 @@
+"""The path-tracing family: every estimator converges to the same answer.
+
+Tolerances are z-tests on the films' own variance (see test_renderer_path.py):
+Z = 4.5, fixed seeds.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from renderer import METHODS, RenderSpec, SpecError, build_scene, load_scene, merge, plan, \
+    resolve_document, run_unit
+
+Z = 4.5
+LIGHT_SAMPLING = ["path-nee", "path-onesample", "path-mis", "path-mis/balance"]
+ALL = ["path-bsdf", "path-bsdf/uniform"] + LIGHT_SAMPLING
+
+
+def spec_for(method, **kw):
+    name, _, option = method.partition("/")
+    options = {}
+    if option == "uniform":
+        options["hemisphere"] = "uniform"
+    if option == "balance":
+        options["heuristic"] = "balance"
+    return RenderSpec(method=name, options=options, **kw)
+
+
+def render_inline(scene, spec):
+    return merge(spec.width, spec.height, [run_unit(scene, spec, u) for u in plan(spec)])
+
+
+def mean_and_stderr(film, channel=0):
+    m = film.mean()[..., channel]
+    return m.mean(), math.sqrt(film.variance_of_mean()[..., channel].sum()) / m.size
+
+
+def furnace_points(n):
+    """The point-light furnace with the intensity pi split over n coincident lights."""
+    return build_scene(resolve_document({
+        "camera": {"origin": [0, 0, 0], "target": [0, 0, -1], "fov": 60, "width": 16, "height": 16},
+        "materials": {"grey": {"type": "diffuse", "albedo": 0.5}},
+        "shapes": [{"type": "sphere", "material": "grey", "flip_normals": True}],
+        "emitters": [{"type": "point", "position": [0, 0, 0], "intensity": math.pi / n}] * n}))
+
+
+def test01_registry_lists_every_method_with_its_options():
+    assert {"path-bsdf", "path-nee", "path-onesample", "path-mis", "path"} <= set(METHODS)
+    assert METHODS["path"] is METHODS["path-mis"]
+    assert [o.name for o in METHODS["path-bsdf"].options] == ["hemisphere"]
+    assert [o.name for o in METHODS["path-mis"].options] == ["heuristic"]
+    with pytest.raises(SpecError, match="unknown option"):
+        RenderSpec(method="path-nee", options={"heuristic": "power"}).validate()
+    with pytest.raises(SpecError, match="must be one of"):
+        RenderSpec(method="path-mis", options={"heuristic": "max"}).validate()
+
+
+@pytest.mark.parametrize("method", LIGHT_SAMPLING)
+@pytest.mark.parametrize("lights", [1, 4])
+@pytest.mark.parametrize("depth", [1, 3, 6])
+def test02_point_light_furnace(method, lights, depth):
+    film = render_inline(furnace_points(lights),
+                         spec_for(method, spp=128, depth=depth, width=16, height=16, tile_size=16,
+                                  seed=depth))
+    mean, se = mean_and_stderr(film)
+    assert abs(mean - (1 - 0.5 ** depth)) <= Z * se + 1e-12, (mean, se)
+
+
+def test03_bsdf_sampling_cannot_find_point_lights():
+    """The lecture: backward path tracing 'cannot intersect point lights'."""
+    film = render_inline(load_scene("furnace-point"),
+                         spec_for("path-bsdf", spp=16, depth=4, width=16, height=16, tile_size=16))
+    assert np.all(film.sum == 0)
+
+
+@pytest.mark.parametrize("method", ALL)
+@pytest.mark.parametrize("depth", [0, 1, 4])
+def test04_emitter_furnace(method, depth):
+    film = render_inline(load_scene("furnace-emitter"),
+                         spec_for(method, spp=128, depth=depth, width=16, height=16, tile_size=16,
+                                  seed=10 + depth))
+    mean, se = mean_and_stderr(film)
+    assert abs(mean - (1 - 0.5 ** (depth + 1))) <= Z * se + 1e-12, (mean, se)
+
+
+def _square_light_scene():
+    return build_scene(resolve_document({
+        "camera": {"origin": [0, 0.5, 2], "target": [0, 0, 0], "fov": 0.1, "width": 4, "height": 4},
+        "materials": {"floor": {"type": "diffuse", "albedo": 0.5},
+                      "black": {"type": "diffuse", "albedo": 0}},
+        "shapes": [{"type": "rectangle", "material": "floor",
+                    "to_world": [{"scale": [10, 10, 1]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}}]},
+                   {"type": "rectangle", "material": "black",
+                    "to_world": [{"scale": [0.5, 0.5, 1]}, {"rotate": {"axis": [1, 0, 0], "angle": 90}},
+                                 {"translate": [0, 1, 0]}],
+                    "emitter": {"type": "area", "radiance": 1.0}}]}))
+
+
+@pytest.mark.parametrize("method", ALL)
+def test05_direct_light_under_a_square_light(method):
+    """L = albedo * Le * F(point -> square): every estimator, by z-test."""
+    a = 0.5
+    corner = (a / math.sqrt(1 + a * a)) * math.atan(a / math.sqrt(1 + a * a)) / math.pi
+    expected = 0.5 * 1.0 * 4 * corner
+    film = render_inline(_square_light_scene(),
+                         spec_for(method, spp=4096, depth=1, width=4, height=4, tile_size=4, seed=3))
+    mean, se = mean_and_stderr(film)
+    assert se < 0.02 * expected
+    assert abs(mean - expected) <= Z * se, (mean, expected, se)
+
+
+def _floor_under_white_sky(rho):
+    return build_scene(resolve_document({
+        "camera": {"origin": [0, 1, 0], "target": [0, 0, 0], "up": [0, 0, -1], "fov": 20,
+                   "width": 100, "height": 100},
+        "materials": {"floor": {"type": "diffuse", "albedo": rho},
+                      "sky": {"type": "diffuse", "albedo": 0}},
+        "shapes": [{"type": "rectangle", "material": "floor",
+                    "to_world": [{"rotate": {"axis": [1, 0, 0], "angle": -90}}]},
+                   {"type": "sphere", "radius": 1000, "material": "sky", "flip_normals": True,
+                    "emitter": {"type": "area", "radiance": 1.0}}]}))
+
+
+def test06_hemisphere_estimators_under_a_uniform_sky():
+    """Cosine sampling of a diffuse floor under a white sky returns exactly the
+    albedo; uniform sampling has mean albedo and variance albedo^2 / 3."""
+    rho = 0.6
+    scene = _floor_under_white_sky(rho)
+    base = dict(depth=1, width=100, height=100, tile_size=100, seed=1, spp=100)  # 10^6 samples
+    cos = render_inline(scene, spec_for("path-bsdf", **base))
+    assert np.allclose(cos.mean(), rho, rtol=0, atol=1e-12)
+    assert np.allclose(cos.variance_of_mean(), 0, atol=1e-20)
+    uni = render_inline(scene, spec_for("path-bsdf/uniform", **base))
+    n = uni.weight.sum()
+    mean = uni.sum[..., 0].sum() / n
+    var = uni.sum_sq[..., 0].sum() / n - mean ** 2
+    assert abs(mean - rho) <= Z * math.sqrt(rho ** 2 / 3 / n)
+    assert var == pytest.approx(rho ** 2 / 3, rel=0.02)
+
+
+@pytest.mark.parametrize("method", ALL)
+def test07_tiling_invariance_for_every_method(method):
+    scene = load_scene("cornell-box")
+    a = render_inline(scene, spec_for(method, spp=3, depth=3, width=24, height=20, tile_size=8, seed=4))
+    b = render_inline(scene, spec_for(method, spp=3, depth=3, width=24, height=20, tile_size=32, seed=4))
+    assert np.array_equal(a.sum, b.sum) and np.array_equal(a.sum_sq, b.sum_sq)
