@@ -29,6 +29,8 @@ def build_parser(prog: str = "rayfarm render") -> argparse.ArgumentParser:
     p.add_argument("scene", help=f"built-in scene ({', '.join(builtin_scene_names())}) "
                                  "or a path to a scene JSON file")
     p.add_argument("--method", default="path", choices=sorted(METHODS))
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="a method option, e.g. --option heuristic=balance (repeatable)")
     p.add_argument("--sampler", default="random", choices=sorted(SAMPLERS))
     p.add_argument("--spp", type=int, default=16, help="samples per pixel")
     p.add_argument("--depth", type=int, default=5,
@@ -48,12 +50,20 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
     from .local import render
     from .plan import plan
 
+    options = {}
+    for item in args.option:
+        key, sep, value = item.partition("=")
+        if not sep:
+            print(f"error: --option expects KEY=VALUE, got {item!r}", file=sys.stderr)
+            return 2
+        options[key] = value
     try:
         doc = resolve_document(args.scene)
         cam = doc["camera"]
         spec = RenderSpec(method=args.method, spp=args.spp, depth=args.depth,
                           width=args.width or cam["width"], height=args.height or cam["height"],
-                          tile_size=args.tile_size, seed=args.seed, sampler=args.sampler).validate()
+                          tile_size=args.tile_size, seed=args.seed, sampler=args.sampler,
+                          options=options).validate()
     except RenderError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
