@@ -6,6 +6,7 @@
 | `path-nee` | a shadow ray to a point sampled on a light (next event estimation); emission hit by BSDF rays counts only after specular bounces | |
 | `path-onesample` | one of the two, chosen with probability 1/2, divided by the mixture pdf 1/2 p_light + 1/2 p_bsdf (single-sample MIS) | |
 | `path-mis` (alias `path`) | both, weighted by Veach's multiple importance sampling | `heuristic`: `power` or `balance` |
+| `direct` | Whitted: light sampling at the first diffuse vertex, and the path ends there; mirrors and glass are followed up to `depth` | |
 
 When to use which: `path-mis` is the robust default; `path-nee` is as good on
 diffuse scenes with small lights; `path-bsdf` is the lecture's baseline (it
@@ -77,7 +78,7 @@ def shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist):
 
 
 # Strategies of the path family (one kernel, switched at run time).
-BSDF_ONLY, NEE, ONE_SAMPLE, MIS = 0, 1, 2, 3
+BSDF_ONLY, NEE, ONE_SAMPLE, MIS, DIRECT = 0, 1, 2, 3, 4
 POWER, BALANCE = 0, 1
 COSINE, UNIFORM = 0, 1
 
@@ -100,7 +101,8 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
     point; emission found by BSDF rays counts only after specular bounces),
     ONE_SAMPLE (either of the two, chosen with probability 1/2, weighted by
     the mixture pdf 1/2 p_light + 1/2 p_bsdf), MIS (both, weighted by the
-    `heuristic`). `hemisphere` picks cosine or uniform sampling of diffuse
+    `heuristic`), DIRECT (NEE at the first diffuse vertex, then stop: only
+    specular chains continue). `hemisphere` picks cosine or uniform sampling of diffuse
     lobes.
     """
     lr, lg, lb = 0.0, 0.0, 0.0
@@ -149,7 +151,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             if cos_o <= 0.0:
                 break  # one-sided: the back of a diffuse surface is black
             ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
-            use_light = strategy == NEE or strategy == MIS
+            use_light = strategy == NEE or strategy == MIS or strategy == DIRECT
             light_scale = 1.0
             if strategy == ONE_SAMPLE:
                 chose_bsdf = uniform(key, base + 7) >= 0.5
@@ -168,7 +170,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
                     rays += 1
                     if intersect_arrays(nodes, info, prims, tri, sph, stack,
                                         sx, sy, sz, tx, ty, tz, tmax, True)[1] < 0:
-                        if delta or strategy == NEE:
+                        if delta or strategy == NEE or strategy == DIRECT:
                             # delta lights: one-sample picks them with probability 1/2 pl
                             weight = light_scale * f * cos_i / pl
                         elif strategy == MIS:
@@ -178,6 +180,8 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
                         lr += br * ar * er * weight
                         lg += bg * ag * eg * weight
                         lb += bb * ab * eb * weight
+            if strategy == DIRECT:
+                break  # Whitted: light stops at the first diffuse surface
             if hemisphere == UNIFORM:
                 lx, ly, lz = uniform_hemisphere(uniform(key, base + 3), uniform(key, base + 4))
                 wx, wy, wz = to_world(lx, ly, lz, nx, ny, nz)
@@ -321,6 +325,12 @@ register_method(Method(
     description="Single-sample importance sampling: at each non-specular vertex light or "
                 "BSDF sampling with probability 1/2, weighted by the mixture pdf.",
     run=partial(render_tile, strategy=ONE_SAMPLE),
+))
+register_method(Method(
+    name="direct",
+    description="Whitted-style direct lighting: emission seen directly, shadow rays at the "
+                "first diffuse hit, perfect mirror and glass chains followed up to depth.",
+    run=partial(render_tile, strategy=DIRECT),
 ))
 register_method(Method(
     name="path-mis",
