@@ -19,11 +19,12 @@ from .bvh import build_bvh
 from .scene_format import resolve_document, scene_hash
 
 __all__ = ["Scene", "SceneArrays", "build_scene", "load_scene", "camera_array",
-           "MAT_DIFFUSE", "MAT_MIRROR", "MAT_DIELECTRIC", "LIGHT_MESH", "LIGHT_SPHERE",
+           "MAT_DIFFUSE", "MAT_MIRROR", "MAT_DIELECTRIC", "MAT_GLOSSY", "LIGHT_MESH", "LIGHT_SPHERE",
            "LIGHT_POINT"]
 
-MAT_DIFFUSE, MAT_MIRROR, MAT_DIELECTRIC = 0, 1, 2
-_MAT_IDS = {"diffuse": MAT_DIFFUSE, "mirror": MAT_MIRROR, "dielectric": MAT_DIELECTRIC}
+MAT_DIFFUSE, MAT_MIRROR, MAT_DIELECTRIC, MAT_GLOSSY = 0, 1, 2, 3
+_MAT_IDS = {"diffuse": MAT_DIFFUSE, "mirror": MAT_MIRROR, "dielectric": MAT_DIELECTRIC,
+            "glossy": MAT_GLOSSY}
 LIGHT_MESH, LIGHT_SPHERE, LIGHT_POINT = 0, 1, 2
 
 SceneArrays = namedtuple("SceneArrays", [
@@ -37,8 +38,8 @@ SceneArrays = namedtuple("SceneArrays", [
     "sph_mat",      # (S,) int32
     "sph_light",    # (S,) int32 light index or -1
     "mat_type",     # (M,) int32 MAT_*
-    "mat_rgb",      # (M, 3) albedo (diffuse) or tint (mirror)
-    "mat_param",    # (M, 4) [ior, 0, 0, 0]
+    "mat_rgb",      # (M, 3) albedo (diffuse), tint (mirror) or specular (glossy)
+    "mat_param",    # (M, 4) [ior (dielectric), GGX alpha (glossy), 0, 0]
     "light_type",   # (L,) int32 LIGHT_*
     "light_rgb",    # (L, 3) radiance (area) or intensity (point)
     "light_pos",    # (L, 3) position (point lights)
@@ -112,11 +113,13 @@ def build_scene(doc: dict) -> Scene:
     mat_index = {name: i for i, name in enumerate(mat_names)}
     mats = [doc["materials"][n] for n in mat_names]
     mat_type = np.array([_MAT_IDS[m["type"]] for m in mats], dtype=np.int32)
-    mat_rgb = np.array([m.get("albedo", m.get("tint", [1.0, 1.0, 1.0])) for m in mats],
+    rgb_field = {"diffuse": "albedo", "mirror": "tint", "glossy": "specular"}
+    mat_rgb = np.array([m.get(rgb_field.get(m["type"], ""), [1.0, 1.0, 1.0]) for m in mats],
                        dtype=np.float64).reshape(-1, 3)
     mat_param = np.zeros((len(mats), 4))
     for i, m in enumerate(mats):
         mat_param[i, 0] = m.get("ior", 1.0)
+        mat_param[i, 1] = m.get("roughness", 0.0)
 
     tris, tri_mat, tri_light = [], [], []
     sph, sph_flip, sph_mat, sph_light = [], [], [], []

@@ -44,7 +44,7 @@ __all__ = [
     "SHAPE_TYPES",
 ]
 
-MATERIAL_TYPES = ("diffuse", "mirror", "dielectric")
+MATERIAL_TYPES = ("diffuse", "mirror", "dielectric", "glossy")
 SHAPE_TYPES = ("rectangle", "cube", "sphere", "mesh")
 EMITTER_TYPES = ("point",)
 FOV_AXES = ("x", "y", "smaller", "larger")
@@ -220,6 +220,12 @@ def _resolve_material(name: str, mat: Any) -> dict:
     if mtype == "dielectric":
         ior = _number(mat.get("ior", 1.5), f"{loc}.ior", lo=1.0, hi=4.0)
         return {"type": "dielectric", "ior": ior}
+    if mtype == "glossy":
+        specular = _vec3(mat.get("specular", [1.0, 1.0, 1.0]), f"{loc}.specular", nonneg=True)
+        if max(specular) > 1.0:
+            raise SceneError("specular components must be <= 1", f"{loc}.specular")
+        roughness = _number(mat.get("roughness", 0.1), f"{loc}.roughness", lo=0.0, hi=1.0, lo_open=True)
+        return {"type": "glossy", "specular": specular, "roughness": roughness}
     raise SceneError(f"unknown material type '{mtype}' (allowed: {_name_list(MATERIAL_TYPES)})",
                      f"{loc}.type")
 

@@ -1,4 +1,5 @@
-"""Materials: diffuse (Lambertian), mirror and dielectric (smooth glass).
+"""Materials: diffuse (Lambertian), mirror and dielectric (smooth glass);
+the glossy rough conductor lives in ggx.py.
 
 Directions follow pbrt: `wo` points away from the surface towards where the
 light goes (the camera side), `wi` towards where it comes from. `n` is the
@@ -11,7 +12,7 @@ import math
 from . import kernel
 from .sampling import INV_PI, cosine_hemisphere, to_world
 
-MAT_DIFFUSE, MAT_MIRROR, MAT_DIELECTRIC = 0, 1, 2
+MAT_DIFFUSE, MAT_MIRROR, MAT_DIELECTRIC, MAT_GLOSSY = 0, 1, 2, 3
 
 
 @kernel
