@@ -1,0 +1,83 @@
+"""The one kernel entry point: `sample_2d` / `sample_1d` switch on the sampler id.
+
+See the package docstring (renderer/samplers/__init__.py) for the contract.
+"""
+
+from ..kernels import kernel
+# Imported in id order: registration order is the order `GET /samplers` lists.
+from . import random  # isort: skip
+from . import uniform  # isort: skip
+from . import jittered  # isort: skip
+from . import nrooks  # isort: skip
+from . import multijitter  # isort: skip
+from . import hammersley  # isort: skip
+from . import halton  # isort: skip
+from . import sobol  # isort: skip
+from . import bluenoise  # isort: skip
+
+SAMPLER_RANDOM = random.SAMPLER_RANDOM
+SAMPLER_UNIFORM = uniform.SAMPLER_UNIFORM
+SAMPLER_JITTERED = jittered.SAMPLER_JITTERED
+SAMPLER_NROOKS = nrooks.SAMPLER_NROOKS
+SAMPLER_MULTIJITTER = multijitter.SAMPLER_MULTIJITTER
+SAMPLER_HAMMERSLEY = hammersley.SAMPLER_HAMMERSLEY
+SAMPLER_HALTON = halton.SAMPLER_HALTON
+SAMPLER_SOBOL = sobol.SAMPLER_SOBOL
+SAMPLER_BLUENOISE = bluenoise.SAMPLER_BLUENOISE
+
+_random_pair = random.sample_pair
+_uniform_pair = uniform.sample_pair
+_jittered_pair = jittered.sample_pair
+_nrooks_pair = nrooks.sample_pair
+_multijitter_pair = multijitter.sample_pair
+_hammersley_pair = hammersley.sample_pair
+_halton_pair = halton.sample_pair
+_sobol_pair = sobol.sample_pair
+_bluenoise_pair = bluenoise.sample_pair
+
+
+@kernel
+def sample_pair(sampler_id, seed, pixel, index, spp, pair):
+    """Dims (2*pair, 2*pair + 1) of sample `index` of `pixel`; unknown ids act as random."""
+    if sampler_id == SAMPLER_SOBOL:
+        return _sobol_pair(seed, pixel, index, spp, pair)
+    if sampler_id == SAMPLER_HALTON:
+        return _halton_pair(seed, pixel, index, spp, pair)
+    if sampler_id == SAMPLER_MULTIJITTER:
+        return _multijitter_pair(seed, pixel, index, spp, pair)
+    if sampler_id == SAMPLER_JITTERED:
+        return _jittered_pair(seed, pixel, index, spp, pair)
+    if sampler_id == SAMPLER_BLUENOISE:
+        return _bluenoise_pair(seed, pixel, index, spp, pair)
+    if sampler_id == SAMPLER_HAMMERSLEY:
+        return _hammersley_pair(seed, pixel, index, spp, pair)
+    if sampler_id == SAMPLER_NROOKS:
+        return _nrooks_pair(seed, pixel, index, spp, pair)
+    if sampler_id == SAMPLER_UNIFORM:
+        return _uniform_pair(seed, pixel, index, spp, pair)
+    return _random_pair(seed, pixel, index, spp, pair)
+
+
+@kernel
+def sample_1d(sampler_id, seed, pixel, index, spp, dim):
+    """Dimension `dim` of sample `index` of `pixel`: a float64 in [0, 1)."""
+    u, v = sample_pair(sampler_id, seed, pixel, index, spp, dim >> 1)
+    return v if dim & 1 else u
+
+
+@kernel
+def sample_2d(sampler_id, seed, pixel, index, spp, dim):
+    """Dimensions (dim, dim + 1) of sample `index` of `pixel`: (u, v) in [0, 1)^2."""
+    if dim & 1:  # an odd start straddles two pairs: read it as two 1D values
+        return (sample_1d(sampler_id, seed, pixel, index, spp, dim),
+                sample_1d(sampler_id, seed, pixel, index, spp, dim + 1))
+    return sample_pair(sampler_id, seed, pixel, index, spp, dim >> 1)
+
+
+@kernel
+def fill_2d(sampler_id, seed, pixel, first, spp, dim, out):
+    """out[k] = sample_2d(..., first + k, spp, dim) for k < len(out); for tests and tools."""
+    for k in range(out.shape[0]):
+        u, v = sample_2d(sampler_id, seed, pixel, first + k, spp, dim)
+        out[k, 0] = u
+        out[k, 1] = v

@@ -1,0 +1,330 @@
+"""Pixel samplers (renderer/samplers/): the properties each construction promises.
+
+Numbered by concern (Mitsuba's habit): 01 registry and API, 02 purity
+(same values whatever the order or tile), 03 per-sampler stratification
+properties, 04 quality comparisons between samplers (discrepancy, spectrum,
+integration error), 05 kernels against the plain-Python references in
+renderer/samplers/naive.py. Fixed seeds throughout, so every comparison is
+deterministic; each test fails when its property breaks.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from numba import njit
+
+from renderer.kernels.rng import sample_key, uniform
+from renderer.registry import SAMPLERS
+from renderer.samplers import (SAMPLER_RANDOM, fill_2d, halton, naive, points, sample_1d,
+                               sample_2d, sobol)
+from renderer.samplers.common import permute
+
+SEED = 20261122
+NAMES = ["random", "uniform", "jittered", "nrooks", "multijitter", "hammersley", "halton",
+         "sobol", "bluenoise"]
+
+
+def _grid_counts(p, nx, ny):
+    ix = np.floor(p[:, 0] * nx).astype(int)
+    iy = np.floor(p[:, 1] * ny).astype(int)
+    return np.bincount(iy * nx + ix, minlength=nx * ny)
+
+
+def _star_discrepancy(p):
+    """Exact 2D star discrepancy (the same estimator for every sampler), O(n^2) memory."""
+    n = len(p)
+    xs = np.unique(np.append(p[:, 0], 1.0))
+    ys = np.unique(np.append(p[:, 1], 1.0))
+    closed = (p[:, 0][:, None] <= xs).T.astype(float) @ (p[:, 1][:, None] <= ys).astype(float)
+    opened = (p[:, 0][:, None] < xs).T.astype(float) @ (p[:, 1][:, None] < ys).astype(float)
+    volume = xs[:, None] * ys[None, :]
+    return max((closed / n - volume).max(), (volume - opened / n).max())
+
+
+# -- 01 registry and API ------------------------------------------------------------------
+
+def test01_registry_names_and_ids():
+    assert list(SAMPLERS) == NAMES
+    assert [SAMPLERS[n].id for n in NAMES] == list(range(len(NAMES)))
+    assert SAMPLERS["random"].id == SAMPLER_RANDOM == 0
+
+
+@njit
+def _former_random(seed, pixel, index, dim):  # the integrators' original draw, in a kernel
+    return uniform(sample_key(seed, pixel, index), dim)
+
+
+def test01_random_is_the_former_hash():
+    # Renders made before the sampler library keep their bytes.
+    for pixel, index, dim in [(0, 0, 0), (5, 3, 1), (77, 15, 6), (1234, 2, 9)]:
+        assert sample_1d(SAMPLER_RANDOM, SEED, pixel, index, 16, dim) == \
+            _former_random(SEED, pixel, index, dim)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test01_values_in_unit_interval(name):
+    sid = SAMPLERS[name].id
+    for spp in (1, 2, 3, 5, 12, 16, 17, 64, 100):
+        for dim in (0, 2, 5):
+            # two blocks: indices past spp too
+            p = points(name, SEED, 3, spp, dim, count=2 * spp)
+            assert np.all(p >= 0.0) and np.all(p < 1.0), (spp, dim)
+    assert 0.0 <= sample_1d(sid, SEED, 1, 0, 1, 0) < 1.0
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test01_1d_and_2d_reads_agree(name):
+    sid = SAMPLERS[name].id
+    for index in range(6):
+        for dim in range(8):
+            u, v = sample_2d(sid, SEED, 9, index, 6, dim)
+            assert u == sample_1d(sid, SEED, 9, index, 6, dim)
+            assert v == sample_1d(sid, SEED, 9, index, 6, dim + 1)
+
+
+# -- 02 purity: order, tile and replay invariance -----------------------------------------
+
+@pytest.mark.parametrize("name", NAMES)
+def test02_consistent_values_in_any_order(name):
+    """pbrt's ConsistentValues: the same (pixel, index, dim) gives the same value whatever
+    was drawn before it, and a second "tile" walking the pixels differently agrees."""
+    sid, spp, dims = SAMPLERS[name].id, 16, 8
+    pixels = [0, 1, 37, 4096]
+    forward = {}
+    for pixel in pixels:  # tile A: pixel-major, sample-major, dims in order
+        for index in range(spp):
+            for dim in range(dims):
+                forward[pixel, index, dim] = sample_1d(sid, SEED, pixel, index, spp, dim)
+    rng = np.random.default_rng(1)
+    order = list(forward)
+    rng.shuffle(order)  # tile B: everything interleaved at random
+    for key in order:
+        pixel, index, dim = key
+        assert sample_1d(sid, SEED, pixel, index, spp, dim) == forward[key]
+    for pixel in pixels:  # the batch kernel agrees with the scalar one
+        for dim in (0, 2, 6):
+            batch = points(name, SEED, pixel, spp, dim)
+            assert [tuple(b) for b in batch] == \
+                [(forward[pixel, i, dim], forward[pixel, i, dim + 1]) for i in range(spp)]
+    # a replay of a single sample in a fresh buffer
+    one = np.empty((1, 2))
+    fill_2d(sid, SEED, 37, 11, spp, 2, one)
+    assert tuple(one[0]) == (forward[37, 11, 2], forward[37, 11, 3])
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if n != "uniform"])
+def test02_pixels_pairs_and_seeds_differ(name):
+    base = points(name, SEED, 0, 16, 0)
+    assert not np.array_equal(base, points(name, SEED, 1, 16, 0))  # another pixel
+    assert not np.array_equal(base, points(name, SEED + 1, 0, 16, 0))  # another seed
+    assert not np.array_equal(base, points(name, SEED, 0, 16, 2))  # another pair
+
+
+def test02_uniform_is_the_same_grid_in_every_pixel():
+    grid = points("uniform", SEED, 0, 16, 0)
+    for pixel in (1, 2, 999):
+        assert np.array_equal(points("uniform", SEED + pixel, pixel, 16, 0), grid)
+    # past pair 0 it is the random sampler
+    assert np.array_equal(points("uniform", SEED, 5, 16, 2), points("random", SEED, 5, 16, 2))
+
+
+# -- 03 per-sampler properties ------------------------------------------------------------
+
+@pytest.mark.parametrize("spp,nx,ny", [(16, 4, 4), (12, 3, 4), (5, 2, 3), (2, 1, 2)])
+def test03_uniform_regular_grid(spp, nx, ny):
+    expected = np.array([((i % nx + 0.5) / nx, (i // nx + 0.5) / ny) for i in range(spp)])
+    assert np.array_equal(points("uniform", SEED, 4, spp, 0), expected)
+
+
+@pytest.mark.parametrize("dim", [0, 2, 10])
+def test03_jittered_one_sample_per_stratum(dim):
+    for pixel in range(4):
+        for spp in (1, 4, 16, 64, 100):
+            m = math.isqrt(spp)
+            assert np.all(_grid_counts(points("jittered", SEED, pixel, spp, dim), m, m) == 1)
+        for spp in (2, 3, 5, 7, 12, 50):  # not square: spp distinct cells of nx x ny
+            nx = math.isqrt(spp)
+            ny = -(-spp // nx)
+            counts = _grid_counts(points("jittered", SEED, pixel, spp, dim), nx, ny)
+            assert counts.max() == 1 and counts.sum() == spp
+
+
+@pytest.mark.parametrize("dim", [0, 4])
+def test03_nrooks_one_per_row_and_column(dim):
+    for pixel in range(4):
+        for spp in (1, 5, 16, 37, 64):
+            p = points("nrooks", SEED, pixel, spp, dim)
+            assert np.all(_grid_counts(p, spp, 1) == 1)
+            assert np.all(_grid_counts(p, 1, spp) == 1)
+
+
+@pytest.mark.parametrize("dim", [0, 2])
+def test03_multijitter_strata_and_rooks(dim):
+    for pixel in range(4):
+        for spp in (4, 16, 64, 3, 5, 12, 50):
+            m = math.isqrt(spp)
+            n = -(-spp // m)
+            p = points("multijitter", SEED, pixel, spp, dim)
+            cells = _grid_counts(p, m, n)
+            cols = _grid_counts(p, m * n, 1)
+            rows = _grid_counts(p, 1, m * n)
+            assert cells.max() == 1 and cols.max() == 1 and rows.max() == 1, spp
+            if m * m == spp:  # square: exactly one everywhere
+                assert cells.min() == 1 and cols.min() == 1 and rows.min() == 1
+
+
+def test03_hammersley_x_is_i_over_n():
+    for pixel in range(3):
+        for n in (1, 7, 16, 100):
+            p = points("hammersley", SEED, pixel, n, 0)
+            column = np.floor(p[:, 0] * n)
+            assert sorted(column) == list(range(n))
+            # one common shift delta per pixel and pair: x = (i + delta) / n
+            offset = p[:, 0] * n - column
+            assert np.ptp(offset) < 1e-9
+
+
+def _assert_elementary_intervals(p, m):
+    for a in range(m + 1):
+        counts = _grid_counts(p, 2 ** a, 2 ** (m - a))
+        assert np.all(counts == 1), (m, a)
+
+
+@pytest.mark.parametrize("name", ["sobol", "hammersley"])
+def test03_02_net_in_every_elementary_interval(name):
+    for pixel in (0, 1, 500):
+        for dim in (0, 2, 8):
+            for m in range(0, 9):
+                _assert_elementary_intervals(points(name, SEED, pixel, 2 ** m, dim), m)
+
+
+def test03_sobol_prefix_blocks_are_nets():
+    # spp = 256: the 4 blocks of 64 consecutive *sequence* indices are not what a pixel's
+    # first 64 samples are (they are shuffled), but the whole spp set and the next block are.
+    p = points("sobol", SEED, 3, 256, 0, count=512)
+    _assert_elementary_intervals(p[:256], 8)
+    _assert_elementary_intervals(p[256:], 8)
+
+
+def test03_halton_one_point_per_box():
+    for pixel in (0, 1, 42):
+        for dim in (0, 2):
+            for i, j in [(1, 1), (2, 1), (1, 2), (3, 2), (2, 3), (4, 3)]:
+                n = 2 ** i * 3 ** j
+                p = points("halton", SEED, pixel, n, dim)
+                assert np.all(_grid_counts(p, 2 ** i, 3 ** j) == 1), (i, j)
+
+
+# -- 04 quality comparisons ---------------------------------------------------------------
+
+def test04_star_discrepancy_ordering():
+    pixels = range(4)
+    mean = {name: np.mean([_star_discrepancy(points(name, SEED, px, 256, 0)) for px in pixels])
+            for name in ("random", "jittered", "sobol", "hammersley", "halton")}
+    assert max(mean["sobol"], mean["hammersley"], mean["halton"]) < mean["jittered"], mean
+    assert mean["jittered"] < mean["random"], mean
+
+
+def test04_star_discrepancy_estimator_is_exact():
+    p = points("random", SEED, 0, 24, 0)
+    assert _star_discrepancy(p) == pytest.approx(naive.star_discrepancy([tuple(q) for q in p]))
+
+
+def _low_frequency_power(p, kmax=6):
+    k = np.arange(-kmax, kmax + 1)
+    kx, ky = np.meshgrid(k, k)
+    radius = np.hypot(kx, ky)
+    ring = (radius >= 1) & (radius < kmax)
+    phase = np.exp(-2j * np.pi * (np.outer(p[:, 0], kx[ring]) + np.outer(p[:, 1], ky[ring])))
+    return np.mean(np.abs(phase.sum(axis=0)) ** 2 / len(p))
+
+
+def test04_bluenoise_has_little_low_frequency_power():
+    # Periodogram of 256 points, rings 1 <= |k| < 6; white noise has mean power 1.
+    power = {name: np.mean([_low_frequency_power(points(name, SEED, px, 256, dim))
+                            for px in range(8) for dim in (0, 2)])
+             for name in ("random", "bluenoise")}
+    assert power["bluenoise"] < 0.3 * power["random"], power
+
+
+_SIGMA, _CX, _CY = 0.2, 0.45, 0.55
+
+
+def _bump(p):
+    return np.exp(-((p[:, 0] - _CX) ** 2 + (p[:, 1] - _CY) ** 2) / (2 * _SIGMA ** 2))
+
+
+def _bump_integral():
+    def axis(c):
+        s = _SIGMA * math.sqrt(2)
+        return _SIGMA * math.sqrt(math.pi / 2) * (math.erf((1 - c) / s) + math.erf(c / s))
+    return axis(_CX) * axis(_CY)
+
+
+def test04_sobol_integrates_faster_than_random():
+    exact = _bump_integral()
+    rms = {name: math.sqrt(np.mean([(_bump(points(name, SEED, px, 1024, 2)).mean() - exact) ** 2
+                                    for px in range(16)]))
+           for name in ("random", "sobol")}
+    assert rms["sobol"] < rms["random"] / 10, rms
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if n != "uniform"])
+def test04_every_sampler_is_unbiased(name):
+    # Averaged over 64 pixels, 16 spp (not a power of two or square: 12), the estimate of the
+    # bump's integral is within 4 standard errors of random's spread; a sampler that puts
+    # its points at cell edges, or leaves a region empty, is off by far more.
+    exact = _bump_integral()
+    for spp in (16, 12):
+        estimates = [_bump(points(name, SEED, px, spp, 2)).mean() for px in range(64)]
+        spread = np.std([_bump(points("random", SEED, px, spp, 2)).mean() for px in range(64)])
+        assert abs(np.mean(estimates) - exact) < 4 * spread / 8, (spp, np.mean(estimates), exact)
+
+
+# -- 05 kernels against the naive references ----------------------------------------------
+
+def test05_sobol_generator_matches_pascal_matrix():
+    for i in list(range(64)) + [1000, 65535, 123456789]:
+        x, y = naive.sobol_2d(i)
+        assert sobol.sobol_bits(i, 0) * 2.0 ** -32 == x
+        assert sobol.sobol_bits(i, 1) * 2.0 ** -32 == y
+
+
+def test05_owen_scramble_is_nested():
+    # Output's top k bits depend only on the input's top k bits, bijectively (an Owen
+    # scramble permutes every elementary interval's children).
+    for seed in (1, 0xDEADBEEF):
+        for k in (1, 4, 8):
+            tops = [sobol.owen_scramble(t << (32 - k), seed) >> (32 - k) for t in range(2 ** k)]
+            assert sorted(tops) == list(range(2 ** k))
+            for t in range(2 ** k):  # low bits do not change the top bits
+                low = (t << (32 - k)) | (0x9E3779B9 & ((1 << (32 - k)) - 1))
+                assert sobol.owen_scramble(low, seed) >> (32 - k) == tops[t]
+
+
+def test05_halton_matches_naive_radical_inverse():
+    key = 0x1234_5678_9ABC_DEF0
+    perms = [list(halton.PERMS3[halton.digit_perm3(key, k)]) for k in range(halton.DIGITS3)]
+    for i in list(range(30)) + [242, 243, 100000]:
+        assert halton.radical_inverse3(i, key) == \
+            pytest.approx(naive.radical_inverse(i, 3, perms, halton.DIGITS3), abs=1e-15)
+
+
+def test05_hammersley_matches_naive_set():
+    # The kernel's point set, with its shift and digital scramble undone.
+    n = 32
+    p = points("hammersley", SEED, 6, n, 0)
+    cols = np.floor(p[:, 0] * n).astype(int)
+    order = np.argsort(cols)
+    y = np.round(p[order, 1] * 2.0 ** 32).astype(np.uint64)
+    xor = y[0] ^ np.uint64(0)  # index 0's radical inverse is 0, so its y is the scramble
+    ref = naive.hammersley(n)
+    assert [c / n for c in cols[order]] == [r[0] for r in ref]
+    assert [float(v ^ xor) * 2.0 ** -32 for v in y] == [r[1] for r in ref]
+
+
+def test05_permute_is_a_permutation():
+    for n in (1, 2, 3, 7, 16, 100, 1000):
+        for key in (0, 1, 0xFFFFFFFF, 0x9E3779B97F4A7C15):
+            assert sorted(permute(i, n, np.uint64(key)) for i in range(n)) == list(range(n))
