@@ -14,6 +14,7 @@ import numpy as np
 from . import kernel, kernel_inline
 
 STACK_SIZE = 64
+BARY_EPS = 1e-12
 
 
 @kernel
@@ -31,13 +32,15 @@ def tri_hit(tri, i, ox, oy, oz, dx, dy, dz, tmax):
     inv = 1.0 / det
     tx, ty, tz = ox - ax, oy - ay, oz - az
     u = (tx * px + ty * py + tz * pz) * inv
-    if u < 0.0 or u > 1.0:
+    # BARY_EPS widens every triangle by a hair so a ray through an edge two
+    # triangles share (or a box corner) cannot slip between them by rounding
+    if u < -BARY_EPS or u > 1.0 + BARY_EPS:
         return -1.0
     qx = ty * e1z - tz * e1y
     qy = tz * e1x - tx * e1z
     qz = tx * e1y - ty * e1x
     v = (dx * qx + dy * qy + dz * qz) * inv
-    if v < 0.0 or u + v > 1.0:
+    if v < -BARY_EPS or u + v > 1.0 + BARY_EPS:
         return -1.0
     t = (e2x * qx + e2y * qy + e2z * qz) * inv
     if t <= 0.0 or t >= tmax:
