@@ -162,3 +162,44 @@ def test08_direct_is_one_bounce_of_light_through_specular_chains():
     b = render_inline(cornell, RenderSpec(method="path-nee", spp=4, depth=1, width=16, height=16,
                                           tile_size=16))
     assert np.array_equal(a.sum, b.sum)
+
+
+def test09_glossy_floor_under_a_white_sky_reflects_its_directional_albedo():
+    """Under a uniform sky of radiance 1, a surface's radiance is its
+    directional albedo, the integral of f cos: measured here from the GGX
+    sampler's own weights and compared with every estimator's render."""
+    from numba import njit
+
+    from renderer.kernels.ggx import glossy_sample
+    from renderer.kernels.rng import sample_key, uniform
+
+    alpha, spec = 0.3, 0.8
+    wo = np.array([0.0, math.sin(math.radians(60)), math.cos(math.radians(60))])  # z up
+
+    @njit
+    def albedo(n):
+        s = s2 = 0.0
+        for i in range(n):
+            key = sample_key(99, i, 0)
+            w = glossy_sample(0.0, 0.0, 1.0, wo[0], wo[1], wo[2], alpha, spec, spec, spec,
+                              uniform(key, 0), uniform(key, 1))[3]
+            s += w
+            s2 += w * w
+        return s / n, math.sqrt((s2 / n - (s / n) ** 2) / n)
+
+    expected, expected_se = albedo(1_000_000)
+    scene = build_scene(resolve_document({
+        # looking down at 60 degrees from the normal, as wo above (floor normal +y here)
+        "camera": {"origin": [0, math.cos(math.radians(60)), math.sin(math.radians(60))],
+                   "target": [0, 0, 0], "fov": 0.5, "width": 4, "height": 4},
+        "materials": {"floor": {"type": "glossy", "roughness": alpha, "specular": spec},
+                      "sky": {"type": "diffuse", "albedo": 0}},
+        "shapes": [{"type": "rectangle", "material": "floor",
+                    "to_world": [{"scale": [50, 50, 1]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}}]},
+                   {"type": "sphere", "radius": 1000, "material": "sky", "flip_normals": True,
+                    "emitter": {"type": "area", "radiance": 1.0}}]}))
+    for method in ["path-bsdf", "path-nee", "path-onesample", "path-mis", "direct"]:
+        film = render_inline(scene, RenderSpec(method=method, spp=4096, depth=1, width=4,
+                                               height=4, tile_size=4, seed=8))
+        mean, se = mean_and_stderr(film)
+        assert abs(mean - expected) <= Z * math.hypot(se, expected_se), (method, mean, expected)

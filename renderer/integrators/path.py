@@ -15,8 +15,9 @@ intersect point lights"); `path-onesample` traces fewer shadow rays than MIS
 at the price of more noise. All four are unbiased for area lights and share
 the continuation: the BSDF-sampled ray carries the indirect light.
 
-Perfect mirrors and glass are delta lobes: no light sampling there, and
-emission reached through them counts in full (`specular` below).
+Diffuse and glossy (GGX) surfaces are the non-specular vertices. Perfect
+mirrors and glass are delta lobes: no light sampling there, and emission
+reached through them counts in full (`specular` below).
 
 Depth (the lecture's convention): `depth` counts surface bounces; depth 0
 shows emitters seen directly, depth 1 is direct illumination; a path has at
@@ -38,8 +39,9 @@ from numba import prange
 
 from ..film import PartialFilm, sample_blocks
 from ..kernels import kernel, kernel_inline, kernel_parallel
-from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_MIRROR, dielectric_sample, \
-    diffuse_eval, diffuse_sample, reflect
+from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
+    dielectric_sample, diffuse_eval, diffuse_sample, reflect
+from ..kernels.ggx import glossy_eval, glossy_sample
 from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
 from ..kernels.lights import light_pdf, sample_light
 from ..kernels.rng import sample_key, uniform
@@ -147,10 +149,11 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             break
         base = 2 + DIMS_PER_BOUNCE * bounce
         mtype = mat_type[mat]
-        if mtype == MAT_DIFFUSE:
+        if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
             if cos_o <= 0.0:
-                break  # one-sided: the back of a diffuse surface is black
+                break  # one-sided: the back of a diffuse or glossy surface is black
             ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+            alpha = mat_param[mat, 1]
             use_light = strategy == NEE or strategy == MIS or strategy == DIRECT
             light_scale = 1.0
             if strategy == ONE_SAMPLE:
@@ -163,39 +166,50 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
                     uniform(key, base + 2))
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
-                    f, pb = diffuse_eval(cos_o, cos_i)
-                    if hemisphere == UNIFORM:
-                        pb = 0.5 * INV_PI
+                    if mtype == MAT_DIFFUSE:
+                        f, pb = diffuse_eval(cos_o, cos_i)
+                        fr, fg, fb = ar * f, ag * f, ab * f
+                        if hemisphere == UNIFORM:
+                            pb = 0.5 * INV_PI
+                    else:
+                        fr, fg, fb, pb = glossy_eval(nx, ny, nz, -dx, -dy, -dz, wx, wy, wz,
+                                                     alpha, ar, ag, ab)
                     sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist)
                     rays += 1
-                    if intersect_arrays(nodes, info, prims, tri, sph, stack,
-                                        sx, sy, sz, tx, ty, tz, tmax, True)[1] < 0:
+                    if (fr > 0.0 or fg > 0.0 or fb > 0.0) and intersect_arrays(
+                            nodes, info, prims, tri, sph, stack, sx, sy, sz, tx, ty, tz, tmax,
+                            True)[1] < 0:
                         if delta or strategy == NEE or strategy == DIRECT:
                             # delta lights: one-sample picks them with probability 1/2 pl
-                            weight = light_scale * f * cos_i / pl
+                            weight = light_scale * cos_i / pl
                         elif strategy == MIS:
-                            weight = f * cos_i * mis_weight(pl, pb, heuristic) / pl
+                            weight = cos_i * mis_weight(pl, pb, heuristic) / pl
                         else:  # ONE_SAMPLE: one-sample MIS divides by the mixture pdf
-                            weight = f * cos_i / (0.5 * pl + 0.5 * pb)
-                        lr += br * ar * er * weight
-                        lg += bg * ag * eg * weight
-                        lb += bb * ab * eb * weight
+                            weight = cos_i / (0.5 * pl + 0.5 * pb)
+                        lr += br * fr * er * weight
+                        lg += bg * fg * eg * weight
+                        lb += bb * fb * eb * weight
             if strategy == DIRECT:
-                break  # Whitted: light stops at the first diffuse surface
-            if hemisphere == UNIFORM:
+                break  # Whitted: light stops at the first non-specular surface
+            if mtype == MAT_GLOSSY:
+                wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
+                    nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab,
+                    uniform(key, base + 3), uniform(key, base + 4))
+            elif hemisphere == UNIFORM:
                 lx, ly, lz = uniform_hemisphere(uniform(key, base + 3), uniform(key, base + 4))
                 wx, wy, wz = to_world(lx, ly, lz, nx, ny, nz)
                 pdf = 0.5 * INV_PI
-                scale = lz * INV_PI / pdf  # f cos / pdf = albedo * 2 cos
+                k = lz * INV_PI / pdf  # f cos / pdf = albedo * 2 cos
+                sr, sg, sb = ar * k, ag * k, ab * k
             else:
                 wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, uniform(key, base + 3),
                                                         uniform(key, base + 4))
-                scale = 1.0  # f cos / pdf = albedo exactly
-            if pdf <= 0.0 or scale <= 0.0:
+                sr, sg, sb = ar, ag, ab  # f cos / pdf = albedo exactly
+            if pdf <= 0.0 or (sr <= 0.0 and sg <= 0.0 and sb <= 0.0):
                 break
-            br *= ar * scale
-            bg *= ag * scale
-            bb *= ab * scale
+            br *= sr
+            bg *= sg
+            bb *= sb
             prev_pdf = pdf
             specular = False
             vx, vy, vz = hx, hy, hz

@@ -9,7 +9,7 @@ against the near plane at 0.001), rasterized per sample position with edge
 functions, and the nearest one wins by a depth test on perspective-correctly
 interpolated camera depth. Spheres are tessellated (48 x 24 facets). Each
 visible point is shaded locally: its emission (front side), plus, on diffuse
-surfaces, the light of every light *without visibility*: point lights
+and glossy surfaces, the light of every light *without visibility*: point lights
 exactly, area lights by one unshadowed light sample per pixel sample. Mirror
 and glass surfaces have no local shading model here and show black.
 
@@ -31,7 +31,8 @@ from numba import prange
 
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_parallel
-from ..kernels.bsdf import MAT_DIFFUSE
+from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY
+from ..kernels.ggx import glossy_eval
 from ..kernels.lights import sample_light
 from ..kernels.rng import sample_key, uniform
 from ..kernels.sampling import INV_PI
@@ -172,15 +173,22 @@ def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, ke
     if light >= 0:
         r, g, b = sc.light_rgb[light, 0], sc.light_rgb[light, 1], sc.light_rgb[light, 2]
     mat = tri_mat[tri]
-    if sc.mat_type[mat] == MAT_DIFFUSE and sc.light_type.shape[0] > 0:
+    mtype = sc.mat_type[mat]
+    if (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY) and sc.light_type.shape[0] > 0:
         wx, wy, wz, dist, pdf, er, eg, eb, delta = sample_light(
             sc, px, py, pz, uniform(key, 2), uniform(key, 3), uniform(key, 4))
         cos_i = wx * nx + wy * ny + wz * nz
         if pdf > 0.0 and cos_i > 0.0:
-            k = cos_i * INV_PI / pdf  # unshadowed: no visibility test
-            r += sc.mat_rgb[mat, 0] * er * k
-            g += sc.mat_rgb[mat, 1] * eg * k
-            b += sc.mat_rgb[mat, 2] * eb * k
+            ar, ag, ab = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
+            if mtype == MAT_DIFFUSE:
+                fr, fg, fb = ar * INV_PI, ag * INV_PI, ab * INV_PI
+            else:
+                fr, fg, fb, _ = glossy_eval(nx, ny, nz, -dx, -dy, -dz, wx, wy, wz,
+                                            sc.mat_param[mat, 1], ar, ag, ab)
+            k = cos_i / pdf  # unshadowed: no visibility test
+            r += fr * er * k
+            g += fg * eg * k
+            b += fb * eb * k
     return r, g, b
 
 
