@@ -20,6 +20,7 @@ each the table's prefix with its own shift and order.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 
@@ -32,7 +33,6 @@ from .common import block_key, hash_u01, pair_key, permute, split_block
 SAMPLER_BLUENOISE = 8
 TABLE_SIZE = 1024
 CANDIDATES = 64
-_TABLE_VERSION = 1
 
 register_sampler(Sampler(
     "bluenoise", SAMPLER_BLUENOISE,
@@ -64,8 +64,10 @@ def build_table(size: int = TABLE_SIZE, candidates: int = CANDIDATES) -> np.ndar
 
 
 def _load_table() -> np.ndarray:
-    path = Path(__file__).resolve().parent / "__pycache__" / \
-        f"bluenoise_{TABLE_SIZE}_{CANDIDATES}_v{_TABLE_VERSION}.npy"
+    # Named by this file's hash: any edit to the construction rebuilds the table.
+    source = Path(__file__).resolve()
+    digest = hashlib.sha256(source.read_bytes()).hexdigest()[:16]
+    path = source.parent / "__pycache__" / f"bluenoise_{TABLE_SIZE}_{digest}.npy"
     try:
         table = np.load(path)
         if table.shape == (TABLE_SIZE, 2) and table.dtype == np.float64 and \
@@ -79,6 +81,9 @@ def _load_table() -> np.ndarray:
         tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npy")
         np.save(tmp, table)
         tmp.replace(path)
+        for stale in path.parent.glob("bluenoise_*.npy"):
+            if stale != path and not stale.name.endswith(".tmp.npy"):
+                stale.unlink(missing_ok=True)
     except OSError:
         pass  # read-only install: keep it in memory
     return table

@@ -69,21 +69,22 @@ def pair_key(seed, pixel, pair, salt):
 @kernel
 def block_key(key, block):
     """`key` made specific to block (pass) number `block`; block 0 keeps it."""
+    k = np.uint64(key)
     if block == 0:
-        return key
-    return mix64(key ^ (np.uint64(block) * _K_BLOCK))
+        return k
+    return mix64(k ^ (np.uint64(block) * _K_BLOCK))
 
 
 @kernel
 def hash_u01(key, n):
     """A uniform float64 in [0, 1) from (key, n)."""
-    return float(mix64(key + np.uint64(n) * _GOLDEN) >> U11) * _INV_2_53
+    return float(mix64(np.uint64(key) + np.uint64(n) * _GOLDEN) >> U11) * _INV_2_53
 
 
 @kernel
 def hash32(key, n):
     """32 random bits (as uint64) from (key, n)."""
-    return mix64(key + np.uint64(n) * _GOLDEN) >> U32
+    return mix64(np.uint64(key) + np.uint64(n) * _GOLDEN) >> U32
 
 
 @kernel

@@ -19,13 +19,13 @@ import numpy as np
 
 from ..kernels import kernel
 from ..registry import Sampler, register_sampler
-from .common import (INV_2_32, block_key, hash32, hash_u01, pair_key, permute, reverse_bits32,
-                     split_block)
+from .common import INV_2_32, block_key, hash32, pair_key, permute, reverse_bits32, split_block
 
 SAMPLER_HALTON = 6
 DIGITS3 = 20
 _POW3 = 3486784401.0  # 3^20
-# The six permutations of {0, 1, 2}; digit k uses row hash(key, k) mod 6.
+U21 = np.uint64(21)
+# The six permutations of {0, 1, 2}; see digit_choices3 for which row a digit uses.
 PERMS3 = np.array([[0, 1, 2], [0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]],
                   dtype=np.int64)
 
@@ -36,17 +36,20 @@ register_sampler(Sampler(
 
 
 @kernel
-def digit_perm3(key, k):
-    """Which of PERMS3 digit position `k` uses under scramble `key`."""
-    return np.int64(hash32(key, k) % np.uint64(6))
+def digit_choices3(key):
+    """The digit permutations of scramble `key`, packed: digit k uses PERMS3 row
+    (choices // 6^k) mod 6. One 53-bit hash holds all 20 (6^20 < 2^53)."""
+    return np.int64((hash32(key, 999) << U21) ^ hash32(key, 998))  # 53 random bits
 
 
 @kernel
 def radical_inverse3(j, key):
     """RI_3(j) with the digit permutations of `key`, in [0, 1)."""
+    choices = digit_choices3(key)
     acc = 0  # sum of permuted digits times 3^(DIGITS3 - 1 - k)
-    for k in range(DIGITS3):
-        acc = acc * 3 + PERMS3[digit_perm3(key, k), j % 3]
+    for _ in range(DIGITS3):
+        acc = acc * 3 + PERMS3[choices % 6, j % 3]
+        choices //= 6
         j //= 3
     return acc / _POW3
 
