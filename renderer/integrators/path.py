@@ -24,10 +24,11 @@ shows emitters seen directly, depth 1 is direct illumination; a path has at
 most depth + 1 segments. Russian roulette from the third vertex on divides
 surviving throughput by the survival probability, so it adds noise, not bias.
 
-Random dimensions of a camera sample: 0-1 the film position, then 8 per
-bounce b at 2 + 8 b: +0 light choice, +1..2 light point, +3..4 BSDF
-direction, +5 glass reflect/refract, +6 Russian roulette, +7 the one-sample
-strategy choice.
+Random dimensions of a camera sample (drawn from the job's pixel sampler,
+renderer/samplers/): 0-1 the film position, then 8 per bounce b at 2 + 8 b:
+the 2D pairs +0..1 the point on a light, +2..3 the BSDF direction; then the
+1D decisions +4 which light, +5 glass reflect/refract, +6 Russian roulette,
++7 the one-sample strategy choice.
 """
 
 from __future__ import annotations
@@ -46,7 +47,8 @@ from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surf
 from ..kernels.lights import light_pdf, sample_light
 from ..kernels.rng import sample_key, uniform
 from ..kernels.sampling import INV_PI, to_world, uniform_hemisphere
-from ..registry import METHODS, Method, Option, register_method
+from ..registry import METHODS, SAMPLERS, Method, Option, register_method
+from ..samplers import SAMPLER_RANDOM, sample_1d, sample_2d
 from ..scene import camera_array
 
 DIMS_PER_BOUNCE = 8
@@ -79,6 +81,23 @@ def shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist):
     return sx, sy, sz, dx * inv, dy * inv, dz * inv, d * (1.0 - 1e-9)
 
 
+@kernel_inline
+def u1d(smp, key, seed, pixel, index, spp, dim):
+    """Dimension `dim` of the sample from sampler `smp` (`random` straight from
+    the sample's precomputed hash key: the common case stays cheap)."""
+    if smp == SAMPLER_RANDOM:
+        return uniform(key, dim)
+    return sample_1d(smp, seed, pixel, index, spp, dim)
+
+
+@kernel_inline
+def u2d(smp, key, seed, pixel, index, spp, dim):
+    """Dimensions (dim, dim + 1), dim even: one 2D pair of the sampler."""
+    if smp == SAMPLER_RANDOM:
+        return uniform(key, dim), uniform(key, dim + 1)
+    return sample_2d(smp, seed, pixel, index, spp, dim)
+
+
 # Strategies of the path family (one kernel, switched at run time).
 BSDF_ONLY, NEE, ONE_SAMPLE, MIS, DIRECT = 0, 1, 2, 3, 4
 POWER, BALANCE = 0, 1
@@ -94,7 +113,8 @@ def mis_weight(pa, pb, heuristic):
 
 
 @kernel_inline
-def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, hemisphere):
+def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, hemisphere,
+            smp, seed, pixel, index, spp):
     """Radiance arriving at o from direction -d: (r, g, b, rays traced).
 
     `strategy` decides how direct light is estimated at non-specular vertices:
@@ -105,7 +125,9 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
     the mixture pdf 1/2 p_light + 1/2 p_bsdf), MIS (both, weighted by the
     `heuristic`), DIRECT (NEE at the first diffuse vertex, then stop: only
     specular chains continue). `hemisphere` picks cosine or uniform sampling of diffuse
-    lobes.
+    lobes. Random numbers come from the pixel sampler `smp` for sample
+    `index` of `pixel` (`key` is that sample's hash key, the fast path of the
+    `random` sampler).
     """
     lr, lg, lb = 0.0, 0.0, 0.0
     br, bg, bb = 1.0, 1.0, 1.0
@@ -157,13 +179,13 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             use_light = strategy == NEE or strategy == MIS or strategy == DIRECT
             light_scale = 1.0
             if strategy == ONE_SAMPLE:
-                chose_bsdf = uniform(key, base + 7) >= 0.5
+                chose_bsdf = u1d(smp, key, seed, pixel, index, spp, base + 7) >= 0.5
                 use_light = not chose_bsdf
                 light_scale = 2.0  # the light strategy was drawn with probability 1/2
             if use_light and n_lights > 0:
+                ua, ub = u2d(smp, key, seed, pixel, index, spp, base)
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
-                    sc, hx, hy, hz, uniform(key, base), uniform(key, base + 1),
-                    uniform(key, base + 2))
+                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + 4), ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
                     if mtype == MAT_DIFFUSE:
@@ -191,19 +213,18 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
                         lb += bb * fb * eb * weight
             if strategy == DIRECT:
                 break  # Whitted: light stops at the first non-specular surface
+            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + 2)
             if mtype == MAT_GLOSSY:
                 wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
-                    nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab,
-                    uniform(key, base + 3), uniform(key, base + 4))
+                    nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab, ua, ub)
             elif hemisphere == UNIFORM:
-                lx, ly, lz = uniform_hemisphere(uniform(key, base + 3), uniform(key, base + 4))
+                lx, ly, lz = uniform_hemisphere(ua, ub)
                 wx, wy, wz = to_world(lx, ly, lz, nx, ny, nz)
                 pdf = 0.5 * INV_PI
                 k = lz * INV_PI / pdf  # f cos / pdf = albedo * 2 cos
                 sr, sg, sb = ar * k, ag * k, ab * k
             else:
-                wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, uniform(key, base + 3),
-                                                        uniform(key, base + 4))
+                wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, ua, ub)
                 sr, sg, sb = ar, ag, ab  # f cos / pdf = albedo exactly
             if pdf <= 0.0 or (sr <= 0.0 and sg <= 0.0 and sb <= 0.0):
                 break
@@ -226,7 +247,8 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
         else:  # MAT_DIELECTRIC
             dx, dy, dz, weight, es, side = dielectric_sample(
-                dx, dy, dz, nx, ny, nz, mat_param[mat, 0], uniform(key, base + 5))
+                dx, dy, dz, nx, ny, nz, mat_param[mat, 0],
+                u1d(smp, key, seed, pixel, index, spp, base + 5))
             br *= weight
             bg *= weight
             bb *= weight
@@ -237,7 +259,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             m = max(br, max(bg, bb)) * eta_scale
             if m < 1.0:
                 q = max(0.0, 1.0 - m)
-                if uniform(key, base + 6) < q:
+                if u1d(smp, key, seed, pixel, index, spp, base + 6) < q:
                     break
                 s = 1.0 / (1.0 - q)
                 br *= s
@@ -247,7 +269,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
 
 
 @kernel_parallel
-def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth,
+def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
                  strategy, heuristic, hemisphere, out_sum, out_sq, out_w, row_rays, stacks):
     """Accumulate the samples of `blocks` for the pixels of a tile (see film.py
     for why sums are formed per block). Rows run in parallel under prange."""
@@ -264,10 +286,11 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth,
                 sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 for s in range(blocks[bi, 0], blocks[bi, 1]):
                     key = sample_key(seed, pixel, s)
-                    dx, dy, dz = camera_ray(cam, width, height, x + uniform(key, 0),
-                                            y + uniform(key, 1))
+                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0)
+                    dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
                     r, g, b, nr = li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth,
-                                          strategy, heuristic, hemisphere)
+                                          strategy, heuristic, hemisphere, smp, seed, pixel, s,
+                                          spp)
                     rays += nr
                     sr += r
                     sg += g
@@ -314,8 +337,8 @@ def render_tile(scene, spec, unit, *, strategy: int) -> PartialFilm:
     cam = camera_array(scene.camera, spec.width, spec.height)
     _render_tile(scene.arrays, cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width, spec.height,
                  unit_blocks(spec.spp, unit.sample_start, unit.sample_end), spec.seed, spec.depth,
-                 strategy, heuristic, hemisphere, film.sum, film.sum_sq, film.weight, row_rays,
-                 stacks)
+                 SAMPLERS[spec.sampler].id, spec.spp, strategy, heuristic, hemisphere,
+                 film.sum, film.sum_sq, film.weight, row_rays, stacks)
     film.stats.update(samples=unit.samples, rays=int(row_rays.sum()))
     return film
 

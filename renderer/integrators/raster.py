@@ -13,9 +13,9 @@ and glossy surfaces, the light of every light *without visibility*: point lights
 exactly, area lights by one unshadowed light sample per pixel sample. Mirror
 and glass surfaces have no local shading model here and show black.
 
-`spp` supersamples: each pixel's sample positions come from the same
-counter-based RNG as the path tracers (dims 0-1), so the film converges to
-the box-filtered rasterized image. Neither consistent nor unbiased with
+`spp` supersamples: each pixel's sample positions come from the job's pixel
+sampler like the path tracers' (dims 0-1; the light sample uses the pair
+2-3 and dim 4), so the film converges to the box-filtered rasterized image. Neither consistent nor unbiased with
 respect to the rendering equation (no shadows, no interreflection), as the
 lecture's chart says; and fast: the cost is triangles x samples, with no
 ray tracing at all. (Every triangle is tested against every tile; a real
@@ -34,11 +34,12 @@ from ..kernels import kernel, kernel_parallel
 from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY
 from ..kernels.ggx import glossy_eval
 from ..kernels.lights import sample_light
-from ..kernels.rng import sample_key, uniform
+from ..kernels.rng import sample_key
 from ..kernels.sampling import INV_PI
 from ..registry import Method, register_method
 from ..scene import camera_array
-from .path import camera_ray, unit_blocks
+from ..registry import SAMPLERS
+from .path import camera_ray, u1d, u2d, unit_blocks
 
 NEAR = 0.001
 SPHERE_SEGMENTS, SPHERE_RINGS = 48, 24
@@ -159,7 +160,8 @@ def _raster_pass(verts, cam, width, height, x0, y0, x1, y1, sample_x, sample_y, 
 
 
 @kernel
-def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, key):
+def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, key, smp, seed,
+           pixel, index, spp):
     """Local shading of the visible point at camera depth z on triangle tri."""
     dx, dy, dz = camera_ray(cam, width, height, fx, fy)
     t = z / (dx * cam[9] + dy * cam[10] + dz * cam[11])
@@ -175,8 +177,9 @@ def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, ke
     mat = tri_mat[tri]
     mtype = sc.mat_type[mat]
     if (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY) and sc.light_type.shape[0] > 0:
+        ua, ub = u2d(smp, key, seed, pixel, index, spp, 2)
         wx, wy, wz, dist, pdf, er, eg, eb, delta = sample_light(
-            sc, px, py, pz, uniform(key, 2), uniform(key, 3), uniform(key, 4))
+            sc, px, py, pz, u1d(smp, key, seed, pixel, index, spp, 4), ua, ub)
         cos_i = wx * nx + wy * ny + wz * nz
         if pdf > 0.0 and cos_i > 0.0:
             ar, ag, ab = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
@@ -194,7 +197,7 @@ def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, ke
 
 @kernel_parallel
 def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, width, height,
-                 blocks, seed, centres, out_sum, out_sq, out_w, sample_x, sample_y, zbuf, idbuf,
+                 blocks, seed, smp, spp, centres, out_sum, out_sq, out_w, sample_x, sample_y, zbuf, idbuf,
                  clip, block_acc):
     """Render the tile: per sample index one z-buffer pass, then shading; sums
     formed per sample block like every other kernel (film.py)."""
@@ -208,8 +211,9 @@ def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, widt
                     if centres:
                         sample_x[row, c], sample_y[row, c] = x0 + c + 0.5, y0 + row + 0.5
                     else:
-                        sample_x[row, c] = x0 + c + uniform(key, 0)
-                        sample_y[row, c] = y0 + row + uniform(key, 1)
+                        fu, fv = u2d(smp, key, seed, (y0 + row) * width + x0 + c, s, spp, 0)
+                        sample_x[row, c] = x0 + c + fu
+                        sample_y[row, c] = y0 + row + fv
             _raster_pass(verts, cam, width, height, x0, y0, x1, y1, sample_x, sample_y, zbuf,
                          idbuf, clip)
             for row in prange(h):
@@ -219,7 +223,8 @@ def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, widt
                         continue
                     key = sample_key(seed, (y0 + row) * width + x0 + c, s)
                     r, g, b = _shade(sc, cam, width, height, sample_x[row, c], sample_y[row, c],
-                                     zbuf[row, c], tri, tri_n, tri_mat, tri_light, key)
+                                     zbuf[row, c], tri, tri_n, tri_mat, tri_light, key, smp, seed,
+                                     (y0 + row) * width + x0 + c, s, spp)
                     block_acc[row, c, 0] += r
                     block_acc[row, c, 1] += g
                     block_acc[row, c, 2] += b
@@ -243,7 +248,8 @@ def _run(scene, spec, unit, centres=False):
     cam = camera_array(scene.camera, spec.width, spec.height)
     _raster_tile(scene.arrays, verts, tri_n, tri_mat, tri_light, cam, unit.x0, unit.y0, unit.x1,
                  unit.y1, spec.width, spec.height,
-                 unit_blocks(spec.spp, unit.sample_start, unit.sample_end), spec.seed, centres,
+                 unit_blocks(spec.spp, unit.sample_start, unit.sample_end), spec.seed,
+                 SAMPLERS[spec.sampler].id, spec.spp, centres,
                  film.sum, film.sum_sq, film.weight, *buffers)
     film.stats.update(samples=unit.samples, rays=0)
     return film, buffers[2]
