@@ -85,6 +85,16 @@ def _cube_mesh() -> tuple[np.ndarray, np.ndarray]:
 
 _CUBE_V, _CUBE_F = _cube_mesh()
 
+# The disk: the unit disk in the local z = 0 plane, front normal +z (Mitsuba's),
+# as a fan of DISK_SEGMENTS triangles: an inscribed regular polygon whose area
+# is (N / 2 pi) sin(2 pi / N) = 1 - 1.0e-4 of the circle's for N = 256.
+DISK_SEGMENTS = 256
+_DISK_ANGLES = np.linspace(0.0, 2 * math.pi, DISK_SEGMENTS, endpoint=False)
+_DISK_V = np.concatenate([[[0.0, 0.0, 0.0]],
+                          np.stack([np.cos(_DISK_ANGLES), np.sin(_DISK_ANGLES),
+                                    np.zeros(DISK_SEGMENTS)], axis=1)])
+_DISK_F = np.array([[0, 1 + k, 1 + (k + 1) % DISK_SEGMENTS] for k in range(DISK_SEGMENTS)])
+
 
 @dataclass
 class Scene:
@@ -148,6 +158,8 @@ def build_scene(doc: dict) -> Scene:
             continue
         if shape["type"] == "rectangle":
             v, f = _RECT_V, _RECT_F
+        elif shape["type"] == "disk":
+            v, f = _DISK_V, _DISK_F
         elif shape["type"] == "cube":
             v, f = _CUBE_V, _CUBE_F
         else:

@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 MATERIAL_TYPES = ("diffuse", "mirror", "dielectric", "glossy")
-SHAPE_TYPES = ("rectangle", "cube", "sphere", "mesh")
+SHAPE_TYPES = ("rectangle", "disk", "cube", "sphere", "mesh")
 EMITTER_TYPES = ("point",)
 FOV_AXES = ("x", "y", "smaller", "larger")
 

@@ -203,3 +203,47 @@ def test09_glossy_floor_under_a_white_sky_reflects_its_directional_albedo():
                                                height=4, tile_size=4, seed=8))
         mean, se = mean_and_stderr(film)
         assert abs(mean - expected) <= Z * math.hypot(se, expected_se), (method, mean, expected)
+
+
+def polygon_form_factor(vertices, p, n):
+    """Point-to-polygon form factor by Lambert's contour formula (exact):
+    F = 1/(2 pi) sum over edges of theta_i (n . g_i), g_i the unit normal of
+    the plane through p and edge i, theta_i the angle the edge subtends."""
+    total = 0.0
+    k = len(vertices)
+    for i in range(k):
+        a, b = vertices[i] - p, vertices[(i + 1) % k] - p
+        a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+        g = np.cross(a, b)
+        total += math.atan2(np.linalg.norm(g), np.dot(a, b)) * np.dot(n, g / np.linalg.norm(g))
+    return abs(total) / (2 * math.pi)
+
+
+@pytest.mark.parametrize("method", ALL + ["direct"])
+def test10_floor_under_a_coaxial_disk_light(method):
+    """A diffuse floor of albedo rho under a coaxial disk light of radius r at
+    height h: L = rho Le r^2 / (h^2 + r^2) for the disk; the scene's disk is
+    a regular 256-gon, whose exact value (Lambert's formula) is 1.5e-4 below."""
+    from renderer.scene import DISK_SEGMENTS
+
+    rho, le, r, h = 0.7, 2.0, 0.6, 1.0
+    scene = build_scene(resolve_document({
+        "camera": {"origin": [0, 0.5, 2], "target": [0, 0, 0], "fov": 0.1, "width": 4, "height": 4},
+        "materials": {"floor": {"type": "diffuse", "albedo": rho},
+                      "black": {"type": "diffuse", "albedo": 0}},
+        "shapes": [{"type": "rectangle", "material": "floor",
+                    "to_world": [{"scale": [10, 10, 1]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}}]},
+                   {"type": "disk", "material": "black",
+                    "to_world": [{"scale": [r, r, 1]}, {"rotate": {"axis": [1, 0, 0], "angle": 90}},
+                                 {"translate": [0, h, 0]}],
+                    "emitter": {"type": "area", "radiance": le}}]}))
+    angles = np.linspace(0, 2 * math.pi, DISK_SEGMENTS, endpoint=False)
+    polygon = np.stack([r * np.cos(angles), np.full_like(angles, h), r * np.sin(angles)], axis=1)
+    expected = rho * le * polygon_form_factor(polygon, np.zeros(3), np.array([0.0, 1.0, 0.0]))
+    disk = rho * le * r * r / (h * h + r * r)
+    assert expected == pytest.approx(disk, rel=3e-4)
+    film = render_inline(scene, spec_for(method, spp=4096, depth=1, width=4, height=4,
+                                         tile_size=4, seed=13))
+    mean, se = mean_and_stderr(film)
+    assert se < 0.02 * expected
+    assert abs(mean - expected) <= Z * se, (mean, expected, se)

@@ -12,7 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from renderer import METHODS, SAMPLERS, RenderSpec, load_scene, merge, plan, run_unit
+from renderer import METHODS, SAMPLERS, RenderSpec, build_scene, load_scene, merge, plan, \
+    resolve_document, run_unit
 
 Z = 4.5
 PATH_METHODS = ["path-nee", "path-onesample", "path-mis"]
@@ -24,7 +25,10 @@ def render_inline(scene, spec):
 
 @pytest.fixture(scope="module")
 def scenes():
-    return {name: load_scene(name) for name in ("furnace-point", "furnace-emitter", "cornell-box")}
+    four = resolve_document("furnace-point")
+    four["emitters"] = [dict(four["emitters"][0], intensity=[math.pi / 4] * 3)] * 4
+    return {**{name: load_scene(name) for name in ("furnace-point", "furnace-emitter", "cornell-box")},
+            "furnace-4-points": build_scene(four)}
 
 
 @pytest.mark.parametrize("sampler", sorted(SAMPLERS))
@@ -32,7 +36,7 @@ def scenes():
 def test01_furnaces_for_every_sampler(scenes, sampler, method):
     cases = [("furnace-emitter", 3, 1 - 0.5 ** 4)]
     if method != "path-bsdf":  # BSDF sampling cannot reach a point light
-        cases.append(("furnace-point", 3, 1 - 0.5 ** 3))
+        cases += [("furnace-point", 3, 1 - 0.5 ** 3), ("furnace-4-points", 2, 1 - 0.5 ** 2)]
     for name, depth, expected in cases:
         spec = RenderSpec(method=method, sampler=sampler, spp=64, depth=depth, width=12, height=12,
                           tile_size=12, seed=21)

@@ -7,7 +7,7 @@ an infinite inverse instead of an exception).
 Numba's on-disk cache only checks the source file of the function it caches,
 so a change in a callee in another file would leave a stale caller behind.
 `_invalidate_stale_cache` guards against that: it hashes every kernel source
-file (kernels/, integrators/, bvh.py) and drops the package's cached kernels when the hash changes.
+file (kernels/, integrators/, samplers/, bvh.py) and drops the package's cached kernels when the hash changes.
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ kernel_parallel = njit(cache=True, error_model="numpy", _nrt=False, parallel=Tru
 
 def _invalidate_stale_cache() -> None:
     root = Path(__file__).resolve().parent.parent  # the renderer package
-    sources = sorted([*root.glob("kernels/*.py"), *root.glob("integrators/*.py"), root / "bvh.py"])
+    sources = sorted([*root.glob("kernels/*.py"), *root.glob("integrators/*.py"),
+                      *root.glob("samplers/*.py"), root / "bvh.py"])
     digest = hashlib.sha256()
     for src in sources:
         digest.update(src.name.encode())

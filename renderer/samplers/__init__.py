@@ -47,41 +47,12 @@ obviously correct references.
 
 from __future__ import annotations
 
-import hashlib
-from pathlib import Path
-
 import numpy as np
 
 
-def _invalidate_stale_cache() -> None:
-    # Numba's cache only checks the caching function's own file: an edit to a
-    # sampler module would leave dispatch.py (and the integrators that call
-    # it) cached stale. Same scheme as renderer/kernels/__init__.py.
-    here = Path(__file__).resolve().parent
-    renderer = here.parent
-    digest = hashlib.sha256()
-    for src in sorted(here.glob("*.py")):
-        digest.update(src.name.encode())
-        digest.update(src.read_bytes())
-    stamp_text = digest.hexdigest()
-    stamp = here / "__pycache__" / "samplers.stamp"
-    try:
-        if stamp.exists() and stamp.read_text() == stamp_text:
-            return
-        for cached in list(renderer.rglob("__pycache__/*.nbi")) + \
-                list(renderer.rglob("__pycache__/*.nbc")):
-            cached.unlink(missing_ok=True)
-        stamp.parent.mkdir(exist_ok=True)
-        tmp = stamp.with_suffix(".tmp")
-        tmp.write_text(stamp_text)
-        tmp.replace(stamp)
-    except OSError:
-        pass
-
-
-_invalidate_stale_cache()
-
-from .dispatch import (SAMPLER_BLUENOISE, SAMPLER_HALTON, SAMPLER_HAMMERSLEY,  # noqa: E402
+# Numba's stale-cache guard for these modules lives with the others in
+# renderer/kernels/__init__.py (imported by every sampler module first).
+from .dispatch import (SAMPLER_BLUENOISE, SAMPLER_HALTON, SAMPLER_HAMMERSLEY,
                        SAMPLER_JITTERED, SAMPLER_MULTIJITTER, SAMPLER_NROOKS, SAMPLER_RANDOM,
                        SAMPLER_SOBOL, SAMPLER_UNIFORM, fill_2d, sample_1d, sample_2d)
 
