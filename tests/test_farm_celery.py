@@ -36,20 +36,30 @@ def run_job(client, body: dict, exr_path, timeout: float = 300.0) -> dict:
     return job
 
 
+# One job per kernel family (the path tracers, the rasterizer) and a
+# low-discrepancy sampler: each must come out of both executors bit for bit.
+FAMILIES = [dict(TINY, spp=8, tile_size=16),
+            dict(TINY, method="raster", spp=4, tile_size=16),
+            dict(TINY, method="path-onesample", sampler="sobol", spp=8, tile_size=16)]
+
+
 def test01_local_pool_and_celery_render_bit_identical_images(local_client, redis_url,
                                                              spawn_worker, tmp_path):
-    body = dict(TINY, spp=8, tile_size=16)
-    local = run_job(local_client, body, tmp_path / "local.exr")
+    local = [run_job(local_client, body, tmp_path / f"local{i}.exr")
+             for i, body in enumerate(FAMILIES)]
     worker = spawn_worker(concurrency=2)
     settings = Settings(data_dir=tmp_path / "celery-data", broker_url=redis_url,
                         poll_interval=0.05, unit_lease_seconds=30)
     with TestClient(create_app(settings)) as client:
         assert client.get("/healthz").json()["executor"] == "celery"
-        farm = run_job(client, body, tmp_path / "celery.exr")
-        units = client.get(f"/jobs/{farm['id']}/units").json()
+        farm = [run_job(client, body, tmp_path / f"celery{i}.exr")
+                for i, body in enumerate(FAMILIES)]
+        units = client.get(f"/jobs/{farm[0]['id']}/units").json()
     assert {u["worker"] for u in units} == {f"rayfarm-{worker.pid}@{_nodehost(units)}"}
-    assert farm["samples"] == local["samples"] == 32 * 32 * 8
-    assert_bit_identical(channels_of(tmp_path / "local.exr"), channels_of(tmp_path / "celery.exr"))
+    assert farm[0]["samples"] == local[0]["samples"] == 32 * 32 * 8
+    for i in range(len(FAMILIES)):
+        assert_bit_identical(channels_of(tmp_path / f"local{i}.exr"),
+                             channels_of(tmp_path / f"celery{i}.exr"))
 
 
 def _nodehost(units: list[dict]) -> str:
