@@ -99,7 +99,10 @@ def _square_light_scene():
 
 @pytest.mark.parametrize("method", ALL + ["direct"])
 def test05_direct_light_under_a_square_light(method):
-    """L = albedo * Le * F(point -> square): every estimator, by z-test."""
+    """L = albedo * Le * F(point -> square): every estimator, by z-test. An
+    up-facing floor under an overhead light is where light sampling and
+    shadow rays meet head-on: a shadow ray measured from the un-offset hit
+    point once let the light shadow its own samples here."""
     a = 0.5
     corner = (a / math.sqrt(1 + a * a)) * math.atan(a / math.sqrt(1 + a * a)) / math.pi
     expected = 0.5 * 1.0 * 4 * corner

@@ -168,33 +168,3 @@ def test11_mirror_sphere_reflects_the_sky_times_its_tint():
     assert img[0, 0] == pytest.approx([1.0, 1.0, 1.0], abs=1e-12)  # the sky itself
     assert np.all((img >= 0.8 - 1e-12) & (img <= 1.0 + 1e-12))
 
-
-def _rect_form_factor_corner(a, b, h):
-    """Form factor from a differential area to a parallel a x b rectangle at
-    height h, the area's normal through one corner (Howell's catalogue, B-3)."""
-    A, B = a / h, b / h
-    sa, sb = np.sqrt(1 + A * A), np.sqrt(1 + B * B)
-    return (A / sa * np.arctan(B / sa) + B / sb * np.arctan(A / sb)) / (2 * np.pi)
-
-
-def test12_floor_under_a_square_light_matches_the_form_factor():
-    """Direct light on an up-facing floor, the configuration where light
-    sampling and shadow rays meet head-on: L = albedo * Le * F, with F the
-    point-to-rectangle form factor. A narrow camera looks at the point under
-    the light's centre from the side."""
-    rho, le, h = 0.5, 1.0, 1.0
-    scene = build_scene(resolve_document({
-        "camera": {"origin": [0, 0.5, 2], "target": [0, 0, 0], "fov": 0.1, "width": 4, "height": 4},
-        "materials": {"floor": {"type": "diffuse", "albedo": rho},
-                      "black": {"type": "diffuse", "albedo": 0}},
-        "shapes": [{"type": "rectangle", "material": "floor",
-                    "to_world": [{"scale": [10, 10, 1]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}}]},
-                   {"type": "rectangle", "material": "black",
-                    "to_world": [{"scale": [0.5, 0.5, 1]}, {"rotate": {"axis": [1, 0, 0], "angle": 90}},
-                                 {"translate": [0, h, 0]}],
-                    "emitter": {"type": "area", "radiance": le}}]}))
-    expected = rho * le * 4 * _rect_form_factor_corner(0.5, 0.5, h)
-    film = render_inline(scene, RenderSpec(spp=4096, depth=1, width=4, height=4, tile_size=4, seed=2))
-    mean, stderr = image_mean_and_stderr(film)
-    assert stderr < 0.01 * expected  # the check below has teeth
-    assert abs(mean - expected) <= Z * stderr, (mean, expected, stderr)
