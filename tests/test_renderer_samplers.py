@@ -185,15 +185,24 @@ def test03_multijitter_strata_and_rooks(dim):
 def test03_hammersley_x_is_i_over_n():
     for pixel in range(3):
         for n in (1, 7, 16, 100):
-            p = points("hammersley", SEED, pixel, n, 0)
+            # the image plane: x = i / n exactly, the lecture's set
+            x = points("hammersley", SEED, pixel, n, 0)[:, 0]
+            assert sorted(x) == [i / n for i in range(n)]
+            # later pairs: one common shift delta per pixel and pair, x = (i + delta) / n
+            p = points("hammersley", SEED, pixel, n, 2)
             column = np.floor(p[:, 0] * n)
             assert sorted(column) == list(range(n))
-            # one common shift delta per pixel and pair: x = (i + delta) / n
-            offset = p[:, 0] * n - column
-            assert np.ptp(offset) < 1e-9
+            assert np.ptp(p[:, 0] * n - column) < 1e-9
     # ... and that shift is uniform over pixels (with none, the estimator is biased)
-    shifts = [points("hammersley", SEED, px, 8, 0)[:, 0].min() * 8 for px in range(64)]
+    shifts = [points("hammersley", SEED, px, 8, 2)[:, 0].min() * 8 for px in range(64)]
     assert 0.4 < np.mean(shifts) < 0.6 and np.ptp(shifts) > 0.8
+
+
+def test03_hammersley_image_plane_bias_is_minus_half_over_n():
+    """Deterministic x = i/N: the mean of u is (N - 1) / (2N), a bias of
+    -1/(2N) that vanishes as N grows: biased, and consistent."""
+    for n in (4, 16, 64, 256):
+        assert np.mean(points("hammersley", SEED, 3, n, 0)[:, 0]) - 0.5 == pytest.approx(-0.5 / n)
 
 
 def _assert_elementary_intervals(p, m):
@@ -289,6 +298,8 @@ def test04_sobol_integrates_faster_than_random():
 
 @pytest.mark.parametrize("name", [n for n in NAMES if n != "uniform"])
 def test04_every_sampler_is_unbiased(name):
+    # (hammersley's image plane is the deterministic lecture set: checked for its
+    # known bias in test03; its later pairs are checked here)
     # f = u + 2 v^2 (integral 7/6) averaged over 256 pixels, for spp 16 and 10 (neither
     # square nor a power of two), dims 0 and 2: within 4 standard errors of random's
     # spread. A sampler that puts its points at cell edges (bias 1/(2 spp) in u) or leaves
@@ -299,7 +310,7 @@ def test04_every_sampler_is_unbiased(name):
 
     pixels = range(256)
     for spp in (16, 10):
-        for dim in (0, 2):
+        for dim in ((2,) if name == "hammersley" else (0, 2)):
             estimates = [estimate(name, px, spp, dim) for px in pixels]
             spread = np.std([estimate("random", px, spp, dim) for px in pixels])
             error = abs(np.mean(estimates) - 7 / 6)
@@ -339,7 +350,7 @@ def test05_halton_matches_naive_radical_inverse():
 def test05_hammersley_matches_naive_set():
     # The kernel's point set, with its shift and digital scramble undone.
     n = 32
-    p = points("hammersley", SEED, 6, n, 0)
+    p = points("hammersley", SEED, 6, n, 2)
     cols = np.floor(p[:, 0] * n).astype(int)
     order = np.argsort(cols)
     y = np.round(p[order, 1] * 2.0 ** 32).astype(np.uint64)
