@@ -1,4 +1,6 @@
-"""Job use cases: create, look up, list, cancel. Plain Python, no HTTP.
+"""Job use cases: create, look up, list, cancel, pause, resume, retry, requeue,
+reprioritize. Plain Python, no HTTP. Every status change goes through
+`service.states` (an illegal one is a `Conflict`).
 
     job = create_job(session, store, settings, JobCreate(scene="cornell-box",
                      method="path", spp=4, depth=3), now=utcnow())
@@ -25,6 +27,7 @@ from .settings import Settings
 from .store import Store
 
 __all__ = ["create_job", "get_job", "list_jobs", "list_units", "cancel_job", "cancel_job_retrying",
+           "pause_job", "resume_job", "retry_job", "requeue_job", "set_priority", "retrying",
            "result_file", "new_job_id"]
 
 
@@ -74,7 +77,8 @@ def create_job(session: Session, store: Store, settings: Settings, request: JobC
     store.put_scene(key, text)
     job = Job(id=new_job_id(), created=now, status="queued", scene=scene_name[:200],
               scene_hash=key, spec=spec.to_dict(), width=spec.width, height=spec.height,
-              units_total=0, units_done=0, samples=0, rays=0)
+              units_total=0, units_done=0, samples=0, rays=0, priority=request.priority,
+              progressive=request.progressive)
     session.add(job)
     return job
 
@@ -118,26 +122,95 @@ def cancel_job(session: Session, job_id: str, now: datetime) -> Job:
     return job
 
 
-def cancel_job_retrying(sessions: sessionmaker[Session], job_id: str,
-                        clock: Callable[[], datetime], tries: int = 5) -> Job:
-    """`cancel_job` in its own transaction, again if the scheduler changed the
-    job meanwhile (optimistic locking): the second try sees the new state."""
+def pause_job(session: Session, job_id: str, now: datetime) -> Job:
+    """Stop enqueuing a job's units; those in flight finish and are collected."""
+    job = get_job(session, job_id)
+    states.change_job(job, "paused", now)
+    return job
+
+
+def resume_job(session: Session, job_id: str, now: datetime) -> Job:
+    """A paused job continues (or waits to be planned, if it never was)."""
+    job = get_job(session, job_id)
+    if job.status != "paused":
+        raise Conflict(f"job {job.id} is {job.status}, not paused; nothing to resume")
+    states.change_job(job, "running" if job.units_total else "queued", now)
+    return job
+
+
+def retry_job(session: Session, job_id: str, now: datetime) -> Job:
+    """Failed units (and those canceled when their job failed) go back to
+    pending; a failed job runs again, keeping the units it finished."""
+    job = get_job(session, job_id)
+    units = list(session.scalars(select(WorkUnit).where(
+        WorkUnit.job_id == job.id, WorkUnit.state.in_(("failed", "canceled")))))
+    failed = [u for u in units if u.state == "failed"]
+    if job.status == "failed":
+        states.change_job(job, "running" if job.units_total else "queued", now)
+        again = units
+    elif job.status in ("running", "paused") and failed:
+        again = failed
+    else:
+        raise Conflict(f"job {job.id} is {job.status} and has no failed units to retry")
+    for unit in again:
+        states.change_unit(unit, "pending", now)
+    return job
+
+
+def requeue_job(session: Session, store: Store, job_id: str, now: datetime) -> Job:
+    """Start a job again from nothing: its units and results are forgotten and
+    it is queued, so the scheduler plans it anew (all units pending)."""
+    job = get_job(session, job_id)
+    states.change_job(job, "queued", now)
+    for unit in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)):
+        session.delete(unit)  # in-flight tasks: the scheduler cancels units that left
+    job.units_total = job.units_done = job.samples = job.rays = 0
+    job.started = None
+    session.flush()
+    store.clear_results(job.id)
+    return job
+
+
+def set_priority(session: Session, job_id: str, priority: int, now: datetime) -> Job:
+    """Change a job's priority; the scheduler serves higher ones first from its next tick."""
+    job = get_job(session, job_id)
+    job.priority = priority
+    return job
+
+
+def retrying(sessions: sessionmaker[Session], job_id: str,
+             action: Callable[[Session], Job], tries: int = 5) -> Job:
+    """`action(session)` in its own transaction, again if the scheduler changed
+    the job meanwhile (optimistic locking): the next try sees the new state."""
     for attempt in range(tries):
         try:
             with sessions.begin() as session:
-                return cancel_job(session, job_id, clock())
+                return action(session)
         except StaleDataError:
             if attempt == tries - 1:
                 raise Conflict(f"job '{job_id}' keeps changing; try again") from None
     raise AssertionError("unreachable")
 
 
+def cancel_job_retrying(sessions: sessionmaker[Session], job_id: str,
+                        clock: Callable[[], datetime], tries: int = 5) -> Job:
+    """`cancel_job` in its own transaction, retried on concurrent changes."""
+    return retrying(sessions, job_id, lambda session: cancel_job(session, job_id, clock()), tries)
+
+
 def result_file(session: Session, store: Store, job_id: str, kind: str):
-    """Path of a done job's `result.exr` or `preview.png` (else `ResultNotReady`)."""
+    """Path of a done job's `result.exr`, or of a job's `preview.png` (written as
+    its units land, so there before it is done); else `ResultNotReady`."""
     job = get_job(session, job_id)
+    if kind == "preview.png":
+        path = store.preview_path(job.id)
+        if not path.is_file():
+            raise ResultNotReady(f"job '{job_id}' is {job.status}; its preview.png exists once "
+                                 "its first unit is done")
+        return path
     if job.status != "done":
         raise ResultNotReady(f"job '{job_id}' is {job.status}; its {kind} exists once it is done")
-    path = store.result_path(job.id) if kind == "result.exr" else store.preview_path(job.id)
+    path = store.result_path(job.id)
     if not path.is_file():
         raise NotFound(f"job '{job_id}' has no {kind}")
     return path

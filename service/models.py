@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from datetime import datetime, timezone
 
-from sqlalchemy import JSON, BigInteger, DateTime, Float, ForeignKey, Integer, String, Text
+from sqlalchemy import (JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String,
+                        Text, text)
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
@@ -63,6 +64,11 @@ class Job(Base):
     error: Mapped[str | None] = mapped_column(Text)
     samples: Mapped[int] = mapped_column(BigInteger, default=0)
     rays: Mapped[int] = mapped_column(BigInteger, default=0)
+    # Higher first; changeable while the job waits or runs (PATCH /jobs/{id}).
+    priority: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
+    # Planned as tiles x sample passes (1, 1, 2, 4, ... spp), so the preview improves.
+    progressive: Mapped[bool] = mapped_column(Boolean, default=False,
+                                              server_default=text("false"))
 
     __mapper_args__ = {"version_id_col": version}
 

@@ -1,22 +1,37 @@
 """The scheduler: one background thread that moves jobs forward.
 
-Each tick, for every active job (oldest first):
-1. plan a queued job into unit rows (`renderer.plan`) and mark it running;
+Each tick, for every queued, running or paused job (higher priority first,
+then oldest):
+1. plan a queued job into unit rows (`renderer.plan`, progressive or not) and
+   mark it running;
 2. observe its units in flight: store a finished unit's film (atomically)
    *before* marking the unit done, exactly once; re-enqueue lost units;
    retry failed ones up to `max_attempts`, then fail the job;
-3. enqueue pending units while the executor has capacity;
-4. when every unit is done, merge the stored films in unit order into
+3. enqueue pending units while the executor has capacity, unless the job is
+   paused or a job before it in the order still has pending units (so
+   priority holds on both executors: the Celery executor also passes it to
+   the broker as the message priority);
+4. refresh the job's `preview.png` from the units landed so far;
+5. when every unit is done, merge the stored films in unit order into
    `result.exr` + `preview.png`, then mark the job done.
 Units whose job was canceled (by the API) leave flight; their tasks are
 canceled. The ledger is the truth: after a restart the scheduler picks up
 where the rows say it was.
+
+The running preview is cheap by design: each landed unit's film is added
+(float32 sum and weight only) into an in-memory frame per job, and the PNG is
+written at most every `PREVIEW_INTERVAL` seconds per job (the first unit's at
+once). A frame missing after a restart (or evicted: at most `PREVIEW_JOBS`
+are kept) is rebuilt once from the stored films of the done units. The
+preview's order of addition does not matter; the final EXR is merged from
+the stored films in unit order, as without previews.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from datetime import datetime
 from typing import Callable
 
@@ -24,7 +39,9 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
-from renderer import PartialFilm, RenderSpec, merge, plan
+import numpy as np
+
+from renderer import Film, PartialFilm, RenderSpec, merge, plan
 
 from . import states
 from .executors import Executor, Flight, Observation, Ticket
@@ -32,12 +49,39 @@ from .models import Job, WorkUnit, utcnow
 from .settings import Settings
 from .store import Store
 
-__all__ = ["Scheduler", "EXR_METADATA_KEYS"]
+__all__ = ["Scheduler", "EXR_METADATA_KEYS", "PREVIEW_INTERVAL", "PREVIEW_JOBS"]
 
 log = logging.getLogger(__name__)
 
 EXR_METADATA_KEYS = ("job_id", "scene", "scene_hash", "method", "spp", "depth", "seed",
                      "sampler", "tile_size", "width", "height")
+PREVIEW_INTERVAL = 1.0  # seconds between two writes of a job's running preview
+PREVIEW_JOBS = 4  # running previews kept in memory (float32: 16 bytes per pixel)
+
+
+class _Preview:
+    """A job's running preview: the sum and weight of the units added so far."""
+
+    def __init__(self, width: int, height: int):
+        self.sum = np.zeros((height, width, 3), np.float32)
+        self.weight = np.zeros((height, width), np.float32)
+        self.added: set[int] = set()
+        self.written = -1e9  # time.monotonic() of the last PNG
+        self.dirty = False
+
+    def add(self, index: int, part: PartialFilm) -> None:
+        if index in self.added:
+            return
+        ys = slice(part.y0, part.y0 + part.height)
+        xs = slice(part.x0, part.x0 + part.width)
+        self.sum[ys, xs] += part.sum
+        self.weight[ys, xs] += part.weight
+        self.added.add(index)
+        self.dirty = True
+
+    def write(self, path) -> None:
+        Film(0, 0, self.sum, self.sum, self.weight).write_png(path)  # mean() reads sum, weight
+        self.written, self.dirty = time.monotonic(), False
 
 
 class Scheduler:
@@ -48,6 +92,7 @@ class Scheduler:
         self.settings, self.sessions, self.store, self.executor = settings, sessions, store, executor
         self.clock = clock
         self._tracked: dict[tuple[str, int], tuple[str, ...]] = {}  # units we put in flight
+        self._previews: dict[str, _Preview] = {}  # running previews, least recently used first
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.ticks = 0
@@ -83,16 +128,22 @@ class Scheduler:
 
     # -- one tick ------------------------------------------------------------------
     def tick(self) -> None:
-        """Advance every active job once."""
+        """Advance every scheduled job once, in priority order."""
         with self.sessions() as session:
-            job_ids = list(session.scalars(select(Job.id).where(Job.status.in_(states.ACTIVE_JOB))
-                                           .order_by(Job.created, Job.id)))
+            job_ids = list(session.scalars(
+                select(Job.id).where(Job.status.in_(states.SCHEDULED_JOB))
+                .order_by(Job.priority.desc(), Job.created, Job.id)))
         self._cancel_departed()
+        for job_id in [j for j in self._previews if j not in job_ids]:
+            del self._previews[job_id]
+        may_enqueue = True
         for job_id in job_ids:
             if self._stop.is_set():
                 break
             try:
-                complete = self._advance(job_id)
+                complete, waiting = self._advance(job_id, may_enqueue)
+                if waiting:  # jobs after it wait until its pending units are enqueued
+                    may_enqueue = False
                 if complete:
                     self._finish(job_id)
             except StaleDataError:
@@ -106,24 +157,28 @@ class Scheduler:
         with self.sessions() as session:
             live = {(job_id, index) for job_id, index in session.execute(
                 select(WorkUnit.job_id, WorkUnit.index).join(Job, Job.id == WorkUnit.job_id)
-                .where(WorkUnit.state.in_(states.IN_FLIGHT), Job.status.in_(states.ACTIVE_JOB)))}
+                .where(WorkUnit.state.in_(states.IN_FLIGHT),
+                       Job.status.in_(states.SCHEDULED_JOB)))}
         for key in [k for k in self._tracked if k not in live]:
             self.executor.cancel(key[0], self._tracked.pop(key))
 
-    def _advance(self, job_id: str) -> bool:
-        """Plan, collect and enqueue for one job; returns whether all its units are done."""
+    def _advance(self, job_id: str, may_enqueue: bool = True) -> tuple[bool, bool]:
+        """Plan, collect and enqueue (if `may_enqueue`) for one job; returns
+        (all its units are done, it still has pending units to enqueue)."""
         released: list[tuple[str, ...]] = []
+        landed: list[tuple[int, PartialFilm]] = []
         enqueue_error: Exception | None = None
         with self.sessions.begin() as session:  # the plan stands even if enqueuing fails
             job = session.get(Job, job_id)
-            if job is None or job.status not in states.ACTIVE_JOB:
-                return False
+            if job is None or job.status not in states.SCHEDULED_JOB:
+                return False, False
             if job.status == "queued":
                 self._plan(session, job, self.clock())
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
-            if job is None or job.status != "running":
-                return False
+            if job is None or job.status not in ("running", "paused"):
+                return False, False
+            waiting = False
             now = self.clock()
             flying = list(session.scalars(
                 select(WorkUnit).where(WorkUnit.job_id == job.id,
@@ -134,29 +189,40 @@ class Scheduler:
                  for u in flying], now)
             for unit, obs in zip(flying, observations):
                 self._tracked.setdefault((job.id, unit.index), tuple(unit.task_ids))
-                if self._collect(session, job, unit, obs, now, released):
+                if self._collect(session, job, unit, obs, now, released, landed):
                     break  # the job failed
             if job.status == "running":
                 # Asked after collecting: finished units free their slots at once.
-                pending = session.scalars(
+                slots = max(self.executor.capacity(), 0) if may_enqueue else 0
+                pending = list(session.scalars(
                     select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending")
-                    .order_by(WorkUnit.index).limit(max(self.executor.capacity(), 0)))
-                for unit in pending:
+                    .order_by(WorkUnit.index).limit(slots + 1)))
+                waiting = len(pending) > slots
+                for unit in pending[:slots]:
                     try:
                         self._enqueue(job, unit, now)
                     except Exception as exc:  # broker down: keep what was sent, retry later
                         enqueue_error = exc
+                        waiting = True
                         break
                     unit.attempts = 1
             complete = job.status == "running" and job.units_done == job.units_total
+            width, height = job.width, job.height
         for task_ids in released:  # only once the ledger says done (or failed)
             self.executor.release(task_ids)
+        if not complete:  # a complete job's preview comes from the final merge
+            try:
+                self._refresh_preview(job_id, width, height, landed)
+            except Exception:  # a preview is a courtesy; never stop the job for it
+                log.exception("preview of job %s failed", job_id)
+                self._previews.pop(job_id, None)
         if enqueue_error is not None:
             raise enqueue_error
-        return complete
+        return complete, waiting
 
     def _plan(self, session: Session, job: Job, now: datetime) -> None:
-        units = plan(RenderSpec.from_dict(job.spec))
+        units = plan(RenderSpec.from_dict(job.spec), progressive=bool(job.progressive))
+        self._previews.pop(job.id, None)  # planned anew (e.g. requeued): a fresh preview
         for unit in units:
             session.add(WorkUnit(job_id=job.id, index=unit.index, state="pending",
                                  unit=unit.to_dict(), attempts=0, task_ids=[]))
@@ -166,13 +232,13 @@ class Scheduler:
 
     def _enqueue(self, job: Job, unit: WorkUnit, now: datetime) -> None:
         task_id = self.executor.submit(Ticket(job.id, unit.index, job.scene_hash, job.spec,
-                                              unit.unit))
+                                              unit.unit, priority=job.priority or 0))
         unit.task_ids = [*unit.task_ids, task_id]
         states.change_unit(unit, "queued", now)
         self._tracked[(job.id, unit.index)] = tuple(unit.task_ids)
 
     def _collect(self, session: Session, job: Job, unit: WorkUnit, obs: Observation,
-                 now: datetime, released: list) -> bool:
+                 now: datetime, released: list, landed: list) -> bool:
         """Apply one observation to a unit; returns True if the job failed."""
         if obs.state == "done":
             try:
@@ -190,6 +256,7 @@ class Scheduler:
                 job.samples += int(film.stats.get("samples", 0))
                 job.rays += int(film.stats.get("rays", 0))
                 released.append(tuple(unit.task_ids))
+                landed.append((unit.index, film))
                 self._tracked.pop((job.id, unit.index), None)
                 return False
         if obs.state == "running":
@@ -221,6 +288,31 @@ class Scheduler:
                 WorkUnit.job_id == job.id, WorkUnit.state.not_in(states.FINAL_UNIT))):
             states.change_unit(other, "canceled", now)  # their tasks are canceled next tick
 
+    # -- the running preview ----------------------------------------------------------
+    def _refresh_preview(self, job_id: str, width: int, height: int,
+                         landed: list[tuple[int, PartialFilm]]) -> None:
+        """Add the units that just landed (committed as done) to the job's running
+        preview; write its PNG if it changed and the last write is old enough."""
+        preview = self._previews.pop(job_id, None)
+        if preview is None:
+            if not landed:
+                return
+            preview = _Preview(width, height)
+            with self.sessions() as session:  # after a restart or eviction: the done units
+                done = list(session.scalars(select(WorkUnit.index).where(
+                    WorkUnit.job_id == job_id, WorkUnit.state == "done")))
+            fresh = {index for index, _ in landed}
+            for index in done:
+                if index not in fresh:
+                    preview.add(index, PartialFilm.from_bytes(self.store.unit_film(job_id, index)))
+        for index, film in landed:
+            preview.add(index, film)
+        self._previews[job_id] = preview  # most recently used last
+        while len(self._previews) > PREVIEW_JOBS:
+            self._previews.pop(next(iter(self._previews)))
+        if preview.dirty and time.monotonic() - preview.written >= PREVIEW_INTERVAL:
+            preview.write(self.store.preview_path(job_id))
+
     # -- finishing -------------------------------------------------------------------
     def _finish(self, job_id: str) -> None:
         """Merge the stored unit films in unit order, write the images, mark done."""
@@ -242,6 +334,7 @@ class Scheduler:
         except Exception as exc:
             log.exception("merging job %s failed", job_id)
             error = f"merge failed: {type(exc).__name__}: {exc}"
+        self._previews.pop(job_id, None)
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
             if job.status != "running":

@@ -17,9 +17,15 @@ from renderer import BOUNDS, METHODS, SAMPLERS, RenderSpec
 
 from .models import Job, WorkUnit
 
-__all__ = ["JobCreate", "JobPublic", "Progress", "ScenePublic", "UnitPublic"]
+__all__ = ["JobCreate", "JobUpdate", "JobPublic", "PRIORITY_BOUNDS", "Progress", "ScenePublic", "UnitPublic"]
 
 _DEFAULTS = RenderSpec()
+PRIORITY_BOUNDS = (-100, 100)
+
+Priority = Annotated[StrictInt, Field(
+    ge=PRIORITY_BOUNDS[0], le=PRIORITY_BOUNDS[1],
+    description=f"higher runs first ({PRIORITY_BOUNDS[0]}..{PRIORITY_BOUNDS[1]}); "
+                "equal priorities: oldest first")]
 
 
 def _bounded(name: str, description: str):
@@ -50,6 +56,18 @@ class JobCreate(BaseModel):
     height: _bounded("height", "image height; default: the scene camera's") | None = None
     options: dict[str, Any] = Field(default_factory=dict,
                                     description="method options (GET /methods lists them)")
+    priority: Priority = 0
+    progressive: bool = Field(True, description="render in sample passes (1, 1, 2, 4, ... spp "
+                                                "per pass) so the preview improves while the "
+                                                "job runs; the final image is the same")
+
+
+class JobUpdate(BaseModel):
+    """`PATCH /jobs/{id}`: what can change after submission."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    priority: Priority
 
 
 class Progress(BaseModel):
@@ -74,6 +92,8 @@ class JobPublic(BaseModel):
     width: int
     height: int
     options: dict[str, Any]
+    priority: int
+    progressive: bool
     progress: Progress
     created: datetime
     started: datetime | None
@@ -97,12 +117,14 @@ class JobPublic(BaseModel):
             method=spec["method"], spp=spec["spp"], depth=spec["depth"],
             tile_size=spec["tile_size"], seed=spec["seed"], sampler=spec["sampler"],
             width=job.width, height=job.height, options=spec.get("options", {}),
+            priority=job.priority or 0, progressive=bool(job.progressive),
             progress=Progress(units_done=job.units_done, units_total=job.units_total,
                               fraction=job.units_done / job.units_total if job.units_total else 0.0),
             created=job.created, started=job.started, finished=job.finished, seconds=seconds,
             error=job.error, samples=job.samples, rays=job.rays,
             result_url=f"/jobs/{job.id}/result.exr" if done else None,
-            preview_url=f"/jobs/{job.id}/preview.png" if done else None)
+            # The preview is written as units land (see Scheduler): there from the first one.
+            preview_url=f"/jobs/{job.id}/preview.png" if done or job.units_done else None)
 
 
 class ScenePublic(BaseModel):

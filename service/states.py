@@ -1,13 +1,18 @@
 """Every status change of jobs and units, checked against one table.
 
     job:   queued ──► running ──► done
-              │          │
-              └──────────┴──► failed | canceled
+              │  ▲     ▲  │
+              ▼  │     │  ▼
+              paused ◄─┴──┘          (pause / resume)
+              queued, running, paused ──► failed | canceled
+              failed ──► running     (retry: its failed units run again)
+              running, paused, done, failed, canceled ──► queued   (requeue)
 
     unit:  pending ──► queued ◄──► running ──► done
               │          │  ▲         │
               │          └──┘ (enqueued again: lost message or retry)
               └──────────┴────────────┴──► failed | canceled
+              failed | canceled ──► pending   (retry of a failed job)
 
 Nothing else assigns `Job.status` or `WorkUnit.state`; a change the table does
 not allow raises `IllegalTransition`. The timestamps that belong to a status
@@ -22,14 +27,17 @@ from .errors import IllegalTransition
 from .models import Job, WorkUnit
 
 __all__ = ["JOB_STATUSES", "UNIT_STATES", "JOB_TRANSITIONS", "UNIT_TRANSITIONS", "ACTIVE_JOB",
-           "IN_FLIGHT", "FINAL_UNIT", "change_job", "change_unit"]
+           "SCHEDULED_JOB", "FINAL_JOB", "IN_FLIGHT", "FINAL_UNIT", "change_job", "change_unit"]
 
 JOB_TRANSITIONS: dict[str, frozenset[str]] = {
-    "queued": frozenset({"running", "failed", "canceled"}),
-    "running": frozenset({"done", "failed", "canceled"}),
-    "done": frozenset(),
-    "failed": frozenset(),
-    "canceled": frozenset(),
+    "queued": frozenset({"running", "paused", "failed", "canceled"}),
+    "running": frozenset({"done", "paused", "queued", "failed", "canceled"}),
+    # paused -> queued: resumed before it was planned, or requeued.
+    "paused": frozenset({"queued", "running", "failed", "canceled"}),
+    # Finished, but not forever: a requeue starts again, a retry continues a failed job.
+    "done": frozenset({"queued"}),
+    "failed": frozenset({"queued", "running"}),
+    "canceled": frozenset({"queued"}),
 }
 
 UNIT_TRANSITIONS: dict[str, frozenset[str]] = {
@@ -38,13 +46,16 @@ UNIT_TRANSITIONS: dict[str, frozenset[str]] = {
     "queued": frozenset({"queued", "running", "done", "failed", "canceled"}),
     "running": frozenset({"queued", "done", "failed", "canceled"}),
     "done": frozenset(),
-    "failed": frozenset(),
-    "canceled": frozenset(),
+    # A retry of a failed job: its failed units and those canceled with it run again.
+    "failed": frozenset({"pending"}),
+    "canceled": frozenset({"pending"}),
 }
 
 JOB_STATUSES = tuple(JOB_TRANSITIONS)
 UNIT_STATES = tuple(UNIT_TRANSITIONS)
 ACTIVE_JOB = ("queued", "running")
+SCHEDULED_JOB = ("queued", "running", "paused")  # the scheduler looks at these (paused: collect only)
+FINAL_JOB = ("done", "failed", "canceled")
 IN_FLIGHT = ("queued", "running")
 FINAL_UNIT = ("done", "failed", "canceled")
 
@@ -54,11 +65,13 @@ def change_job(job: Job, new: str, now: datetime, *, error: str | None = None) -
     allowed = JOB_TRANSITIONS[job.status]
     if new not in allowed:
         raise IllegalTransition("job", job.id, job.status, new, allowed)
-    job.status = new
-    if new == "running":
-        job.started = now
-    if not JOB_TRANSITIONS[new]:
+    old, job.status = job.status, new
+    if new == "running" and (old == "queued" or job.started is None):
+        job.started = now  # a resume or a retry keeps the first start
+    if new in FINAL_JOB:
         job.finished = now
+    elif old in FINAL_JOB:  # requeued or retried: no longer finished
+        job.finished, job.error = None, None
     if error is not None:
         job.error = error
 
@@ -73,7 +86,10 @@ def change_unit(unit: WorkUnit, new: str, now: datetime, *, error: str | None = 
         unit.enqueued_at, unit.started_at = now, None
     elif new == "running":
         unit.started_at = now
-    if not UNIT_TRANSITIONS[new]:
+    elif new == "pending":  # retried: a fresh start
+        unit.enqueued_at = unit.started_at = unit.finished_at = unit.error = None
+        unit.attempts = 0
+    if new in FINAL_UNIT:
         unit.finished_at = now
     if error is not None:
         unit.error = error

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -67,6 +68,12 @@ class Store:
 
     def unit_film(self, job_id: str, index: int) -> bytes:
         return self.unit_path(job_id, index).read_bytes()
+
+    def clear_results(self, job_id: str) -> None:
+        """Forget a job's unit films and images (it is requeued)."""
+        shutil.rmtree(self.job_dir(job_id) / "units", ignore_errors=True)
+        self.result_path(job_id).unlink(missing_ok=True)
+        self.preview_path(job_id).unlink(missing_ok=True)
 
     @staticmethod
     def _write_atomic(path: Path, data: bytes) -> None:

@@ -74,7 +74,7 @@ def test02_end_to_end_serve_and_worker_processes_over_http(spawn_serve, spawn_wo
         health = client.get("/healthz").json()
         assert health["executor"] == "celery" and health["broker"] == "ok"
         job = run_job(client, TINY, tmp_path / "e2e.exr")
-        assert job["progress"]["units_done"] == 16
+        assert job["progress"]["units_done"] == 48  # progressive: 16 tiles x 3 passes
         import OpenEXR
 
         with OpenEXR.File(str(tmp_path / "e2e.exr")) as exr:
@@ -90,7 +90,7 @@ def test03_sigkilled_worker_mid_job_the_job_still_finishes_bit_identical(
     import redis
 
     # 36 units of ~70 ms each on one process: seconds of work, so the kill lands mid-job.
-    body = dict(TINY, width=48, height=48, spp=512, tile_size=8)
+    body = dict(TINY, width=48, height=48, spp=512, tile_size=8, progressive=False)
     settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
                         unit_lease_seconds=5)
     broker = redis.Redis.from_url(redis_url)
@@ -132,19 +132,22 @@ def test04_messages_lost_by_the_broker_are_enqueued_again(redis_url, spawn_worke
                                                          reference_channels):
     import redis
 
+    from service.executors.celery_farm import PRIORITY_SEP, PRIORITY_STEPS
     from worker.keys import QUEUE
 
     settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
                         unit_lease_seconds=2)
     with TestClient(create_app(settings)) as client:
         get = client_json(client)
-        job_id = client.post("/jobs", json=TINY).json()["id"]
+        job_id = client.post("/jobs", json=dict(TINY, progressive=False)).json()["id"]
         wait_for(lambda: len(get(f"/jobs/{job_id}/units")) == 16
                  and all(u["state"] == "queued" for u in get(f"/jobs/{job_id}/units")),
                  30, "the units to be queued")
         broker = redis.Redis.from_url(redis_url)
-        assert broker.llen(QUEUE) == 16
-        broker.delete(QUEUE)  # as if Redis restarted without persistence
+        # Priority 0 goes to one of kombu's priority lists of the queue.
+        lists = [QUEUE, *(f"{QUEUE}{PRIORITY_SEP}{p}" for p in PRIORITY_STEPS[1:])]
+        assert sum(broker.llen(name) for name in lists) == 16
+        broker.delete(*lists)  # as if Redis restarted without persistence
         broker.close()
         spawn_worker(concurrency=2)
         job = poll_job(get, job_id)

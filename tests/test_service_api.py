@@ -45,7 +45,9 @@ def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_ch
     assert job["status"] == "queued" and job["width"] == 32 and job["method"] == "path"
     job = poll_job(get_json(local_client), job["id"])
     assert job["status"] == "done", job
-    assert job["progress"] == {"units_done": 16, "units_total": 16, "fraction": 1.0}
+    # Progressive by default: 16 tiles x 3 sample passes (1, 1, 2 spp).
+    assert job["progress"] == {"units_done": 48, "units_total": 48, "fraction": 1.0}
+    assert job["progressive"] is True and job["priority"] == 0
     assert job["samples"] == 32 * 32 * 4
     assert job["started"] and job["finished"] and job["seconds"] >= 0
     response = local_client.get(job["result_url"])
@@ -79,9 +81,8 @@ def test02_width_and_height_default_to_the_scene_camera(local_client):
 def test03_results_are_404_until_done_and_cancel_is_409_after(local_client):
     body = dict(TINY, width=256, height=256, spp=64, tile_size=16)
     job = submit(local_client, body)
-    for kind in ("result.exr", "preview.png"):
-        response = local_client.get(f"/jobs/{job['id']}/{kind}")
-        assert response.status_code == 404 and "exists once it is done" in response.json()["detail"]
+    response = local_client.get(f"/jobs/{job['id']}/result.exr")
+    assert response.status_code == 404 and "exists once it is done" in response.json()["detail"]
     canceled = local_client.delete(f"/jobs/{job['id']}")
     assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
     assert canceled.json()["finished"] is not None

@@ -26,14 +26,15 @@ def make_unit(state: str) -> WorkUnit:
 def test01_the_tables_are_exactly_these():
     # A change to the allowed transitions must be deliberate: it changes this test.
     assert {k: set(v) for k, v in states.JOB_TRANSITIONS.items()} == {
-        "queued": {"running", "failed", "canceled"},
-        "running": {"done", "failed", "canceled"},
-        "done": set(), "failed": set(), "canceled": set()}
+        "queued": {"running", "paused", "failed", "canceled"},
+        "running": {"done", "paused", "queued", "failed", "canceled"},
+        "paused": {"queued", "running", "failed", "canceled"},
+        "done": {"queued"}, "failed": {"queued", "running"}, "canceled": {"queued"}}
     assert {k: set(v) for k, v in states.UNIT_TRANSITIONS.items()} == {
         "pending": {"queued", "canceled"},
         "queued": {"queued", "running", "done", "failed", "canceled"},
         "running": {"queued", "done", "failed", "canceled"},
-        "done": set(), "failed": set(), "canceled": set()}
+        "done": set(), "failed": {"pending"}, "canceled": {"pending"}}
 
 
 @pytest.mark.parametrize("old,new", itertools.product(states.JOB_STATUSES, repeat=2))
@@ -77,8 +78,10 @@ def test05_job_running_to_final_sets_finished(final):
 
 def test06_job_done_to_canceled_is_a_conflict():
     job = make_job("done")
-    with pytest.raises(Conflict, match="none, it is final"):
+    with pytest.raises(Conflict, match="allowed from 'done': queued"):
         states.change_job(job, "canceled", T1)
+    with pytest.raises(Conflict, match="none, it is final"):
+        states.change_unit(make_unit("done"), "pending", T1)
 
 
 def test07_unit_queued_to_queued_is_a_new_enqueue():
@@ -109,3 +112,22 @@ def test10_unit_pending_to_running_is_illegal():
     with pytest.raises(IllegalTransition):
         states.change_unit(make_unit("pending"), "running", T1)
 
+
+
+def test11_pause_and_resume_keep_started_and_retry_reopens_a_failed_job():
+    job = make_job("queued")
+    states.change_job(job, "running", T0)
+    states.change_job(job, "paused", T1)
+    states.change_job(job, "running", T1)
+    assert job.started == T0 and job.finished is None
+    states.change_job(job, "failed", T1, error="unit 3 failed")
+    assert job.finished == T1 and job.error
+    states.change_job(job, "running", T1 + timedelta(seconds=1))  # retry
+    assert job.started == T0 and job.finished is None and job.error is None
+
+
+def test12_a_retried_unit_starts_afresh():
+    unit = make_unit("queued")
+    states.change_unit(unit, "failed", T1, error="boom")
+    states.change_unit(unit, "pending", T1)
+    assert (unit.attempts, unit.error, unit.enqueued_at, unit.finished_at) == (0, None, None, None)

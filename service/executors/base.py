@@ -19,6 +19,7 @@ class Ticket:
     scene_hash: str
     spec: dict
     unit: dict
+    priority: int = 0  # the job's; higher first (executors may pass it to the broker)
 
 
 @dataclass(frozen=True)

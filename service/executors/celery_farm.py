@@ -35,7 +35,18 @@ log = logging.getLogger(__name__)
 SCENE_TTL = 7 * 24 * 3600  # refreshed whenever a unit of the scene is enqueued
 CANCEL_TTL = 24 * 3600
 PRIORITY_SEP = "\x06\x16"  # kombu's Redis transport: queue<sep><priority> lists
-PRIORITY_STEPS = (0, 3, 6, 9)
+PRIORITY_STEPS = (0, 3, 6, 9)  # kombu's default; a message goes to the step at or below
+
+
+def redis_priority(priority: int) -> int:
+    """A job priority (-100..100, higher first) as a Redis message priority
+    (0 is served first there). Four steps only, so it is coarse; the scheduler
+    orders what it enqueues by the exact priority."""
+    if priority >= 50:
+        return 0
+    if priority > 0:
+        return 3
+    return 6 if priority == 0 else 9
 
 
 class CeleryExecutor(Executor):
@@ -48,6 +59,7 @@ class CeleryExecutor(Executor):
         self.redis = redis.Redis.from_url(settings.broker_url)
         self._load_scene_text = load_scene_text
         self._published: dict[str, float] = {}
+        self._uncanceled: set[str] = set()  # jobs whose cancel marker we removed
 
     # -- submitting ------------------------------------------------------------
     def _publish_scene(self, scene_hash: str) -> None:
@@ -63,11 +75,17 @@ class CeleryExecutor(Executor):
 
     def submit(self, ticket: Ticket) -> str:
         self._publish_scene(ticket.scene_hash)
+        if ticket.job_id not in self._uncanceled:  # a retried or requeued job runs again
+            self.redis.delete(cancel_key(ticket.job_id))
+            if len(self._uncanceled) >= 10000:  # bounded; forgetting costs one DEL
+                self._uncanceled.clear()
+            self._uncanceled.add(ticket.job_id)
         task_id = uuid.uuid4().hex
         payload = {"job_id": ticket.job_id, "index": ticket.index,
                    "scene_hash": ticket.scene_hash, "spec": ticket.spec, "unit": ticket.unit,
                    "lease_seconds": self.lease_seconds}
-        self.app.send_task(TASK_RENDER_UNIT, args=[payload], queue=QUEUE, task_id=task_id)
+        self.app.send_task(TASK_RENDER_UNIT, args=[payload], queue=QUEUE, task_id=task_id,
+                           priority=redis_priority(ticket.priority))
         return task_id
 
     # -- observing -------------------------------------------------------------
@@ -132,6 +150,7 @@ class CeleryExecutor(Executor):
         # The marker makes any worker skip the job's units still queued (also
         # workers started later, which a revoke broadcast does not reach).
         self.redis.set(cancel_key(job_id), "1", ex=CANCEL_TTL)
+        self._uncanceled.discard(job_id)
         if task_ids:
             self.app.control.revoke(list(task_ids))
         self.release(task_ids)

@@ -29,8 +29,9 @@ td,th{{padding:.3em .8em;border-bottom:1px solid #ddd;text-align:left}}</style><
 def index(session: SessionDep) -> str:
     rows = []
     for job in jobs.list_jobs(session, limit=200):
-        image = (f'<a href="/jobs/{job.id}/result.exr">exr</a> '
-                 f'<a href="/jobs/{job.id}/preview.png">png</a>') if job.status == "done" else ""
+        image = (f'<a href="/jobs/{job.id}/result.exr">exr</a> ' if job.status == "done" else ""
+                 ) + (f'<a href="/jobs/{job.id}/preview.png">png</a>'
+                      if job.status == "done" or job.units_done else "")
         rows.append(
             f'<tr><td><a href="/jobs/{job.id}">{escape(job.id)}</a></td>'
             f"<td>{escape(job.status)}</td><td>{escape(job.scene)}</td>"

@@ -1,4 +1,5 @@
-"""/jobs: submit, list, inspect, cancel, download."""
+"""/jobs: submit, list, inspect, reprioritize, pause, resume, retry, requeue,
+cancel, download."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from fastapi.responses import FileResponse
 
 from ... import jobs
 from ...models import utcnow
-from ...schemas import JobCreate, JobPublic, UnitPublic
+from ...schemas import JobCreate, JobPublic, JobUpdate, UnitPublic
 from ..deps import FarmDep, SessionDep
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -53,6 +54,48 @@ def cancel_job(job_id: str, farm: FarmDep) -> JobPublic:
     return JobPublic.from_job(jobs.cancel_job_retrying(farm.sessions, job_id, utcnow), utcnow())
 
 
+@router.patch("/{job_id}", response_model=JobPublic)
+def update_job(job_id: str, body: JobUpdate, farm: FarmDep) -> JobPublic:
+    """Change a job's priority (higher runs first, from the scheduler's next tick)."""
+    job = jobs.retrying(farm.sessions, job_id,
+                        lambda session: jobs.set_priority(session, job_id, body.priority, utcnow()))
+    return JobPublic.from_job(job, utcnow())
+
+
+@router.post("/{job_id}/pause", response_model=JobPublic)
+def pause_job(job_id: str, farm: FarmDep) -> JobPublic:
+    """Enqueue no more of the job's units; those in flight finish (409 unless queued or running)."""
+    job = jobs.retrying(farm.sessions, job_id,
+                        lambda session: jobs.pause_job(session, job_id, utcnow()))
+    return JobPublic.from_job(job, utcnow())
+
+
+@router.post("/{job_id}/resume", response_model=JobPublic)
+def resume_job(job_id: str, farm: FarmDep) -> JobPublic:
+    """Continue a paused job (409 if it is not paused)."""
+    job = jobs.retrying(farm.sessions, job_id,
+                        lambda session: jobs.resume_job(session, job_id, utcnow()))
+    return JobPublic.from_job(job, utcnow())
+
+
+@router.post("/{job_id}/retry", response_model=JobPublic)
+def retry_job(job_id: str, farm: FarmDep) -> JobPublic:
+    """Run the failed units again; a failed job runs again, keeping its done units
+    (409 if there is nothing to retry)."""
+    job = jobs.retrying(farm.sessions, job_id,
+                        lambda session: jobs.retry_job(session, job_id, utcnow()))
+    return JobPublic.from_job(job, utcnow())
+
+
+@router.post("/{job_id}/requeue", response_model=JobPublic)
+def requeue_job(job_id: str, farm: FarmDep) -> JobPublic:
+    """Start the job again from nothing: units and results forgotten, queued
+    (409 if it is queued already)."""
+    job = jobs.retrying(farm.sessions, job_id,
+                        lambda session: jobs.requeue_job(session, farm.store, job_id, utcnow()))
+    return JobPublic.from_job(job, utcnow())
+
+
 @router.get("/{job_id}/result.exr", response_class=FileResponse,
             responses={200: {"content": {"image/x-exr": {}}}, 404: {}})
 def result_exr(job_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
@@ -64,6 +107,6 @@ def result_exr(job_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
 @router.get("/{job_id}/preview.png", response_class=FileResponse,
             responses={200: {"content": {"image/png": {}}}, 404: {}})
 def preview_png(job_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
-    """A tonemapped sRGB preview (404 until the job is done)."""
+    """A tonemapped sRGB preview, refreshed as units land (404 until the first one has)."""
     path = jobs.result_file(session, farm.store, job_id, "preview.png")
     return FileResponse(path, media_type="image/png")
