@@ -19,7 +19,6 @@ method (raster, direct) keeps its bias however long it runs.
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import time
 from pathlib import Path

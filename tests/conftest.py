@@ -125,6 +125,23 @@ def reference_channels(tmp_path_factory):
     return render
 
 
+def submit(client, body: dict) -> dict:
+    """POST /jobs, expecting 201 and a Location header; returns the job."""
+    response = client.post("/jobs", json=body)
+    assert response.status_code == 201, response.text
+    assert response.headers["location"] == f"/jobs/{response.json()['id']}"
+    return response.json()
+
+
+def get_json(client):
+    """A GET that expects 200 and returns the JSON body (for poll_job)."""
+    def get(path: str) -> dict:
+        response = client.get(path)
+        assert response.status_code == 200, response.text
+        return response.json()
+    return get
+
+
 # -- the real farm: Redis and child processes ---------------------------------------------
 
 @pytest.fixture

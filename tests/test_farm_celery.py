@@ -12,23 +12,16 @@ from fastapi.testclient import TestClient
 from service.main import create_app
 from service.settings import Settings
 
-from conftest import TINY, assert_bit_identical, channels_of, poll_job, wait_for
+from conftest import TINY, assert_bit_identical, channels_of, get_json, poll_job, wait_for
 
 pytestmark = pytest.mark.farm
 
-
-def client_json(client):
-    def get(path: str) -> dict:
-        response = client.get(path)
-        assert response.status_code == 200, response.text
-        return response.json()
-    return get
 
 
 def run_job(client, body: dict, exr_path, timeout: float = 300.0) -> dict:
     response = client.post("/jobs", json=body)
     assert response.status_code == 201, response.text
-    job = poll_job(client_json(client), response.json()["id"], timeout)
+    job = poll_job(get_json(client), response.json()["id"], timeout)
     assert job["status"] == "done", job
     exr = client.get(job["result_url"])
     assert exr.status_code == 200
@@ -96,7 +89,7 @@ def test03_sigkilled_worker_mid_job_the_job_still_finishes_bit_identical(
     broker = redis.Redis.from_url(redis_url)
     first = spawn_worker(concurrency=1)
     with TestClient(create_app(settings)) as client:
-        get = client_json(client)
+        get = get_json(client)
         job_id = client.post("/jobs", json=body).json()["id"]
 
         def rendering() -> list[int]:
@@ -138,7 +131,7 @@ def test04_messages_lost_by_the_broker_are_enqueued_again(redis_url, spawn_worke
     settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
                         unit_lease_seconds=2)
     with TestClient(create_app(settings)) as client:
-        get = client_json(client)
+        get = get_json(client)
         job_id = client.post("/jobs", json=dict(TINY, progressive=False)).json()["id"]
         wait_for(lambda: len(get(f"/jobs/{job_id}/units")) == 16
                  and all(u["state"] == "queued" for u in get(f"/jobs/{job_id}/units")),

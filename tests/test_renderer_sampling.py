@@ -9,7 +9,6 @@ so the test can fail.
 import math
 
 import numpy as np
-import pytest
 from numba import njit
 
 from chi2util import chi2_pvalue, expected_counts, histogram, sidak

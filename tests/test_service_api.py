@@ -10,22 +10,9 @@ from PIL import Image
 
 from renderer import BOUNDS, METHODS, SAMPLERS, builtin_scene_names, resolve_document
 
-from conftest import TINY, assert_bit_identical, channels_of, poll_job
+from conftest import TINY, assert_bit_identical, channels_of, get_json, poll_job, submit
 
 
-def submit(client, body: dict) -> dict:
-    response = client.post("/jobs", json=body)
-    assert response.status_code == 201, response.text
-    assert response.headers["location"] == f"/jobs/{response.json()['id']}"
-    return response.json()
-
-
-def get_json(client):
-    def get(path: str) -> dict:
-        response = client.get(path)
-        assert response.status_code == 200, response.text
-        return response.json()
-    return get
 
 
 def assert_422(response, field: str, *words: str) -> str:

@@ -16,21 +16,9 @@ from service.models import Job, WorkUnit, utcnow
 from service.schemas import JobCreate
 from service.settings import Settings
 
-from conftest import TINY, assert_bit_identical, channels_of, poll_job, wait_for
+from conftest import TINY, assert_bit_identical, channels_of, get_json, poll_job, submit, wait_for
 
 
-def submit(client, body: dict) -> dict:
-    response = client.post("/jobs", json=body)
-    assert response.status_code == 201, response.text
-    return response.json()
-
-
-def get_json(client):
-    def get(path: str) -> dict:
-        response = client.get(path)
-        assert response.status_code == 200, response.text
-        return response.json()
-    return get
 
 
 def post(client, path: str, expect: int = 200) -> dict:

@@ -40,7 +40,7 @@ from numba import prange
 
 from ..film import PartialFilm, sample_blocks
 from ..kernels import kernel, kernel_inline, kernel_parallel
-from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
+from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
     dielectric_sample, diffuse_eval, diffuse_sample, reflect
 from ..kernels.ggx import glossy_eval, glossy_sample
 from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
