@@ -25,7 +25,8 @@ from typing import Iterable
 
 import numpy as np
 
-__all__ = ["PartialFilm", "Film", "sample_blocks", "merge", "read_exr", "tonemap_srgb8"]
+__all__ = ["PartialFilm", "Film", "sample_blocks", "merge", "read_exr", "tonemap_srgb8",
+           "relative_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP"]
 
 # Block sizes grow 1, 1, 2, 4, ... (pbrt-v4's doubling waves) up to this cap.
 MAX_BLOCK = 64
@@ -74,6 +75,12 @@ class PartialFilm:
         np.savez(buf, origin=np.array([self.x0, self.y0]), sum=self.sum, sum_sq=self.sum_sq,
                  weight=self.weight, stats=np.frombuffer(json.dumps(self.stats).encode(), np.uint8))
         return buf.getvalue()
+
+    @staticmethod
+    def stats_from_bytes(data: bytes) -> dict:
+        """Just the stats of serialized film bytes (reads no pixel array)."""
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            return json.loads(z["stats"].tobytes().decode())
 
     @classmethod
     def from_bytes(cls, data: bytes) -> "PartialFilm":
@@ -142,12 +149,60 @@ class Film(PartialFilm):
         Image.fromarray(tonemap_srgb8(self.mean())).save(tmp, format="PNG")
         tmp.replace(path)
 
+    def write_noise_png(self, path: str | Path) -> None:
+        """Write the per-pixel noise heatmap (`noise_srgb8`) of this film."""
+        from PIL import Image
+
+        path = Path(path)
+        tmp = path.with_name(path.name + ".part")
+        Image.fromarray(noise_srgb8(self.mean(), self.variance_of_mean())).save(tmp, format="PNG")
+        tmp.replace(path)
+
 
 def tonemap_srgb8(rgb: np.ndarray) -> np.ndarray:
     """Linear radiance -> 8-bit sRGB (clamp to [0, 1], sRGB transfer curve)."""
     x = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=1.0), 0.0, 1.0)
     s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
     return (s * 255.0 + 0.5).astype(np.uint8)
+
+
+# The noise heatmap shows the relative standard error on a log scale from
+# NOISE_RANGE[0] (darkest) to NOISE_RANGE[1] (brightest) through an
+# inferno-like colormap (stops at 0, 1/8, ..., 1); pixels whose variance is
+# not known yet (fewer than two samples) are grey.
+NOISE_RANGE = (1e-3, 1.0)
+NOISE_COLORMAP = np.array([(0, 0, 4), (31, 12, 72), (85, 15, 109), (136, 34, 106),
+                           (186, 54, 85), (227, 89, 51), (249, 140, 10), (249, 201, 50),
+                           (252, 255, 164)], dtype=np.float64)
+NOISE_UNKNOWN = (128, 128, 128)
+ERROR_FLOOR = 1e-3  # radiance below which a pixel counts as black (avoids 0/0)
+
+
+def relative_error(mean: np.ndarray, variance_of_mean: np.ndarray) -> np.ndarray:
+    """Per-pixel relative standard error of the estimate (h, w): the standard
+    error of the channel average over the channel average,
+    sqrt(mean_c var_c) / max(mean_c mu_c, ERROR_FLOOR). +inf where the
+    variance is unknown. (Channels are treated as independent here; they are
+    correlated, so this is a display measure, not a confidence interval.)"""
+    var = np.mean(variance_of_mean, axis=-1)
+    level = np.maximum(np.mean(mean, axis=-1), ERROR_FLOOR)
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(var), np.sqrt(np.maximum(var, 0.0)) / level, np.inf)
+
+
+def noise_srgb8(mean: np.ndarray, variance_of_mean: np.ndarray) -> np.ndarray:
+    """The noise heatmap as 8-bit RGB (h, w, 3): `relative_error` through the
+    colormap on a log scale over NOISE_RANGE; unknown variance in grey."""
+    err = relative_error(mean, variance_of_mean)
+    lo, hi = np.log10(NOISE_RANGE[0]), np.log10(NOISE_RANGE[1])
+    with np.errstate(divide="ignore"):
+        t = np.clip((np.log10(np.where(np.isfinite(err), err, 1.0)) - lo) / (hi - lo), 0.0, 1.0)
+    x = t * (len(NOISE_COLORMAP) - 1)
+    i = np.minimum(x.astype(np.int64), len(NOISE_COLORMAP) - 2)
+    f = (x - i)[..., None]
+    rgb = NOISE_COLORMAP[i] * (1.0 - f) + NOISE_COLORMAP[i + 1] * f
+    rgb[~np.isfinite(err)] = NOISE_UNKNOWN
+    return (rgb + 0.5).astype(np.uint8)
 
 
 def merge(width: int, height: int, parts: Iterable[PartialFilm]) -> Film:

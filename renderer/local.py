@@ -3,6 +3,10 @@
 Used by `rayfarm render` and by the service's embedded mode. Each child
 process is single-threaded Numba (one unit per process, one process per core,
 the same shape as the Celery prefork pool) and warms its kernels at start.
+Each child claims a slot in a small shared array and writes there the tag of
+the unit it is rendering (0 when idle), so the parent knows exactly which
+units are being rendered (`LocalPool.rendering`), not just which were handed
+to the pool's queue.
 
     >>> film = render("cornell-box", RenderSpec(spp=4, depth=3))
     >>> film.write_exr("out.exr")
@@ -24,15 +28,30 @@ from .spec import RenderSpec
 __all__ = ["LocalPool", "render"]
 
 
-def _init_child() -> None:
+_slot: int | None = None  # this child's index into the shared `rendering` array
+_rendering = None
+
+
+def _init_child(claimed, rendering) -> None:
+    global _slot, _rendering
     import numba
 
+    with claimed.get_lock():
+        _slot = claimed.value % len(rendering)
+        claimed.value += 1
+    _rendering = rendering
     numba.set_num_threads(1)
     warm_up()
 
 
-def _run(scene_key: str, text: str, spec: dict, unit: dict) -> bytes:
-    return execute_unit(scene_key, lambda: text, spec, unit)
+def _run(scene_key: str, text: str, spec: dict, unit: dict, tag: int) -> bytes:
+    if _rendering is not None:
+        _rendering[_slot] = tag
+    try:
+        return execute_unit(scene_key, lambda: text, spec, unit)
+    finally:
+        if _rendering is not None:
+            _rendering[_slot] = 0
 
 
 class LocalPool:
@@ -41,13 +60,20 @@ class LocalPool:
     def __init__(self, workers: int | None = None):
         self.workers = workers or os.cpu_count() or 1
         warm_up()  # compile here once, so the children only load Numba's cache
+        context = multiprocessing.get_context("forkserver")
+        self._rendering = context.Array("q", self.workers, lock=False)
         self._executor = ProcessPoolExecutor(
-            max_workers=self.workers, mp_context=multiprocessing.get_context("forkserver"),
-            initializer=_init_child)
+            max_workers=self.workers, mp_context=context, initializer=_init_child,
+            initargs=(context.Value("i", 0), self._rendering))
 
-    def submit(self, scene_key: str, text: str, spec: dict, unit: dict) -> Future:
-        """Run one unit; the future's result is the partial film's bytes."""
-        return self._executor.submit(_run, scene_key, text, spec, unit)
+    def submit(self, scene_key: str, text: str, spec: dict, unit: dict, tag: int = 0) -> Future:
+        """Run one unit; the future's result is the partial film's bytes. A
+        nonzero `tag` shows in `rendering()` while a process renders the unit."""
+        return self._executor.submit(_run, scene_key, text, spec, unit, tag)
+
+    def rendering(self) -> list[int]:
+        """Tags of the units the processes are rendering right now."""
+        return [tag for tag in self._rendering[:] if tag]
 
     def shutdown(self, cancel: bool = True) -> None:
         self._executor.shutdown(wait=True, cancel_futures=cancel)

@@ -1,5 +1,5 @@
 """The running service's parts, assembled from settings: ledger, store,
-executor and scheduler. Built by the app's lifespan, closed with it.
+executor, scheduler and the event hub. Built by the app's lifespan, closed with it.
 
     with Farm.open(Settings(data_dir="/tmp/farm")) as farm:
         farm.scheduler.tick()
@@ -13,6 +13,7 @@ from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
 from .db import open_ledger
+from .events import EventHub, publish_commits
 from .executors import Executor, make_executor
 from .scheduler import Scheduler
 from .settings import Settings
@@ -29,6 +30,7 @@ class Farm:
     store: Store
     executor: Executor
     scheduler: Scheduler
+    events: EventHub
 
     @classmethod
     def open(cls, settings: Settings) -> "Farm":
@@ -40,8 +42,10 @@ class Farm:
         except BaseException:
             engine.dispose()
             raise
+        hub = EventHub()
+        publish_commits(sessions, hub)
         return cls(settings, engine, sessions, store, executor,
-                   Scheduler(settings, sessions, store, executor))
+                   Scheduler(settings, sessions, store, executor, hub=hub), hub)
 
     def close(self) -> None:
         self.scheduler.stop()

@@ -1,5 +1,5 @@
 """Job use cases: create, look up, list, cancel, pause, resume, retry, requeue,
-reprioritize. Plain Python, no HTTP. Every status change goes through
+reprioritize, delete. Plain Python, no HTTP. Every status change goes through
 `service.states` (an illegal one is a `Conflict`).
 
     job = create_job(session, store, settings, JobCreate(scene="cornell-box",
@@ -13,13 +13,13 @@ import uuid
 from datetime import datetime
 from typing import Callable
 
-from sqlalchemy import select
+from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
 from renderer import RenderSpec, SceneError, builtin_scene_names, resolve_document, scene_text
 
-from . import states
+from . import events, states
 from .errors import Conflict, InvalidRequest, NotFound, ResultNotReady
 from .models import Job, WorkUnit
 from .schemas import JobCreate
@@ -27,8 +27,8 @@ from .settings import Settings
 from .store import Store
 
 __all__ = ["create_job", "get_job", "list_jobs", "list_units", "cancel_job", "cancel_job_retrying",
-           "pause_job", "resume_job", "retry_job", "requeue_job", "set_priority", "retrying",
-           "result_file", "new_job_id"]
+           "pause_job", "resume_job", "retry_job", "requeue_job", "set_priority", "delete_job",
+           "retrying", "result_file", "new_job_id"]
 
 
 def new_job_id() -> str:
@@ -78,8 +78,10 @@ def create_job(session: Session, store: Store, settings: Settings, request: JobC
     job = Job(id=new_job_id(), created=now, status="queued", scene=scene_name[:200],
               scene_hash=key, spec=spec.to_dict(), width=spec.width, height=spec.height,
               units_total=0, units_done=0, samples=0, rays=0, priority=request.priority,
-              progressive=request.progressive)
+              progressive=request.progressive, paused_seconds=0.0, unit_seconds=0.0,
+              units_retried=0)
     session.add(job)
+    events.note(job)
     return job
 
 
@@ -164,8 +166,9 @@ def requeue_job(session: Session, store: Store, job_id: str, now: datetime) -> J
     states.change_job(job, "queued", now)
     for unit in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)):
         session.delete(unit)  # in-flight tasks: the scheduler cancels units that left
-    job.units_total = job.units_done = job.samples = job.rays = 0
-    job.started = None
+    job.units_total = job.units_done = job.samples = job.rays = job.units_retried = 0
+    job.unit_seconds = job.paused_seconds = 0.0
+    job.started = job.paused_at = None
     session.flush()
     store.clear_results(job.id)
     return job
@@ -175,7 +178,22 @@ def set_priority(session: Session, job_id: str, priority: int, now: datetime) ->
     """Change a job's priority; the scheduler serves higher ones first from its next tick."""
     job = get_job(session, job_id)
     job.priority = priority
+    events.note(job)
     return job
+
+
+def delete_job(session: Session, store: Store, job_id: str, now: datetime) -> None:
+    """Forget a job: canceled first if it is still active, then its rows and
+    files are removed. The scheduler cancels the tasks of units that vanished;
+    anything it writes for the job afterwards it removes again."""
+    job = get_job(session, job_id)
+    if job.status not in states.FINAL_JOB:
+        cancel_job(session, job_id, now)
+        session.flush()
+    session.execute(delete(WorkUnit).where(WorkUnit.job_id == job.id))
+    session.delete(job)
+    session.flush()
+    store.delete_job(job.id)
 
 
 def retrying(sessions: sessionmaker[Session], job_id: str,
@@ -199,13 +217,14 @@ def cancel_job_retrying(sessions: sessionmaker[Session], job_id: str,
 
 
 def result_file(session: Session, store: Store, job_id: str, kind: str):
-    """Path of a done job's `result.exr`, or of a job's `preview.png` (written as
-    its units land, so there before it is done); else `ResultNotReady`."""
+    """Path of a done job's `result.exr`, or of a job's `preview.png` or
+    `noise.png` (written as its units land, so there before it is done); else
+    `ResultNotReady`."""
     job = get_job(session, job_id)
-    if kind == "preview.png":
-        path = store.preview_path(job.id)
+    if kind in ("preview.png", "noise.png"):
+        path = store.preview_path(job.id) if kind == "preview.png" else store.noise_path(job.id)
         if not path.is_file():
-            raise ResultNotReady(f"job '{job_id}' is {job.status}; its preview.png exists once "
+            raise ResultNotReady(f"job '{job_id}' is {job.status}; its {kind} exists once "
                                  "its first unit is done")
         return path
     if job.status != "done":

@@ -12,7 +12,7 @@ from fastapi import FastAPI
 from starlette.concurrency import run_in_threadpool
 
 from .api.errors import install_error_handlers
-from .api.routes import dashboard, health, jobs, methods, scenes
+from .api.routes import dashboard, events, health, jobs, methods, scenes, workers
 from .farm import Farm
 from .settings import Settings
 
@@ -37,6 +37,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   description="A render farm: submit render jobs, follow them, fetch the EXR.")
     app.state.settings = settings
     install_error_handlers(app)
-    for module in (jobs, scenes, methods, health, dashboard):
+    for module in (jobs, events, scenes, workers, methods, health, dashboard):
         app.include_router(module.router)
     return app

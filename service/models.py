@@ -69,8 +69,30 @@ class Job(Base):
     # Planned as tiles x sample passes (1, 1, 2, 4, ... spp), so the preview improves.
     progressive: Mapped[bool] = mapped_column(Boolean, default=False,
                                               server_default=text("false"))
+    # Time after its start the job could not run (finished pauses; failed until
+    # retried) and the start of the current pause, so elapsed time, throughput
+    # and ETA count only the time it could run.
+    paused_seconds: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
+    paused_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # Sum of the done units' render seconds (as their workers measured) and the
+    # number of done units that needed more than one task (lost or failed before).
+    unit_seconds: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
+    units_retried: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
 
     __mapper_args__ = {"version_id_col": version}
+
+    @property
+    def samples_total(self) -> int:
+        """Camera samples the finished job will have taken: width x height x spp."""
+        return self.width * self.height * int(self.spec["spp"])
+
+    def active_seconds(self, now: datetime) -> float | None:
+        """Seconds since the start (until the finish) that the job could run:
+        pauses, and time spent failed before a retry, excluded. None before the start."""
+        if self.started is None:
+            return None
+        end = self.finished or (self.paused_at if self.status == "paused" else None) or now
+        return max((end - self.started).total_seconds() - (self.paused_seconds or 0.0), 0.0)
 
 
 class WorkUnit(Base):

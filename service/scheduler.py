@@ -11,17 +11,19 @@ then oldest):
    paused or a job before it in the order still has pending units (so
    priority holds on both executors: the Celery executor also passes it to
    the broker as the message priority);
-4. refresh the job's `preview.png` from the units landed so far;
+4. refresh the job's `preview.png` and `noise.png` from the units landed so
+   far, and publish a `preview` event;
 5. when every unit is done, merge the stored films in unit order into
-   `result.exr` + `preview.png`, then mark the job done.
+   `result.exr` + `preview.png` + `noise.png`, then mark the job done.
 Units whose job was canceled (by the API) leave flight; their tasks are
 canceled. The ledger is the truth: after a restart the scheduler picks up
 where the rows say it was.
 
-The running preview is cheap by design: each landed unit's film is added
-(float32 sum and weight only) into an in-memory frame per job, and the PNG is
-written at most every `PREVIEW_INTERVAL` seconds per job (the first unit's at
-once). A frame missing after a restart (or evicted: at most `PREVIEW_JOBS`
+Every committed status change and progress step is published to the event
+streams (`service.events`). The running preview is cheap by design: each
+landed unit's film is added (float32 sums and weight) into an in-memory frame
+per job, and the PNGs are written at most every `PREVIEW_INTERVAL` seconds per
+job (the first unit's at once). A frame missing after a restart (or evicted: at most `PREVIEW_JOBS`
 are kept) is rebuilt once from the stored films of the done units. The
 preview's order of addition does not matter; the final EXR is merged from
 the stored films in unit order, as without previews.
@@ -29,6 +31,7 @@ the stored films in unit order, as without previews.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -43,7 +46,8 @@ import numpy as np
 
 from renderer import Film, PartialFilm, RenderSpec, merge, plan
 
-from . import states
+from . import events, states
+from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
 from .models import Job, WorkUnit, utcnow
 from .settings import Settings
@@ -56,14 +60,15 @@ log = logging.getLogger(__name__)
 EXR_METADATA_KEYS = ("job_id", "scene", "scene_hash", "method", "spp", "depth", "seed",
                      "sampler", "tile_size", "width", "height")
 PREVIEW_INTERVAL = 1.0  # seconds between two writes of a job's running preview
-PREVIEW_JOBS = 4  # running previews kept in memory (float32: 16 bytes per pixel)
+PREVIEW_JOBS = 4  # running previews kept in memory (float32: 28 bytes per pixel)
 
 
 class _Preview:
-    """A job's running preview: the sum and weight of the units added so far."""
+    """A job's running preview: the sums and weight of the units added so far."""
 
     def __init__(self, width: int, height: int):
         self.sum = np.zeros((height, width, 3), np.float32)
+        self.sum_sq = np.zeros((height, width, 3), np.float32)
         self.weight = np.zeros((height, width), np.float32)
         self.added: set[int] = set()
         self.written = -1e9  # time.monotonic() of the last PNG
@@ -75,12 +80,15 @@ class _Preview:
         ys = slice(part.y0, part.y0 + part.height)
         xs = slice(part.x0, part.x0 + part.width)
         self.sum[ys, xs] += part.sum
+        self.sum_sq[ys, xs] += part.sum_sq
         self.weight[ys, xs] += part.weight
         self.added.add(index)
         self.dirty = True
 
-    def write(self, path) -> None:
-        Film(0, 0, self.sum, self.sum, self.weight).write_png(path)  # mean() reads sum, weight
+    def write(self, preview_path, noise_path) -> None:
+        film = Film(0, 0, self.sum, self.sum_sq, self.weight)
+        film.write_png(preview_path)
+        film.write_noise_png(noise_path)
         self.written, self.dirty = time.monotonic(), False
 
 
@@ -88,9 +96,12 @@ class Scheduler:
     """Drives jobs through plan -> enqueue -> collect -> merge (see module doc)."""
 
     def __init__(self, settings: Settings, sessions: sessionmaker[Session], store: Store,
-                 executor: Executor, clock: Callable[[], datetime] = utcnow):
+                 executor: Executor, clock: Callable[[], datetime] = utcnow,
+                 hub: EventHub | None = None):
         self.settings, self.sessions, self.store, self.executor = settings, sessions, store, executor
         self.clock = clock
+        self.events = hub if hub is not None else EventHub()
+        self._preview_versions = itertools.count(1)
         self._tracked: dict[tuple[str, int], tuple[str, ...]] = {}  # units we put in flight
         self._previews: dict[str, _Preview] = {}  # running previews, least recently used first
         self._stop = threading.Event()
@@ -148,6 +159,7 @@ class Scheduler:
                     self._finish(job_id)
             except StaleDataError:
                 log.info("job %s changed meanwhile (canceled?); next tick", job_id)
+                self._forget_if_deleted(job_id)
         self.ticks += 1
 
     def _cancel_departed(self) -> None:
@@ -255,6 +267,10 @@ class Scheduler:
                 job.units_done += 1
                 job.samples += int(film.stats.get("samples", 0))
                 job.rays += int(film.stats.get("rays", 0))
+                job.unit_seconds = (job.unit_seconds or 0.0) + unit.seconds
+                if len(unit.task_ids) > 1:  # lost or failed before this task landed
+                    job.units_retried = (job.units_retried or 0) + 1
+                events.note(job)  # its progress moved
                 released.append(tuple(unit.task_ids))
                 landed.append((unit.index, film))
                 self._tracked.pop((job.id, unit.index), None)
@@ -311,7 +327,24 @@ class Scheduler:
         while len(self._previews) > PREVIEW_JOBS:
             self._previews.pop(next(iter(self._previews)))
         if preview.dirty and time.monotonic() - preview.written >= PREVIEW_INTERVAL:
-            preview.write(self.store.preview_path(job_id))
+            preview.write(self.store.preview_path(job_id), self.store.noise_path(job_id))
+            self._publish_preview(job_id, len(preview.added))
+
+    def _publish_preview(self, job_id: str, units: int) -> None:
+        version = next(self._preview_versions)
+        self.events.publish("preview", job_id, {
+            "job_id": job_id, "version": version, "units": units,
+            "url": f"/jobs/{job_id}/preview.png?v={version}",
+            "noise_url": f"/jobs/{job_id}/noise.png?v={version}"})
+
+    def _forget_if_deleted(self, job_id: str) -> None:
+        """A job deleted while a tick worked on it: drop what the tick may have
+        written for it meanwhile (a unit film, a preview)."""
+        with self.sessions() as session:
+            if session.get(Job, job_id) is not None:
+                return
+        self._previews.pop(job_id, None)
+        self.store.delete_job(job_id)
 
     # -- finishing -------------------------------------------------------------------
     def _finish(self, job_id: str) -> None:
@@ -331,12 +364,17 @@ class Scheduler:
             film.write_exr(self.store.result_path(job_id),
                            {k: str(metadata[k]) for k in EXR_METADATA_KEYS})
             film.write_png(self.store.preview_path(job_id))
+            film.write_noise_png(self.store.noise_path(job_id))
+            self._publish_preview(job_id, n_units)
         except Exception as exc:
             log.exception("merging job %s failed", job_id)
             error = f"merge failed: {type(exc).__name__}: {exc}"
         self._previews.pop(job_id, None)
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
+            if job is None:  # deleted while it was merged
+                self.store.delete_job(job_id)
+                return
             if job.status != "running":
                 return
             if error is None:

@@ -15,9 +15,11 @@ from pydantic import BaseModel, ConfigDict, Field, StrictInt
 
 from renderer import BOUNDS, METHODS, SAMPLERS, RenderSpec
 
+from .executors import WorkerInfo
 from .models import Job, WorkUnit
 
-__all__ = ["JobCreate", "JobUpdate", "JobPublic", "PRIORITY_BOUNDS", "Progress", "ScenePublic", "UnitPublic"]
+__all__ = ["JobCreate", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS", "Progress",
+           "ScenePublic", "UnitPublic", "WorkerPublic"]
 
 _DEFAULTS = RenderSpec()
 PRIORITY_BOUNDS = (-100, 100)
@@ -71,9 +73,28 @@ class JobUpdate(BaseModel):
 
 
 class Progress(BaseModel):
+    """How far a job is, and how long the rest should take at the measured rate."""
+
     units_done: int
     units_total: int
-    fraction: float
+    samples_done: int = Field(description="camera samples rendered so far")
+    samples_total: int = Field(description="width x height x spp")
+    fraction: float = Field(description="samples_done / samples_total")
+    elapsed: float | None = Field(description="seconds the job has been able to run: from its "
+                                              "start, pauses excluded (null before the start)")
+    eta: float | None = Field(description="seconds left at the job's measured samples/s "
+                                          "(null unless running with samples done)")
+
+
+class JobStats(BaseModel):
+    """Throughput of a job so far."""
+
+    samples_per_second: float | None = Field(description="camera samples / elapsed seconds")
+    rays_per_second: float | None = Field(description="rays traced / elapsed seconds")
+    seconds_per_unit: float | None = Field(description="mean render seconds of a done unit, as "
+                                                       "its worker measured it")
+    units_retried: int = Field(description="done units that needed more than one task "
+                                           "(their worker was lost, or an attempt failed)")
 
 
 class JobPublic(BaseModel):
@@ -95,23 +116,32 @@ class JobPublic(BaseModel):
     priority: int
     progressive: bool
     progress: Progress
+    stats: JobStats
     created: datetime
     started: datetime | None
     finished: datetime | None
-    seconds: float | None = Field(description="from start to finish (or until now)")
+    seconds: float | None = Field(description="from start to finish (or until now), "
+                                              "pauses excluded: progress.elapsed")
     error: str | None
     samples: int
     rays: int
     result_url: str | None
     preview_url: str | None
+    noise_url: str | None = Field(description="per-pixel noise heatmap (relative standard error)")
+    events_url: str = Field(description="server-sent events of this job")
 
     @classmethod
     def from_job(cls, job: Job, now: datetime) -> "JobPublic":
         spec = job.spec
-        seconds = None
-        if job.started is not None:
-            seconds = ((job.finished or now) - job.started).total_seconds()
+        elapsed = job.active_seconds(now)
+        total = job.samples_total
         done = job.status == "done"
+        rate = job.samples / elapsed if elapsed and job.samples else None
+        eta = None
+        if done:
+            eta = 0.0
+        elif job.status == "running" and rate:
+            eta = max(total - job.samples, 0) / rate
         return cls(
             id=job.id, status=job.status, scene=job.scene, scene_hash=job.scene_hash,
             method=spec["method"], spp=spec["spp"], depth=spec["depth"],
@@ -119,12 +149,21 @@ class JobPublic(BaseModel):
             width=job.width, height=job.height, options=spec.get("options", {}),
             priority=job.priority or 0, progressive=bool(job.progressive),
             progress=Progress(units_done=job.units_done, units_total=job.units_total,
-                              fraction=job.units_done / job.units_total if job.units_total else 0.0),
-            created=job.created, started=job.started, finished=job.finished, seconds=seconds,
+                              samples_done=job.samples, samples_total=total,
+                              fraction=min(job.samples / total, 1.0) if total else 0.0,
+                              elapsed=elapsed, eta=eta),
+            stats=JobStats(samples_per_second=rate,
+                           rays_per_second=job.rays / elapsed if elapsed and job.rays else None,
+                           seconds_per_unit=(job.unit_seconds or 0.0) / job.units_done
+                           if job.units_done else None,
+                           units_retried=job.units_retried or 0),
+            created=job.created, started=job.started, finished=job.finished, seconds=elapsed,
             error=job.error, samples=job.samples, rays=job.rays,
             result_url=f"/jobs/{job.id}/result.exr" if done else None,
             # The preview is written as units land (see Scheduler): there from the first one.
-            preview_url=f"/jobs/{job.id}/preview.png" if done or job.units_done else None)
+            preview_url=f"/jobs/{job.id}/preview.png" if done or job.units_done else None,
+            noise_url=f"/jobs/{job.id}/noise.png" if done or job.units_done else None,
+            events_url=f"/jobs/{job.id}/events")
 
 
 class ScenePublic(BaseModel):
@@ -159,3 +198,40 @@ class UnitPublic(BaseModel):
                    attempts=unit.attempts, tasks=len(unit.task_ids), worker=unit.worker,
                    enqueued_at=unit.enqueued_at, started_at=unit.started_at,
                    finished_at=unit.finished_at, seconds=unit.seconds, error=unit.error)
+
+
+class RunningUnitPublic(BaseModel):
+    job_id: str
+    index: int
+    since: datetime | None
+
+
+class WorkerPublic(BaseModel):
+    """A render worker: a Celery worker node or the embedded pool."""
+
+    name: str
+    kind: str = Field(description="celery or local")
+    host: str
+    state: str = Field(description="busy, idle, lost (heartbeats stopped) or offline "
+                                   "(shut down cleanly)")
+    concurrency: int = Field(description="render processes")
+    running: list[RunningUnitPublic] = Field(description="units its processes render now")
+    units_done: int
+    samples: int
+    rays: int
+    seconds: float = Field(description="render seconds of the units it finished")
+    samples_per_second: float | None = Field(description="samples / render seconds: the speed "
+                                                         "of one of its render processes")
+    started: datetime | None
+    last_seen: datetime | None
+    silent_seconds: float = Field(description="seconds since its last heartbeat")
+
+    @classmethod
+    def from_info(cls, w: WorkerInfo) -> "WorkerPublic":
+        return cls(name=w.name, kind=w.kind, host=w.host, state=w.state,
+                   concurrency=w.concurrency,
+                   running=[RunningUnitPublic(job_id=r.job_id, index=r.index, since=r.since)
+                            for r in w.running],
+                   units_done=w.units_done, samples=w.samples, rays=w.rays, seconds=w.seconds,
+                   samples_per_second=w.samples / w.seconds if w.seconds > 0 else None,
+                   started=w.started, last_seen=w.last_seen, silent_seconds=w.silent_seconds)

@@ -16,13 +16,16 @@
 
 Nothing else assigns `Job.status` or `WorkUnit.state`; a change the table does
 not allow raises `IllegalTransition`. The timestamps that belong to a status
-(started, finished, enqueued_at, ...) are set here too.
+(started, finished, paused time, enqueued_at, ...) are set here too, and every
+change is noted on its session (`service.events.note`), so it is published to
+the event streams once the transaction commits: no status change goes unseen.
 """
 
 from __future__ import annotations
 
 from datetime import datetime
 
+from . import events
 from .errors import IllegalTransition
 from .models import Job, WorkUnit
 
@@ -66,14 +69,26 @@ def change_job(job: Job, new: str, now: datetime, *, error: str | None = None) -
     if new not in allowed:
         raise IllegalTransition("job", job.id, job.status, new, allowed)
     old, job.status = job.status, new
+    if old == "paused" and job.paused_at is not None:
+        if job.started is not None:  # a pause before the start is not running time
+            job.paused_seconds = (job.paused_seconds or 0.0) + max(
+                (now - job.paused_at).total_seconds(), 0.0)
+        job.paused_at = None
+    if new == "paused":
+        job.paused_at = now
     if new == "running" and (old == "queued" or job.started is None):
         job.started = now  # a resume or a retry keeps the first start
     if new in FINAL_JOB:
         job.finished = now
     elif old in FINAL_JOB:  # requeued or retried: no longer finished
+        if new == "running" and job.started is not None and job.finished is not None:
+            # A retried failed job: the time it sat failed was not running time.
+            job.paused_seconds = (job.paused_seconds or 0.0) + max(
+                (now - job.finished).total_seconds(), 0.0)
         job.finished, job.error = None, None
     if error is not None:
         job.error = error
+    events.note(job)
 
 
 def change_unit(unit: WorkUnit, new: str, now: datetime, *, error: str | None = None) -> None:
@@ -93,3 +108,4 @@ def change_unit(unit: WorkUnit, new: str, now: datetime, *, error: str | None = 
         unit.finished_at = now
     if error is not None:
         unit.error = error
+    events.note(unit)

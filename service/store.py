@@ -4,6 +4,7 @@
     <data_dir>/jobs/<job_id>/units/<i>.film    a unit's PartialFilm bytes
     <data_dir>/jobs/<job_id>/result.exr        the merged image
     <data_dir>/jobs/<job_id>/preview.png       its tonemapped preview
+    <data_dir>/jobs/<job_id>/noise.png         its noise heatmap
 
 Every write is atomic (temporary file + rename), so a reader sees a whole
 file or none. Paths are built only from validated ids, so nothing is ever
@@ -54,6 +55,9 @@ class Store:
     def preview_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "preview.png"
 
+    def noise_path(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "noise.png"
+
     # -- reads and atomic writes ----------------------------------------------
     def put_scene(self, scene_hash: str, text: str) -> None:
         path = self.scene_path(scene_hash)
@@ -74,6 +78,11 @@ class Store:
         shutil.rmtree(self.job_dir(job_id) / "units", ignore_errors=True)
         self.result_path(job_id).unlink(missing_ok=True)
         self.preview_path(job_id).unlink(missing_ok=True)
+        self.noise_path(job_id).unlink(missing_ok=True)
+
+    def delete_job(self, job_id: str) -> None:
+        """Remove every file of a job (it is deleted)."""
+        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
 
     @staticmethod
     def _write_atomic(path: Path, data: bytes) -> None:

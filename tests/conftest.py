@@ -133,6 +133,14 @@ def submit(client, body: dict) -> dict:
     return response.json()
 
 
+def assert_complete_progress(progress: dict, *, units: int, samples: int) -> None:
+    """A done job's progress: every unit and sample counted, nothing left."""
+    assert progress["units_done"] == progress["units_total"] == units, progress
+    assert progress["samples_done"] == progress["samples_total"] == samples, progress
+    assert progress["fraction"] == 1.0 and progress["eta"] == 0.0, progress
+    assert progress["elapsed"] is not None and progress["elapsed"] >= 0, progress
+
+
 def get_json(client):
     """A GET that expects 200 and returns the JSON body (for poll_job)."""
     def get(path: str) -> dict:

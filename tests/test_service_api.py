@@ -10,7 +10,7 @@ from PIL import Image
 
 from renderer import BOUNDS, METHODS, SAMPLERS, builtin_scene_names, resolve_document
 
-from conftest import TINY, assert_bit_identical, channels_of, get_json, poll_job, submit
+from conftest import TINY, assert_bit_identical, assert_complete_progress, channels_of, get_json, poll_job, submit
 
 
 
@@ -33,7 +33,7 @@ def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_ch
     job = poll_job(get_json(local_client), job["id"])
     assert job["status"] == "done", job
     # Progressive by default: 16 tiles x 3 sample passes (1, 1, 2 spp).
-    assert job["progress"] == {"units_done": 48, "units_total": 48, "fraction": 1.0}
+    assert_complete_progress(job["progress"], units=48, samples=32 * 32 * 4)
     assert job["progressive"] is True and job["priority"] == 0
     assert job["samples"] == 32 * 32 * 4
     assert job["started"] and job["finished"] and job["seconds"] >= 0
@@ -62,7 +62,7 @@ def test02_width_and_height_default_to_the_scene_camera(local_client):
     job = submit(local_client, dict(body, spp=64))  # seconds of work: still running at DELETE
     camera = resolve_document("cornell-box")["camera"]
     assert (job["width"], job["height"]) == (camera["width"], camera["height"])
-    assert local_client.delete(f"/jobs/{job['id']}").json()["status"] == "canceled"
+    assert local_client.post(f"/jobs/{job['id']}/cancel").json()["status"] == "canceled"
 
 
 def test03_results_are_404_until_done_and_cancel_is_409_after(local_client):
@@ -70,10 +70,10 @@ def test03_results_are_404_until_done_and_cancel_is_409_after(local_client):
     job = submit(local_client, body)
     response = local_client.get(f"/jobs/{job['id']}/result.exr")
     assert response.status_code == 404 and "exists once it is done" in response.json()["detail"]
-    canceled = local_client.delete(f"/jobs/{job['id']}")
+    canceled = local_client.post(f"/jobs/{job['id']}/cancel")
     assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
     assert canceled.json()["finished"] is not None
-    again = local_client.delete(f"/jobs/{job['id']}")
+    again = local_client.post(f"/jobs/{job['id']}/cancel")
     assert again.status_code == 409 and "canceled" in again.json()["detail"]
     assert local_client.get(f"/jobs/{job['id']}/result.exr").status_code == 404
 
@@ -81,6 +81,7 @@ def test03_results_are_404_until_done_and_cancel_is_409_after(local_client):
 def test04_unknown_job_is_404(local_client):
     assert local_client.get("/jobs/0123456789ab").status_code == 404
     assert local_client.delete("/jobs/0123456789ab").status_code == 404
+    assert local_client.post("/jobs/0123456789ab/cancel").status_code == 404
     assert local_client.get("/jobs/../../etc/passwd/result.exr").status_code == 404
 
 

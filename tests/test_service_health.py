@@ -28,7 +28,7 @@ def test01_unreachable_broker_is_degraded_and_jobs_wait(tmp_path):
         # Planned, but nothing could be enqueued: the units wait as pending.
         units = client.get(f"/jobs/{job_id}/units").json()
         assert units and all(u["state"] == "pending" and u["tasks"] == 0 for u in units)
-        assert client.delete(f"/jobs/{job_id}").json()["status"] == "canceled"
+        assert client.post(f"/jobs/{job_id}/cancel").json()["status"] == "canceled"
 
 
 def test02_stopped_scheduler_is_unhealthy(local_client):

@@ -16,7 +16,7 @@ from service.models import Job, WorkUnit, utcnow
 from service.schemas import JobCreate
 from service.settings import Settings
 
-from conftest import TINY, assert_bit_identical, channels_of, get_json, poll_job, submit, wait_for
+from conftest import TINY, assert_bit_identical, assert_complete_progress, channels_of, get_json, poll_job, submit, wait_for
 
 
 
@@ -104,7 +104,7 @@ def test03_requeue_starts_again_from_nothing_and_renders_the_same(local_client, 
     assert requeued["result_url"] is None
     job = poll_job(get, job["id"])
     assert job["status"] == "done" and job["samples"] == 32 * 32 * 4
-    assert job["progress"] == {"units_done": 48, "units_total": 48, "fraction": 1.0}
+    assert_complete_progress(job["progress"], units=48, samples=32 * 32 * 4)
     assert_bit_identical(download(local_client, job, tmp_path / "again.exr"),
                          reference_channels(TINY))
 
@@ -117,12 +117,12 @@ def test04_illegal_transitions_are_409(local_client):
         response = local_client.post(f"/jobs/{job['id']}/{action}")
         assert response.status_code == 409 and words in response.json()["detail"], response.text
     big = submit(local_client, dict(TINY, width=256, height=256, spp=64, tile_size=16))
-    assert local_client.delete(f"/jobs/{big['id']}").status_code == 200
+    assert local_client.post(f"/jobs/{big['id']}/cancel").status_code == 200
     for action in ("pause", "resume", "retry"):
         assert local_client.post(f"/jobs/{big['id']}/{action}").status_code == 409
     # A canceled job can be requeued (and canceled again).
     assert post(local_client, f"/jobs/{big['id']}/requeue")["status"] == "queued"
-    assert local_client.delete(f"/jobs/{big['id']}").json()["status"] == "canceled"
+    assert local_client.post(f"/jobs/{big['id']}/cancel").json()["status"] == "canceled"
     for action in ("pause", "resume", "retry", "requeue"):
         assert local_client.post(f"/jobs/0123456789ab/{action}").status_code == 404
     assert local_client.patch("/jobs/0123456789ab", json={"priority": 1}).status_code == 404

@@ -37,7 +37,7 @@ def test01_the_tables_are_exactly_these():
         "done": set(), "failed": {"pending"}, "canceled": {"pending"}}
 
 
-@pytest.mark.parametrize("old,new", itertools.product(states.JOB_STATUSES, repeat=2))
+@pytest.mark.parametrize("old,new", list(itertools.product(states.JOB_STATUSES, repeat=2)))
 def test02_every_job_pair_is_allowed_exactly_when_the_table_says(old, new):
     job = make_job(old)
     if new in states.JOB_TRANSITIONS[old]:
@@ -50,7 +50,7 @@ def test02_every_job_pair_is_allowed_exactly_when_the_table_says(old, new):
         assert f"'{old}'" in str(info.value) and f"'{new}'" in str(info.value)
 
 
-@pytest.mark.parametrize("old,new", itertools.product(states.UNIT_STATES, repeat=2))
+@pytest.mark.parametrize("old,new", list(itertools.product(states.UNIT_STATES, repeat=2)))
 def test03_every_unit_pair_is_allowed_exactly_when_the_table_says(old, new):
     unit = make_unit(old)
     if new in states.UNIT_TRANSITIONS[old]:
@@ -131,3 +131,24 @@ def test12_a_retried_unit_starts_afresh():
     states.change_unit(unit, "failed", T1, error="boom")
     states.change_unit(unit, "pending", T1)
     assert (unit.attempts, unit.error, unit.enqueued_at, unit.finished_at) == (0, None, None, None)
+
+
+def test13_elapsed_time_excludes_pauses_and_time_spent_failed():
+    at = lambda s: T0 + timedelta(seconds=s)  # noqa: E731
+    job = make_job("queued")
+    job.spec = {"spp": 4}
+    job.width = job.height = 8
+    states.change_job(job, "paused", at(0))  # paused before it ever started: not running time
+    states.change_job(job, "queued", at(100))
+    states.change_job(job, "running", at(110))
+    assert job.active_seconds(at(120)) == 10
+    states.change_job(job, "paused", at(130))
+    assert job.active_seconds(at(500)) == 20  # frozen while paused
+    states.change_job(job, "running", at(150))
+    assert job.active_seconds(at(160)) == 30
+    states.change_job(job, "failed", at(170), error="unit 2 failed")
+    assert job.active_seconds(at(999)) == 40  # frozen once final
+    states.change_job(job, "running", at(200))  # retried: the 30 s spent failed don't count
+    states.change_job(job, "done", at(205))
+    assert job.active_seconds(at(999)) == 45 and job.samples_total == 8 * 8 * 4
+    assert make_job("queued").active_seconds(at(1)) is None  # not started: no elapsed time

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 
 from celery import Celery
-from celery.signals import worker_process_init
+from celery.signals import worker_process_init, worker_ready, worker_shutdown
 
 from .keys import QUEUE
 from .settings import Settings
@@ -48,6 +48,7 @@ def create_celery_app(settings: Settings) -> Celery:
         worker_hijack_root_logger=False,
         broker_connection_retry_on_startup=True,
     )
+    app.conf.rayfarm_heartbeat_seconds = settings.worker_heartbeat_seconds
     from .tasks import register_tasks
 
     register_tasks(app)
@@ -65,3 +66,31 @@ def _warm_up_child(**_kwargs) -> None:
     numba.set_num_threads(1)
     warm_up()
     log.info("render process warmed up")
+
+
+_presence = None  # this worker's heartbeat (main process only)
+
+
+@worker_ready.connect
+def _start_presence(sender=None, **_kwargs) -> None:
+    # The main process of a `rayfarm worker` (not the service, which only
+    # sends tasks): say who we are, then beat until shutdown.
+    global _presence
+    import redis
+
+    from .presence import Presence
+
+    app = sender.app
+    concurrency = getattr(getattr(sender, "controller", None), "concurrency", None) or 1
+    _presence = Presence(redis.Redis.from_url(app.conf.broker_url), sender.hostname,
+                         int(concurrency), float(app.conf.rayfarm_heartbeat_seconds or 2.0))
+    try:
+        _presence.start()
+    except Exception:  # presence is for the dashboard; never stop the worker for it
+        log.exception("could not register the worker's presence")
+
+
+@worker_shutdown.connect
+def _stop_presence(**_kwargs) -> None:
+    if _presence is not None:
+        _presence.stop()

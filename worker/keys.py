@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-__all__ = ["TASK_RENDER_UNIT", "QUEUE", "scene_key", "heartbeat_key", "cancel_key"]
+__all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "scene_key", "heartbeat_key", "cancel_key",
+           "worker_key", "worker_running_key"]
 
 TASK_RENDER_UNIT = "rayfarm.render_unit"
 QUEUE = "rayfarm.units"
+WORKERS = "rayfarm:workers"  # the set of worker names that ever reported
 
 
 def scene_key(scene_hash: str) -> str:
@@ -21,3 +23,13 @@ def heartbeat_key(job_id: str, index: int) -> str:
 def cancel_key(job_id: str) -> str:
     """Set when a job is canceled or failed, so workers skip its queued units."""
     return f"rayfarm:cancel:{job_id}"
+
+
+def worker_key(name: str) -> str:
+    """A worker's presence and counters (a hash; see worker/presence.py)."""
+    return f"rayfarm:worker:{name}"
+
+
+def worker_running_key(name: str) -> str:
+    """The units a worker's processes render now (a hash: process id -> unit)."""
+    return f"rayfarm:worker:{name}:running"

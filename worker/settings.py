@@ -43,6 +43,10 @@ class Settings(BaseSettings):
     local_workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1,
                                description="processes of the embedded pool")
     poll_interval: float = Field(0.2, gt=0, description="seconds between scheduler ticks")
+    worker_heartbeat_seconds: float = Field(
+        2.0, gt=0, description="how often a Celery worker reports that it is alive")
+    worker_lost_seconds: float = Field(
+        10.0, gt=0, description="a worker silent this long is shown as lost")
 
     @field_validator("broker_url", "database_url")
     @classmethod

@@ -4,7 +4,9 @@ The task takes ids and parameters only; the scene's canonical text travels by
 content hash (`rayfarm:scene:<hash>` in Redis, read only when this process
 has not built that scene yet). It returns the partial film's bytes, base64
 encoded for the JSON result backend, and the worker's name. While it runs, a
-heartbeat key with a TTL of one lease tells the service the unit is alive.
+heartbeat key with a TTL of one lease tells the service the unit is alive,
+and the worker's presence record (worker/presence.py) shows the unit and,
+once it is done, counts it.
 """
 
 from __future__ import annotations
@@ -18,8 +20,9 @@ from typing import Any
 import redis
 from celery import Celery
 
-from renderer import execute_unit
+from renderer import PartialFilm, execute_unit
 
+from . import presence
 from .keys import TASK_RENDER_UNIT, cancel_key, heartbeat_key, scene_key
 
 __all__ = ["register_tasks", "render_unit", "Heartbeat", "SceneUnavailable"]
@@ -96,8 +99,15 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> di
             raise SceneUnavailable(f"scene {scene[:12]} is not in the broker")
         return text.decode()
 
-    with Heartbeat(client, heartbeat_key(job_id, index), float(payload["lease_seconds"]), worker):
-        film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"])
+    presence.unit_started(client, worker, job_id, index)
+    stats = None
+    try:
+        with Heartbeat(client, heartbeat_key(job_id, index), float(payload["lease_seconds"]),
+                       worker):
+            film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"])
+        stats = PartialFilm.stats_from_bytes(film)
+    finally:
+        presence.unit_finished(client, worker, stats)
     return {"film": base64.b64encode(film).decode("ascii"), "worker": worker}
 
 

@@ -11,9 +11,10 @@ from __future__ import annotations
 from typing import Callable
 
 from ..settings import Settings
-from .base import Executor, Flight, Observation, Ticket
+from .base import Executor, Flight, Observation, RunningUnit, Ticket, WorkerInfo
 
-__all__ = ["Executor", "Flight", "Observation", "Ticket", "make_executor"]
+__all__ = ["Executor", "Flight", "Observation", "RunningUnit", "Ticket", "WorkerInfo",
+           "make_executor"]
 
 
 def make_executor(settings: Settings, load_scene_text: Callable[[str], str]) -> Executor:

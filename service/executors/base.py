@@ -7,7 +7,10 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Literal, Sequence
 
-__all__ = ["Ticket", "Flight", "Observation", "Executor"]
+__all__ = ["Ticket", "Flight", "Observation", "Executor", "RunningUnit", "WorkerInfo",
+           "WORKER_STATES"]
+
+WORKER_STATES = ("busy", "idle", "lost", "offline")
 
 
 @dataclass(frozen=True)
@@ -48,8 +51,40 @@ class Observation:
     error: str | None = None
 
 
+@dataclass(frozen=True)
+class RunningUnit:
+    job_id: str
+    index: int
+    since: datetime | None = None
+
+
+@dataclass(frozen=True)
+class WorkerInfo:
+    """A render worker as an executor sees it: a Celery worker node or the
+    embedded pool, each with `concurrency` render processes.
+
+    `state`: busy (rendering), idle, lost (no heartbeat within the limit: killed
+    or cut off) or offline (shut down cleanly). The counters are over the
+    units it finished since it started; `seconds` is their render time."""
+
+    name: str
+    kind: Literal["local", "celery"]
+    host: str
+    state: Literal["busy", "idle", "lost", "offline"]
+    concurrency: int
+    running: tuple[RunningUnit, ...]
+    units_done: int
+    samples: int
+    rays: int
+    seconds: float
+    started: datetime | None
+    last_seen: datetime | None
+    silent_seconds: float = 0.0  # since the last heartbeat, on the broker's clock
+
+
 class Executor(ABC):
-    """Runs units somewhere; called from the scheduler thread only."""
+    """Runs units somewhere; called from the scheduler thread only (but for
+    `workers` and `health`, which any thread may call)."""
 
     name: str
 
@@ -72,6 +107,10 @@ class Executor(ABC):
     @abstractmethod
     def capacity(self) -> int:
         """How many more units to submit now (the rest wait as `pending`)."""
+
+    def workers(self) -> list[WorkerInfo]:
+        """The workers this executor runs units on, as last seen."""
+        return []
 
     def health(self) -> dict:
         return {"executor": self.name}

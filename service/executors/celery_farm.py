@@ -17,16 +17,17 @@ import base64
 import logging
 import time
 import uuid
-from datetime import datetime, timedelta
+from datetime import datetime, timedelta, timezone
 from typing import Any, Callable, Sequence
 
 import redis
 
 from worker.celery_app import create_celery_app
 from worker.keys import QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, scene_key
+from worker.presence import read_workers
 
 from ..settings import Settings
-from .base import Executor, Flight, Observation, Ticket
+from .base import Executor, Flight, Observation, RunningUnit, Ticket, WorkerInfo
 
 __all__ = ["CeleryExecutor"]
 
@@ -56,6 +57,7 @@ class CeleryExecutor(Executor):
         self.app = create_celery_app(settings)
         self.lease = timedelta(seconds=settings.unit_lease_seconds)
         self.lease_seconds = settings.unit_lease_seconds
+        self.lost_seconds = settings.worker_lost_seconds
         self.redis = redis.Redis.from_url(settings.broker_url)
         self._load_scene_text = load_scene_text
         self._published: dict[str, float] = {}
@@ -158,6 +160,30 @@ class CeleryExecutor(Executor):
     def capacity(self) -> int:
         return 1000  # the broker queues the rest; this only bounds one tick's work
 
+    def workers(self) -> list[WorkerInfo]:
+        """Every worker that reported to this broker (worker/presence.py):
+        lost when its last beat is older than `worker_lost_seconds`."""
+        now, records = read_workers(self.redis)
+        out = []
+        for r in records:
+            last_seen = float(r.get("last_seen", 0.0))
+            running = tuple(RunningUnit(u["job_id"], int(u["index"]), _utc(u.get("since")))
+                            for u in r["running"])
+            if r.get("state") == "offline":
+                state, running = "offline", ()
+            elif now - last_seen > self.lost_seconds:
+                state = "lost"
+            else:
+                state = "busy" if running else "idle"
+            out.append(WorkerInfo(
+                name=r["name"], kind="celery", host=r.get("host", ""), state=state,
+                concurrency=int(r.get("concurrency", 1)), running=running,
+                units_done=int(r.get("units_done", 0)), samples=int(r.get("samples", 0)),
+                rays=int(r.get("rays", 0)), seconds=float(r.get("seconds", 0.0)),
+                started=_utc(r.get("started")), last_seen=_utc(last_seen),
+                silent_seconds=max(now - last_seen, 0.0)))
+        return out
+
     def health(self) -> dict:
         try:
             self.redis.ping()
@@ -169,6 +195,10 @@ class CeleryExecutor(Executor):
     def close(self) -> None:
         self.redis.close()
         self.app.close()
+
+
+def _utc(epoch) -> datetime | None:
+    return datetime.fromtimestamp(float(epoch), timezone.utc) if epoch not in (None, "") else None
 
 
 def _error_text(meta: dict[str, Any]) -> str:

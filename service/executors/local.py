@@ -1,19 +1,27 @@
-"""The embedded executor: units run on `renderer.LocalPool` in this machine."""
+"""The embedded executor: units run on `renderer.LocalPool` in this machine.
+
+It reports a unit `running` only while a pool process renders it (the pool's
+shared `rendering` slots), not while it waits in the pool's call queue, and
+counts the units, samples and render seconds the pool has done: the one
+worker of the embedded mode, as `workers()` shows it.
+"""
 
 from __future__ import annotations
 
+import itertools
 import logging
 import socket
+import threading
 import uuid
 from concurrent.futures import Future
 from concurrent.futures.process import BrokenProcessPool
-from datetime import datetime
+from datetime import datetime, timezone
 from typing import Callable, Sequence
 
-from renderer import LocalPool
+from renderer import LocalPool, PartialFilm
 
 from ..settings import Settings
-from .base import Executor, Flight, Observation, Ticket
+from .base import Executor, Flight, Observation, RunningUnit, Ticket, WorkerInfo
 
 __all__ = ["LocalExecutor"]
 
@@ -26,13 +34,24 @@ class LocalExecutor(Executor):
     name = "local"
 
     def __init__(self, settings: Settings, load_scene_text: Callable[[str], str]):
-        self.workers = settings.local_workers
+        self.processes = settings.local_workers
         self._load_scene_text = load_scene_text
         self._scene_texts: dict[str, str] = {}
         self._futures: dict[str, Future] = {}
-        self._pool = LocalPool(self.workers)
+        self._pool = LocalPool(self.processes)
         self._broken = False
-        self.worker_name = f"local@{socket.gethostname()}"
+        self.host = socket.gethostname()
+        self.worker_name = f"local@{self.host}"
+        self.started = datetime.now(timezone.utc)
+        # Guards what `workers()` reads from other threads.
+        self._lock = threading.Lock()
+        self._tags = itertools.count(1)
+        self._tag_of: dict[str, int] = {}  # task id -> its pool tag
+        self._unit_of: dict[int, tuple[str, int]] = {}  # pool tag -> (job id, unit index)
+        self._since: dict[int, datetime] = {}  # pool tag -> first seen rendering
+        self._counted: set[str] = set()  # done tasks already counted
+        self.units_done = self.samples = self.rays = 0
+        self.seconds = 0.0
 
     def _scene(self, scene_hash: str) -> str:
         if scene_hash not in self._scene_texts:
@@ -44,20 +63,38 @@ class LocalExecutor(Executor):
     def submit(self, ticket: Ticket) -> str:
         if self._broken:  # a child died; its futures are reported lost, start afresh
             self._pool.shutdown(cancel=True)
-            self._pool = LocalPool(self.workers)
+            self._pool = LocalPool(self.processes)
             self._broken = False
         task_id = uuid.uuid4().hex
-        self._futures[task_id] = self._pool.submit(
-            ticket.scene_hash, self._scene(ticket.scene_hash), ticket.spec, ticket.unit)
+        tag = next(self._tags)
+        future = self._pool.submit(ticket.scene_hash, self._scene(ticket.scene_hash), ticket.spec,
+                                   ticket.unit, tag=tag)
+        with self._lock:
+            self._futures[task_id] = future
+            self._tag_of[task_id] = tag
+            self._unit_of[tag] = (ticket.job_id, ticket.index)
         return task_id
 
     def observe(self, flights: Sequence[Flight], now: datetime) -> list[Observation]:
-        return [self._observe(flight) for flight in flights]
+        rendering = set(self._pool.rendering())
+        return [self._observe(flight, rendering) for flight in flights]
 
-    def _observe(self, flight: Flight) -> Observation:
+    def _count(self, task_id: str, film: bytes) -> None:
+        if task_id in self._counted:
+            return
+        stats = PartialFilm.stats_from_bytes(film)
+        with self._lock:
+            self._counted.add(task_id)
+            self.units_done += 1
+            self.samples += int(stats.get("samples", 0))
+            self.rays += int(stats.get("rays", 0))
+            self.seconds += float(stats.get("seconds", 0.0))
+
+    def _observe(self, flight: Flight, rendering: set[int]) -> Observation:
         for task_id in flight.task_ids:
             fut = self._futures.get(task_id)
             if fut is not None and fut.done() and not fut.cancelled() and fut.exception() is None:
+                self._count(task_id, fut.result())
                 return Observation("done", film=fut.result(), worker=self.worker_name)
         latest = self._futures.get(flight.task_ids[-1]) if flight.task_ids else None
         if latest is None or latest.cancelled():
@@ -68,27 +105,51 @@ class LocalExecutor(Executor):
                 self._broken = True
                 return Observation("lost")
             return Observation("failed", error=f"{type(exc).__name__}: {exc}")
-        if latest.running():
+        if self._tag_of.get(flight.task_ids[-1]) in rendering or flight.state == "running":
             return Observation("running", worker=self.worker_name)
         return Observation("queued")
 
+    def _forget(self, task_id: str) -> Future | None:
+        with self._lock:
+            fut = self._futures.pop(task_id, None)
+            tag = self._tag_of.pop(task_id, None)
+            self._unit_of.pop(tag, None)
+            self._since.pop(tag, None)
+            self._counted.discard(task_id)
+        return fut
+
     def release(self, task_ids: Sequence[str]) -> None:
         for task_id in task_ids:
-            self._futures.pop(task_id, None)
+            self._forget(task_id)
 
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
         for task_id in task_ids:
-            fut = self._futures.pop(task_id, None)
+            fut = self._forget(task_id)
             if fut is not None:
                 fut.cancel()  # only units not yet started; running ones finish unseen
+
+    def workers(self) -> list[WorkerInfo]:
+        now = datetime.now(timezone.utc)
+        rendering = self._pool.rendering()
+        with self._lock:
+            running = []
+            for tag in rendering:
+                if tag in self._unit_of:
+                    since = self._since.setdefault(tag, now)
+                    running.append(RunningUnit(*self._unit_of[tag], since=since))
+            return [WorkerInfo(
+                name=self.worker_name, kind="local", host=self.host,
+                state="busy" if running else "idle", concurrency=self.processes,
+                running=tuple(running), units_done=self.units_done, samples=self.samples,
+                rays=self.rays, seconds=self.seconds, started=self.started, last_seen=now)]
 
     def capacity(self) -> int:
         # Two per process keeps the pool busy while cancel stays quick.
         busy = sum(1 for fut in self._futures.values() if not fut.done())
-        return max(2 * self.workers - busy, 0)
+        return max(2 * self.processes - busy, 0)
 
     def health(self) -> dict:
-        return {"executor": self.name, "workers": self.workers}
+        return {"executor": self.name, "workers": self.processes}
 
     def close(self) -> None:
         self._pool.shutdown(cancel=True)

@@ -1,5 +1,5 @@
 """/jobs: submit, list, inspect, reprioritize, pause, resume, retry, requeue,
-cancel, download."""
+cancel, delete, download (EXR, preview, noise map)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from ...schemas import JobCreate, JobPublic, JobUpdate, UnitPublic
 from ..deps import FarmDep, SessionDep
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
+_NO_STORE = {"Cache-Control": "no-store"}  # previews change while the job runs
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobPublic)
@@ -48,10 +49,22 @@ def list_units(job_id: str, session: SessionDep) -> list[UnitPublic]:
     return [UnitPublic.from_unit(u) for u in jobs.list_units(session, job_id)]
 
 
-@router.delete("/{job_id}", response_model=JobPublic)
+@router.post("/{job_id}/cancel", response_model=JobPublic)
 def cancel_job(job_id: str, farm: FarmDep) -> JobPublic:
-    """Cancel a queued or running job (409 if it already finished)."""
+    """Cancel a queued, running or paused job: its unfinished units are dropped
+    (409 if it already finished)."""
     return JobPublic.from_job(jobs.cancel_job_retrying(farm.sessions, job_id, utcnow), utcnow())
+
+
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_job(job_id: str, farm: FarmDep) -> Response:
+    """Delete a job, its units and its images (an active job is canceled first)."""
+    def delete(session):
+        jobs.delete_job(session, farm.store, job_id, utcnow())
+        return None
+    jobs.retrying(farm.sessions, job_id, delete)
+    farm.events.publish("deleted", job_id, {"job_id": job_id})
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.patch("/{job_id}", response_model=JobPublic)
@@ -109,4 +122,15 @@ def result_exr(job_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
 def preview_png(job_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
     """A tonemapped sRGB preview, refreshed as units land (404 until the first one has)."""
     path = jobs.result_file(session, farm.store, job_id, "preview.png")
-    return FileResponse(path, media_type="image/png")
+    return FileResponse(path, media_type="image/png", headers=_NO_STORE)
+
+
+@router.get("/{job_id}/noise.png", response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}}}, 404: {}})
+def noise_png(job_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
+    """The noise heatmap: each pixel's relative standard error (from the variance
+    channels) on a log scale from 0.1 % (dark) to 100 % (bright) through an
+    inferno colormap; grey where fewer than two samples landed. Refreshed with
+    the preview (404 until the first unit is done)."""
+    path = jobs.result_file(session, farm.store, job_id, "noise.png")
+    return FileResponse(path, media_type="image/png", headers=_NO_STORE)

@@ -1,0 +1,124 @@
+"""Server-sent event streams: one job's (`/jobs/{id}/events`) and every job's (`/events`).
+
+    curl -N localhost:8000/jobs/<id>/events
+    event: job
+    data: {"id": "...", "status": "running", "progress": {...}, ...}
+
+A job's stream opens with its snapshot (`job`, then `units` once planned),
+then carries `unit`, `job` and `preview` events as they are committed (see
+`service.events` for their data) and ends with an `end` event once the job is
+done, failed, canceled or deleted (`?follow=true` keeps it open across a
+requeue). A comment line every `KEEPALIVE` seconds keeps proxies from closing
+an idle stream. Every event has an `id:`; a reconnecting client gets a fresh
+snapshot rather than a replay.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from typing import AsyncIterator
+
+from fastapi import APIRouter
+from fastapi.responses import StreamingResponse
+from starlette.concurrency import run_in_threadpool
+
+from ... import jobs, states
+from ...events import JOB_KINDS, Subscription
+from ...farm import Farm
+from ...models import utcnow
+from ...schemas import JobPublic, UnitPublic
+from ..deps import FarmDep
+
+router = APIRouter(tags=["events"])
+
+KEEPALIVE = 15.0  # seconds between keep-alive comments on a quiet stream
+RETRY_MS = 2000  # how soon EventSource reconnects after a dropped stream
+_HEADERS = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
+_SSE_DOC = {200: {"content": {"text/event-stream": {}},
+                  "description": "a stream of server-sent events"}}
+
+
+def _frame(kind: str, data) -> str:
+    return f"event: {kind}\ndata: {json.dumps(data)}\n\n"
+
+
+def _job_snapshot(farm: Farm, job_id: str) -> tuple[dict, list[dict]]:
+    with farm.sessions() as session:
+        job = jobs.get_job(session, job_id)  # NotFound -> 404
+        units = [UnitPublic.from_unit(u).model_dump(mode="json")
+                 for u in jobs.list_units(session, job_id)]
+        return JobPublic.from_job(job, utcnow()).model_dump(mode="json"), units
+
+
+async def _job_stream(farm: Farm, sub: Subscription, job_id: str, snapshot: tuple,
+                      follow: bool) -> AsyncIterator[str]:
+    try:
+        yield f"retry: {RETRY_MS}\n\n"
+        while True:
+            job, units = snapshot
+            yield _frame("job", job)
+            if units:
+                yield _frame("units", units)
+            if job["status"] in states.FINAL_JOB and not follow:
+                yield _frame("end", {"job_id": job_id, "status": job["status"]})
+                return
+            while True:
+                event = await sub.next(KEEPALIVE)
+                if sub.overflowed:  # we fell behind: start again from a snapshot
+                    sub.overflowed = False
+                    break
+                if event is None:
+                    yield ": keep-alive\n\n"
+                    continue
+                yield event.sse()
+                if event.kind == "deleted":
+                    yield _frame("end", {"job_id": job_id, "status": "deleted"})
+                    return
+                if (event.kind == "job" and event.data["status"] in states.FINAL_JOB
+                        and not follow):
+                    yield _frame("end", {"job_id": job_id, "status": event.data["status"]})
+                    return
+            snapshot = await run_in_threadpool(_job_snapshot, farm, job_id)
+    finally:
+        sub.close()
+
+
+@router.get("/jobs/{job_id}/events", response_class=StreamingResponse, responses=_SSE_DOC)
+async def job_events(job_id: str, farm: FarmDep, follow: bool = False) -> StreamingResponse:
+    """Server-sent events of one job: a snapshot (`job`, `units`), then `unit`,
+    `job` and `preview` events as they happen; `end` when the job is final
+    (404 for an unknown job)."""
+    sub = farm.events.subscribe(job_id, asyncio.get_running_loop())  # before the snapshot
+    try:
+        snapshot = await run_in_threadpool(_job_snapshot, farm, job_id)
+    except BaseException:
+        sub.close()
+        raise
+    return StreamingResponse(_job_stream(farm, sub, job_id, snapshot, follow),
+                             media_type="text/event-stream", headers=_HEADERS)
+
+
+async def _all_stream(sub: Subscription) -> AsyncIterator[str]:
+    try:
+        yield f"retry: {RETRY_MS}\n\n"
+        while True:
+            event = await sub.next(KEEPALIVE)
+            if sub.overflowed:
+                sub.overflowed = False
+                yield _frame("resync", {})  # reload the list: events were dropped
+            if event is None:
+                yield ": keep-alive\n\n"
+                continue
+            yield event.sse()
+    finally:
+        sub.close()
+
+
+@router.get("/events", response_class=StreamingResponse, responses=_SSE_DOC)
+async def all_events(farm: FarmDep) -> StreamingResponse:
+    """Server-sent events of every job: `job` (any status or progress change,
+    new jobs included) and `deleted`; `resync` asks the client to reload the
+    list. Never ends by itself."""
+    sub = farm.events.subscribe(None, asyncio.get_running_loop(), kinds=JOB_KINDS)
+    return StreamingResponse(_all_stream(sub), media_type="text/event-stream", headers=_HEADERS)

@@ -1,0 +1,164 @@
+"""Job events: every committed change, fanned out to the event streams.
+
+    hub = EventHub()
+    publish_commits(sessions, hub)      # committed job/unit changes become events
+    sub = hub.subscribe(job_id, loop)   # one job's events (None: every job's)
+    event = await sub.next(timeout=15)
+
+`service.states` notes every status change on its session (`note`); the
+scheduler notes a job whose progress moved. When the transaction commits,
+the noted objects are published as they stand then, units before their job,
+so a stream never shows a change that was rolled back. The preview and
+deletion events are published directly (`EventHub.publish`).
+
+Event kinds (the SSE `event:` names) and their data:
+
+    job       the job as `GET /jobs/{id}` shows it (status, progress, ETA, stats)
+    unit      a unit as `GET /jobs/{id}/units` shows it, plus `job_id`: queued,
+              running (started, with its worker), done (worker, seconds), ...
+    preview   {"job_id", "version", "url", "noise_url", "units"}: the running
+              preview and noise map were rewritten
+    deleted   {"job_id"}
+
+Streams are in-process: the service that owns the ledger publishes, its HTTP
+handlers subscribe. A subscriber that falls more than `QUEUE_LIMIT` events
+behind is told so (`overflowed`) and resynchronises from a snapshot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import logging
+import threading
+from dataclasses import dataclass
+
+from sqlalchemy import event as sa_event
+from sqlalchemy.orm import Session, object_session, sessionmaker
+
+__all__ = ["Event", "EventHub", "Subscription", "note", "publish_commits", "JOB_KINDS"]
+
+log = logging.getLogger(__name__)
+
+_PENDING = "rayfarm.events.pending"
+QUEUE_LIMIT = 2000
+JOB_KINDS = frozenset({"job", "deleted"})  # what a stream of every job carries
+
+
+@dataclass(frozen=True)
+class Event:
+    id: int
+    kind: str
+    job_id: str
+    data: dict
+
+    def sse(self) -> str:
+        """The event in `text/event-stream` framing."""
+        return f"id: {self.id}\nevent: {self.kind}\ndata: {json.dumps(self.data)}\n\n"
+
+
+class Subscription:
+    """One stream's queue, fed from any thread, read in its event loop."""
+
+    def __init__(self, hub: "EventHub", job_id: str | None, kinds: frozenset[str] | None,
+                 loop: asyncio.AbstractEventLoop):
+        self.hub, self.job_id, self.kinds, self.loop = hub, job_id, kinds, loop
+        self.queue: asyncio.Queue[Event] = asyncio.Queue()
+        self.overflowed = False
+
+    def wants(self, event: Event) -> bool:
+        return ((self.job_id is None or self.job_id == event.job_id)
+                and (self.kinds is None or event.kind in self.kinds))
+
+    def _put(self, event: Event) -> None:  # runs in the subscriber's loop
+        if self.queue.qsize() >= QUEUE_LIMIT:
+            self.overflowed = True
+            return
+        self.queue.put_nowait(event)
+
+    async def next(self, timeout: float) -> Event | None:
+        """The next event, or None after `timeout` seconds of silence."""
+        try:
+            return await asyncio.wait_for(self.queue.get(), timeout)
+        except asyncio.TimeoutError:
+            return None
+
+    def close(self) -> None:
+        self.hub.unsubscribe(self)
+
+
+class EventHub:
+    """Publishes events to every matching subscription; thread-safe."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._subscriptions: set[Subscription] = set()
+        self._ids = itertools.count(1)
+
+    def subscribe(self, job_id: str | None, loop: asyncio.AbstractEventLoop,
+                  kinds: frozenset[str] | None = None) -> Subscription:
+        sub = Subscription(self, job_id, kinds, loop)
+        with self._lock:
+            self._subscriptions.add(sub)
+        return sub
+
+    def unsubscribe(self, sub: Subscription) -> None:
+        with self._lock:
+            self._subscriptions.discard(sub)
+
+    @property
+    def subscribers(self) -> int:
+        with self._lock:
+            return len(self._subscriptions)
+
+    def publish(self, kind: str, job_id: str, data: dict) -> Event:
+        with self._lock:
+            event = Event(next(self._ids), kind, job_id, data)
+            targets = [s for s in self._subscriptions if s.wants(event)]
+        for sub in targets:
+            try:
+                sub.loop.call_soon_threadsafe(sub._put, event)
+            except RuntimeError:  # its loop is closed: the stream is gone
+                self.unsubscribe(sub)
+        return event
+
+
+def note(obj) -> None:
+    """Remember a changed Job or WorkUnit on its session, to publish at commit.
+    Objects outside a session (plain tests of the state table) are ignored."""
+    session = object_session(obj)
+    if session is None:
+        return
+    pending: dict = session.info.setdefault(_PENDING, {})
+    key = (type(obj).__name__, obj.job_id, obj.index) if hasattr(obj, "index") else ("Job", obj.id)
+    pending.pop(key, None)
+    pending[key] = obj  # latest change last; the state published is the committed one
+
+
+def publish_commits(sessions: sessionmaker[Session], hub: EventHub) -> None:
+    """Publish what `note` recorded on sessions of `sessions` when they commit."""
+    from .models import utcnow
+    from .schemas import JobPublic, UnitPublic
+
+    def after_commit(session: Session) -> None:
+        pending = session.info.pop(_PENDING, None)
+        if not pending:
+            return
+        try:
+            now = utcnow()
+            objects = list(pending.values())
+            for unit in (o for o in objects if hasattr(o, "index")):
+                hub.publish("unit", unit.job_id,
+                            {"job_id": unit.job_id,
+                             **UnitPublic.from_unit(unit).model_dump(mode="json")})
+            for job in (o for o in objects if not hasattr(o, "index")):
+                hub.publish("job", job.id, JobPublic.from_job(job, now).model_dump(mode="json"))
+        except Exception:  # an event is a courtesy; the commit stands
+            log.exception("publishing events failed")
+
+    def forget(session: Session, *_args) -> None:
+        session.info.pop(_PENDING, None)
+
+    sa_event.listen(sessions, "after_commit", after_commit)
+    sa_event.listen(sessions, "after_soft_rollback", forget)

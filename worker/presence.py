@@ -1,0 +1,134 @@
+"""Worker presence: each Celery worker says it is alive, what it renders, what it did.
+
+    rayfarm:workers                  set of worker names
+    rayfarm:worker:<name>            hash: host, pid, concurrency, started, last_seen,
+                                     state (online | offline), units_done, samples,
+                                     rays, seconds
+    rayfarm:worker:<name>:running    hash: render process id -> {"job_id", "index", "since"}
+
+Times are Redis's own clock (`TIME`), so the service compares them with the
+same clock whatever the machines' clocks say. The worker's main process beats
+every `worker_heartbeat_seconds` from a thread: it never renders (prefork),
+so a long unit never delays a beat, and a killed worker simply stops beating
+(the service shows it as lost). Its render processes record the unit they
+run and add to the counters when it is done. The keys expire a day after the
+last beat; the service reads them (`read_workers`), it never writes them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import threading
+
+import redis
+
+from .keys import WORKERS, worker_key, worker_running_key
+
+__all__ = ["Presence", "unit_started", "unit_finished", "read_workers", "redis_now"]
+
+log = logging.getLogger(__name__)
+
+PRESENCE_TTL = 24 * 3600
+
+
+def redis_now(client: redis.Redis) -> float:
+    """Seconds since the epoch on the Redis server's clock."""
+    seconds, micros = client.time()
+    return seconds + micros / 1e6
+
+
+class Presence:
+    """The main process's heartbeat: `start()` when the worker is ready,
+    `stop()` when it shuts down (it is then shown offline, not lost)."""
+
+    def __init__(self, client: redis.Redis, name: str, concurrency: int, interval: float):
+        self.client, self.name, self.concurrency, self.interval = client, name, concurrency, interval
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rayfarm-presence", daemon=True)
+
+    def _beat(self, **fields) -> None:
+        now = redis_now(self.client)
+        pipe = self.client.pipeline()
+        pipe.sadd(WORKERS, self.name)
+        pipe.hset(worker_key(self.name), mapping={"last_seen": now, **fields})
+        pipe.expire(worker_key(self.name), PRESENCE_TTL)
+        pipe.expire(worker_running_key(self.name), PRESENCE_TTL)
+        pipe.execute()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            try:
+                self._beat(state="online")
+            except redis.RedisError as exc:  # keep beating; the broker may come back
+                log.warning("presence heartbeat failed: %s", exc)
+
+    def start(self) -> None:
+        now = redis_now(self.client)
+        self.client.delete(worker_key(self.name), worker_running_key(self.name))
+        self._beat(state="online", host=socket.gethostname(), pid=os.getpid(),
+                   concurrency=self.concurrency, started=now, units_done=0, samples=0, rays=0,
+                   seconds=0.0)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        try:
+            self._beat(state="offline")
+            self.client.delete(worker_running_key(self.name))
+        except redis.RedisError as exc:
+            log.warning("could not mark worker %s offline: %s", self.name, exc)
+
+
+def unit_started(client: redis.Redis, name: str, job_id: str, index: int) -> None:
+    """A render process of worker `name` starts rendering unit `index` of `job_id`."""
+    try:
+        client.hset(worker_running_key(name), str(os.getpid()),
+                    json.dumps({"job_id": job_id, "index": index, "since": redis_now(client)}))
+    except redis.RedisError as exc:
+        log.warning("presence: unit start not recorded: %s", exc)
+
+
+def unit_finished(client: redis.Redis, name: str, stats: dict | None) -> None:
+    """The render process is done with its unit; `stats` (samples, rays,
+    seconds) if it finished it, None if it failed."""
+    try:
+        pipe = client.pipeline()
+        pipe.hdel(worker_running_key(name), str(os.getpid()))
+        if stats is not None:
+            key = worker_key(name)
+            pipe.hincrby(key, "units_done", 1)
+            pipe.hincrby(key, "samples", int(stats.get("samples", 0)))
+            pipe.hincrby(key, "rays", int(stats.get("rays", 0)))
+            pipe.hincrbyfloat(key, "seconds", float(stats.get("seconds", 0.0)))
+        pipe.execute()
+    except redis.RedisError as exc:
+        log.warning("presence: unit end not recorded: %s", exc)
+
+
+def read_workers(client: redis.Redis) -> tuple[float, list[dict]]:
+    """(Redis's clock now, every known worker as a dict of its hash fields
+    plus `name` and `running`: a list of {"job_id", "index", "since"}).
+    Workers whose keys expired are forgotten."""
+    names = sorted(n.decode() for n in client.smembers(WORKERS))
+    pipe = client.pipeline()
+    for name in names:
+        pipe.hgetall(worker_key(name))
+        pipe.hgetall(worker_running_key(name))
+    replies = pipe.execute()
+    now = redis_now(client)
+    out, gone = [], []
+    for name, fields, running in zip(names, replies[0::2], replies[1::2]):
+        if not fields:
+            gone.append(name)
+            continue
+        record = {k.decode(): v.decode() for k, v in fields.items()}
+        record["name"] = name
+        record["running"] = sorted((json.loads(v) for v in running.values()),
+                                   key=lambda r: (r["job_id"], r["index"]))
+        out.append(record)
+    if gone:
+        client.srem(WORKERS, *gone)
+    return now, out
