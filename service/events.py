@@ -35,6 +35,7 @@ import threading
 from dataclasses import dataclass
 
 from sqlalchemy import event as sa_event
+from sqlalchemy import inspect as sa_inspect
 from sqlalchemy.orm import Session, object_session, sessionmaker
 
 __all__ = ["Event", "EventHub", "Subscription", "note", "publish_commits", "JOB_KINDS"]
@@ -147,7 +148,9 @@ def publish_commits(sessions: sessionmaker[Session], hub: EventHub) -> None:
             return
         try:
             now = utcnow()
-            objects = list(pending.values())
+            # A job deleted in this transaction (canceled on the way) is announced
+            # by its `deleted` event alone.
+            objects = [o for o in pending.values() if not sa_inspect(o).was_deleted]
             for unit in (o for o in objects if hasattr(o, "index")):
                 hub.publish("unit", unit.job_id,
                             {"job_id": unit.job_id,

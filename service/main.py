@@ -33,10 +33,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             await run_in_threadpool(farm.close)
 
-    app = FastAPI(title="rayfarm", version="0.1.0", lifespan=lifespan,
+    # docs_url/redoc_url: served by the dashboard module from local assets (no CDN).
+    app = FastAPI(title="rayfarm", version="0.1.0", lifespan=lifespan, docs_url=None,
+                  redoc_url=None,
                   description="A render farm: submit render jobs, follow them, fetch the EXR.")
     app.state.settings = settings
     install_error_handlers(app)
     for module in (jobs, events, scenes, workers, methods, health, dashboard):
         app.include_router(module.router)
+    dashboard.mount_assets(app)
     return app

@@ -8,6 +8,7 @@ Status values and their changes belong to `service.states`.
 
 from __future__ import annotations
 
+import math
 from datetime import datetime, timezone
 
 from sqlalchemy import (JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Integer, String,
@@ -78,6 +79,13 @@ class Job(Base):
     # number of done units that needed more than one task (lost or failed before).
     unit_seconds: Mapped[float] = mapped_column(Float, default=0.0, server_default=text("0"))
     units_retried: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
+    # Samples/s over roughly the last RATE_SECONDS (an exponential moving average
+    # updated as units land) and when it was last updated: drives the ETA, which
+    # the whole-job average would overestimate while early, overhead-bound
+    # passes of a progressive job still weigh in.
+    recent_rate: Mapped[float | None] = mapped_column(Float)
+    recent_weight: Mapped[float | None] = mapped_column(Float)  # of the average's bias correction
+    recent_rate_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
 
     __mapper_args__ = {"version_id_col": version}
 
@@ -85,6 +93,21 @@ class Job(Base):
     def samples_total(self) -> int:
         """Camera samples the finished job will have taken: width x height x spp."""
         return self.width * self.height * int(self.spec["spp"])
+
+    def note_samples(self, samples: int, now: datetime, window: float = 10.0) -> None:
+        """Fold `samples` that landed at `now` into `recent_rate`: an exponential
+        moving average of samples/s with time constant `window` seconds, bias
+        corrected (divided by its total weight, as Adam does) so that its first
+        values are plain averages over the time since the job (re)started, not
+        pulled towards zero."""
+        since = self.recent_rate_at or self.started or now
+        dt = max((now - since).total_seconds(), 1e-3)
+        alpha = 1.0 - math.exp(-dt / window)
+        weight = self.recent_weight or 0.0
+        raw = (self.recent_rate or 0.0) * weight * (1.0 - alpha) + alpha * samples / dt
+        self.recent_weight = weight * (1.0 - alpha) + alpha
+        self.recent_rate = raw / self.recent_weight
+        self.recent_rate_at = now
 
     def active_seconds(self, now: datetime) -> float | None:
         """Seconds since the start (until the finish) that the job could run:

@@ -105,6 +105,11 @@ class Scheduler:
         self._tracked: dict[tuple[str, int], tuple[str, ...]] = {}  # units we put in flight
         self._previews: dict[str, _Preview] = {}  # running previews, least recently used first
         self._stop = threading.Event()
+        # Set when the executor reports a unit finished: the next tick starts at
+        # once instead of after poll_interval, so short units don't leave the
+        # pool idle between ticks.
+        self._wake = threading.Event()
+        executor.on_progress(self._wake.set)
         self._thread: threading.Thread | None = None
         self.ticks = 0
         self.last_error: str | None = None
@@ -117,6 +122,7 @@ class Scheduler:
 
     def stop(self, timeout: float = 60.0) -> None:
         self._stop.set()
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout)
             self._thread = None
@@ -135,7 +141,8 @@ class Scheduler:
                 if error != self.last_error:  # once per distinct error, not every tick
                     log.exception("scheduler tick failed")
                 self.last_error = error
-            self._stop.wait(self.settings.poll_interval)
+            self._wake.wait(self.settings.poll_interval)
+            self._wake.clear()
 
     # -- one tick ------------------------------------------------------------------
     def tick(self) -> None:
@@ -203,6 +210,8 @@ class Scheduler:
                 self._tracked.setdefault((job.id, unit.index), tuple(unit.task_ids))
                 if self._collect(session, job, unit, obs, now, released, landed):
                     break  # the job failed
+            if landed:
+                job.note_samples(sum(int(f.stats.get("samples", 0)) for _, f in landed), now)
             if job.status == "running":
                 # Asked after collecting: finished units free their slots at once.
                 slots = max(self.executor.capacity(), 0) if may_enqueue else 0

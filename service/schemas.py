@@ -82,7 +82,7 @@ class Progress(BaseModel):
     fraction: float = Field(description="samples_done / samples_total")
     elapsed: float | None = Field(description="seconds the job has been able to run: from its "
                                               "start, pauses excluded (null before the start)")
-    eta: float | None = Field(description="seconds left at the job's measured samples/s "
+    eta: float | None = Field(description="seconds left at the job's recent samples/s "
                                           "(null unless running with samples done)")
 
 
@@ -90,6 +90,8 @@ class JobStats(BaseModel):
     """Throughput of a job so far."""
 
     samples_per_second: float | None = Field(description="camera samples / elapsed seconds")
+    recent_samples_per_second: float | None = Field(
+        description="samples/s over about the last ten seconds (drives the ETA)")
     rays_per_second: float | None = Field(description="rays traced / elapsed seconds")
     seconds_per_unit: float | None = Field(description="mean render seconds of a done unit, as "
                                                        "its worker measured it")
@@ -140,8 +142,8 @@ class JobPublic(BaseModel):
         eta = None
         if done:
             eta = 0.0
-        elif job.status == "running" and rate:
-            eta = max(total - job.samples, 0) / rate
+        elif job.status == "running" and (job.recent_rate or rate):
+            eta = max(total - job.samples, 0) / (job.recent_rate or rate)
         return cls(
             id=job.id, status=job.status, scene=job.scene, scene_hash=job.scene_hash,
             method=spec["method"], spp=spec["spp"], depth=spec["depth"],
@@ -153,6 +155,8 @@ class JobPublic(BaseModel):
                               fraction=min(job.samples / total, 1.0) if total else 0.0,
                               elapsed=elapsed, eta=eta),
             stats=JobStats(samples_per_second=rate,
+                           recent_samples_per_second=job.recent_rate if job.status == "running"
+                           else None,
                            rays_per_second=job.rays / elapsed if elapsed and job.rays else None,
                            seconds_per_unit=(job.unit_seconds or 0.0) / job.units_done
                            if job.units_done else None,

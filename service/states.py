@@ -76,6 +76,9 @@ def change_job(job: Job, new: str, now: datetime, *, error: str | None = None) -
         job.paused_at = None
     if new == "paused":
         job.paused_at = now
+    # The recent rate is measured from when the job (re)starts running.
+    job.recent_rate, job.recent_weight = None, None
+    job.recent_rate_at = now if new == "running" else None
     if new == "running" and (old == "queued" or job.started is None):
         job.started = now  # a resume or a retry keeps the first start
     if new in FINAL_JOB:

@@ -2,7 +2,8 @@
 
 - `local_client`: one embedded-mode service (FastAPI + scheduler + local
   process pool) for the whole session; Numba kernels load once per process.
-- `redis_url`: the real Redis at 127.0.0.1:6379, database 15, flushed per test.
+- `redis_url`: the real Redis at 127.0.0.1:6379, database 15 (RAYFARM_TEST_REDIS_DB),
+  flushed per test.
 - `spawn_worker` / `spawn_serve`: `rayfarm worker` / `rayfarm serve` as child
   processes in their own process groups, killed (the whole group) afterwards.
 - `reference_channels`: an undisturbed render of a job body, in this process.
@@ -24,7 +25,9 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-FARM_REDIS_DB = 15
+# Farm tests flush this Redis database; two suites running at once on one
+# machine need different ones (RAYFARM_TEST_REDIS_DB), or they eat each other's tasks.
+FARM_REDIS_DB = int(os.environ.get("RAYFARM_TEST_REDIS_DB", "15"))
 TINY = {"scene": "cornell-box", "method": "path", "spp": 4, "depth": 3, "tile_size": 8,
         "seed": 7, "width": 32, "height": 32}
 

@@ -149,3 +149,38 @@ def test04_messages_lost_by_the_broker_are_enqueued_again(redis_url, spawn_worke
         assert all(u["tasks"] >= 2 and u["attempts"] == 1 for u in units)
         (tmp_path / "lost.exr").write_bytes(client.get(job["result_url"]).content)
     assert_bit_identical(channels_of(tmp_path / "lost.exr"), reference_channels(TINY))
+
+
+def test05_workers_are_shown_busy_idle_lost_and_offline(redis_url, spawn_worker, tmp_path):
+    beat = {"RAYFARM_WORKER_HEARTBEAT_SECONDS": "0.3"}
+    doomed, leaving = spawn_worker(concurrency=1, **beat), spawn_worker(concurrency=2, **beat)
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
+                        worker_lost_seconds=2.0)
+    with TestClient(create_app(settings)) as client:
+        get = get_json(client)
+
+        def by_pid() -> dict[int, dict]:
+            return {int(w["name"].split("-", 1)[1].split("@")[0]): w for w in get("/workers")}
+        workers = wait_for(lambda: (w := by_pid()).keys() >= {doomed.pid, leaving.pid} and w,
+                           60, "both workers to report")
+        assert workers[doomed.pid]["concurrency"] == 1 and workers[leaving.pid]["concurrency"] == 2
+        assert all(w["kind"] == "celery" and w["state"] == "idle" for w in workers.values())
+        # A job in flight: some worker shows the units it renders, then counts them.
+        job_id = client.post("/jobs", json=dict(TINY, width=64, height=64, spp=16)).json()["id"]
+        busy = wait_for(lambda: [w for w in get("/workers") if w["state"] == "busy"], 120,
+                        "a worker to be busy")
+        assert all(r["job_id"] == job_id for w in busy for r in w["running"]), (job_id, busy)
+        job = poll_job(get, job_id)
+        workers = by_pid()
+        units = get(f"/jobs/{job_id}/units")
+        for pid, worker in workers.items():
+            mine = [u for u in units if u["worker"] == worker["name"]]
+            assert worker["units_done"] == len(mine), worker  # fresh workers: only this job
+        assert sum(w["samples"] for w in workers.values()) == job["samples"]
+        # SIGKILL: no goodbye, the heartbeats stop -> lost. SIGTERM: a clean exit -> offline.
+        doomed.kill_group()
+        leaving.stop()
+        wait_for(lambda: by_pid()[doomed.pid]["state"] == "lost", 30, "the killed worker lost")
+        workers = by_pid()
+        assert workers[leaving.pid]["state"] == "offline", workers[leaving.pid]
+        assert workers[doomed.pid]["silent_seconds"] > 2.0

@@ -208,7 +208,15 @@ def test14_registries_scenes_docs_and_dashboard(local_client):
     schemas = local_client.get("/openapi.json").json()["components"]["schemas"]
     assert {"JobCreate", "JobPublic"} <= set(schemas)
     assert schemas["JobCreate"]["properties"]["spp"]["maximum"] == BOUNDS["spp"][1]
-    job = submit(local_client, TINY)
+    # The dashboard and the API docs: every asset they load is served here (no CDN);
+    # tests/test_dashboard_browser.py drives the dashboard itself in Chromium.
     page = local_client.get("/")
     assert page.status_code == 200 and "text/html" in page.headers["content-type"]
-    assert job["id"] in page.text and 'http-equiv="refresh"' in page.text
+    docs = local_client.get("/docs").text + local_client.get("/redoc").text
+    import re
+
+    links = re.findall(r'(?:src|href)="([^"]+)"', page.text + docs)
+    assets = [a.split("#")[0] for a in links if not a.startswith("#")]
+    assert assets and all(a.startswith("/") and not a.startswith("//") for a in assets), assets
+    for asset in assets:
+        assert local_client.get(asset).status_code == 200, asset

@@ -152,3 +152,19 @@ def test13_elapsed_time_excludes_pauses_and_time_spent_failed():
     states.change_job(job, "done", at(205))
     assert job.active_seconds(at(999)) == 45 and job.samples_total == 8 * 8 * 4
     assert make_job("queued").active_seconds(at(1)) is None  # not started: no elapsed time
+
+
+def test14_the_recent_rate_is_an_average_from_the_restart_tracking_changes():
+    at = lambda s: T0 + timedelta(seconds=s)  # noqa: E731
+    job = make_job("queued")
+    states.change_job(job, "running", at(0))
+    job.note_samples(1000, at(2))  # a plain average at first: 500/s, not pulled towards 0
+    assert job.recent_rate == pytest.approx(500)
+    for t in range(3, 60):  # then 2000/s for a minute: the rate follows within a few windows
+        job.note_samples(2000, at(t))
+    assert job.recent_rate == pytest.approx(2000, rel=1e-3)
+    states.change_job(job, "paused", at(60))
+    assert job.recent_rate is None
+    states.change_job(job, "running", at(100))  # measured again from the resume
+    job.note_samples(300, at(101))
+    assert job.recent_rate == pytest.approx(300)

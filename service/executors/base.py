@@ -108,6 +108,11 @@ class Executor(ABC):
     def capacity(self) -> int:
         """How many more units to submit now (the rest wait as `pending`)."""
 
+    def on_progress(self, callback) -> None:
+        """Call `callback()` (from any thread) whenever a unit may have finished,
+        so the scheduler looks again before its next regular tick. Optional:
+        without it, the scheduler just polls."""
+
     def workers(self) -> list[WorkerInfo]:
         """The workers this executor runs units on, as last seen."""
         return []

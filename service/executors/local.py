@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import socket
 import threading
 import uuid
@@ -52,6 +53,8 @@ class LocalExecutor(Executor):
         self._counted: set[str] = set()  # done tasks already counted
         self.units_done = self.samples = self.rays = 0
         self.seconds = 0.0
+        self._progress = lambda: None
+        self._unit_seconds = 0.1  # a running mean of render seconds per unit (see capacity)
 
     def _scene(self, scene_hash: str) -> str:
         if scene_hash not in self._scene_texts:
@@ -69,6 +72,7 @@ class LocalExecutor(Executor):
         tag = next(self._tags)
         future = self._pool.submit(ticket.scene_hash, self._scene(ticket.scene_hash), ticket.spec,
                                    ticket.unit, tag=tag)
+        future.add_done_callback(lambda _future: self._progress())
         with self._lock:
             self._futures[task_id] = future
             self._tag_of[task_id] = tag
@@ -89,6 +93,7 @@ class LocalExecutor(Executor):
             self.samples += int(stats.get("samples", 0))
             self.rays += int(stats.get("rays", 0))
             self.seconds += float(stats.get("seconds", 0.0))
+            self._unit_seconds += 0.2 * (float(stats.get("seconds", 0.0)) - self._unit_seconds)
 
     def _observe(self, flight: Flight, rendering: set[int]) -> Observation:
         for task_id in flight.task_ids:
@@ -143,10 +148,17 @@ class LocalExecutor(Executor):
                 running=tuple(running), units_done=self.units_done, samples=self.samples,
                 rays=self.rays, seconds=self.seconds, started=self.started, last_seen=now)]
 
+    def on_progress(self, callback) -> None:
+        self._progress = callback
+
     def capacity(self) -> int:
-        # Two per process keeps the pool busy while cancel stays quick.
+        # Enough in flight that every process has its next unit ready when one
+        # finishes: two each for long units, more for short ones (a progressive
+        # job's first passes take a millisecond per unit), up to 16 each so a
+        # higher-priority job or a cancel never waits long behind the queue.
+        ahead = min(max(math.ceil(0.05 / max(self._unit_seconds, 1e-4)), 2), 16)
         busy = sum(1 for fut in self._futures.values() if not fut.done())
-        return max(2 * self.processes - busy, 0)
+        return max(ahead * self.processes - busy, 0)
 
     def health(self) -> dict:
         return {"executor": self.name, "workers": self.processes}

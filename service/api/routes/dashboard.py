@@ -1,42 +1,59 @@
-"""/: a minimal HTML list of jobs that refreshes itself (the real dashboard is
-a later issue)."""
+"""The web dashboard at `/` (a static single-page app in service/static) and the
+API docs at `/docs` and `/redoc`, every asset served by rayfarm itself, so
+both work on a machine without internet access."""
 
 from __future__ import annotations
 
-from html import escape
+from importlib import resources
+from pathlib import Path
 
-from fastapi import APIRouter
-from fastapi.responses import HTMLResponse
+from fastapi import APIRouter, FastAPI, Request
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import FileResponse, HTMLResponse
+from starlette.staticfiles import StaticFiles
 
-from ... import jobs
-from ..deps import SessionDep
+__all__ = ["router", "mount_assets", "STATIC_DIR"]
 
-router = APIRouter(tags=["dashboard"])
+STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
+DOCS_ASSETS = "/docs-assets"  # Swagger UI and ReDoc bundles, from the fastapi-offline package
 
-_PAGE = """<!doctype html>
-<html><head><meta charset="utf-8"><meta http-equiv="refresh" content="2">
-<title>rayfarm</title>
-<style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse}}
-td,th{{padding:.3em .8em;border-bottom:1px solid #ddd;text-align:left}}</style></head>
-<body><h1>rayfarm</h1><p><a href="/docs">API</a></p>
-<table><tr><th>job</th><th>status</th><th>scene</th><th>method</th><th>spp</th>
-<th>size</th><th>progress</th><th>image</th><th>error</th></tr>
-{rows}
-</table></body></html>"""
+router = APIRouter(include_in_schema=False)
 
 
-@router.get("/", response_class=HTMLResponse, include_in_schema=False)
-def index(session: SessionDep) -> str:
-    rows = []
-    for job in jobs.list_jobs(session, limit=200):
-        image = (f'<a href="/jobs/{job.id}/result.exr">exr</a> ' if job.status == "done" else ""
-                 ) + (f'<a href="/jobs/{job.id}/preview.png">png</a>'
-                      if job.status == "done" or job.units_done else "")
-        rows.append(
-            f'<tr><td><a href="/jobs/{job.id}">{escape(job.id)}</a></td>'
-            f"<td>{escape(job.status)}</td><td>{escape(job.scene)}</td>"
-            f"<td>{escape(str(job.spec.get('method')))}</td><td>{job.spec.get('spp')}</td>"
-            f"<td>{job.width}&times;{job.height}</td>"
-            f"<td>{job.units_done}/{job.units_total}</td><td>{image}</td>"
-            f"<td>{escape(job.error or '')}</td></tr>")
-    return _PAGE.format(rows="\n".join(rows) or '<tr><td colspan="9">no jobs yet</td></tr>')
+class _RevalidatedFiles(StaticFiles):
+    """Static files that browsers revalidate (ETag) on every use, so a new
+    version of the dashboard is picked up without a hard reload."""
+
+    def file_response(self, *args, **kwargs):
+        response = super().file_response(*args, **kwargs)
+        response.headers["Cache-Control"] = "no-cache"
+        return response
+
+
+def mount_assets(app: FastAPI) -> None:
+    app.mount("/static", _RevalidatedFiles(directory=STATIC_DIR), name="static")
+    docs = resources.files("fastapi_offline") / "static"
+    app.mount(DOCS_ASSETS, StaticFiles(directory=str(docs)), name="docs-assets")
+
+
+@router.get("/")
+def index() -> FileResponse:
+    return FileResponse(STATIC_DIR / "index.html", media_type="text/html",
+                        headers={"Cache-Control": "no-cache"})
+
+
+@router.get("/docs")
+def swagger_ui(request: Request) -> HTMLResponse:
+    return get_swagger_ui_html(openapi_url=request.app.openapi_url, title="rayfarm API",
+                               swagger_js_url=f"{DOCS_ASSETS}/swagger-ui-bundle.js",
+                               swagger_css_url=f"{DOCS_ASSETS}/swagger-ui.css",
+                               swagger_favicon_url="/static/favicon.svg",
+                               # no badge from the online validator: nothing leaves this host
+                               swagger_ui_parameters={"validatorUrl": None})
+
+
+@router.get("/redoc")
+def redoc(request: Request) -> HTMLResponse:
+    return get_redoc_html(openapi_url=request.app.openapi_url, title="rayfarm API",
+                          redoc_js_url=f"{DOCS_ASSETS}/redoc.standalone.js",
+                          redoc_favicon_url="/static/favicon.svg", with_google_fonts=False)

@@ -1,0 +1,396 @@
+// One job: its image sharpening as passes land, the tile map, the noise map,
+// progress and throughput, its units, and what can be done to it.
+// Live from GET /jobs/{id}/events: job, units (snapshot), unit, preview, end.
+
+import { ApiError, api, stream } from "../api.js";
+import { FINAL, badge, fmt, h, progressBar, replace, toast } from "../ui.js";
+import { elapsedNow, etaNow, progressLabel } from "./jobs.js";
+
+const WORKER_COLORS = ["#4aa3ff", "#ffb547", "#3ecf8e", "#ff7ab6", "#b48cff", "#5ee0e6", "#ff8f5c",
+  "#c3e86b", "#ffd966", "#8fa8ff"];
+
+// A tile's state over its passes: the most telling one of its units.
+function tileState(units) {
+  const states = units.map((u) => u.state);
+  if (states.includes("running")) return "running";
+  if (states.includes("failed")) return "failed";
+  if (states.every((s) => s === "done")) return "done";
+  if (states.includes("done")) return "partial";
+  if (states.includes("queued")) return "queued";
+  if (states.includes("canceled")) return "canceled";
+  return "pending";
+}
+
+export function jobView(root, jobId) {
+  let job = null;
+  let deleted = false;
+  const units = new Map(); // index -> unit
+  let view = "image"; // or "noise"
+  let showTiles = null; // null: automatic (on while the job runs)
+  let colorBy = "state";
+  let unitFilter = "all";
+  let previewVersion = 0;
+  let closeStream = null;
+
+  // -- skeleton -------------------------------------------------------------------
+  const title = h("h1.mono");
+  const status = h("span");
+  const summary = h("span.muted");
+  const actions = h("div.actions#job-actions");
+  const banner = h("div");
+  const stage = h("div.stage#stage");
+  const tiles = h("div.tiles#tile-map");
+  const placeholder = h("div.placeholder", {}, "Waiting for the first unit to land…");
+  stage.append(placeholder, tiles);
+  const viewTabs = h("div.tabs", { role: "tablist", "aria-label": "image or noise" });
+  const tileToggle = h("input#show-tiles", { type: "checkbox" });
+  const colorSelect = h("select#color-tiles", { "aria-label": "colour tiles by" },
+    h("option", { value: "state" }, "by state"), h("option", { value: "worker" }, "by worker"));
+  const legend = h("div.legend#legend");
+  const progressBox = h("div.panel-body");
+  const statsBox = h("div.panel-body");
+  const paramsBox = h("div.panel-body");
+  const downloads = h("div.panel-body.actions");
+  const workersBox = h("div.panel-body");
+  const unitsHead = h("div.viewer-bar");
+  const unitsBody = h("tbody");
+
+  replace(root,
+    h("div.page-head", {},
+      h("a.muted", { href: "#/jobs" }, "← Jobs"), title, status, summary, h("div.spacer"), actions),
+    banner,
+    h("div.job-layout", {},
+      h("div", { style: { display: "flex", flexDirection: "column", gap: "16px" } },
+        h("div.panel.viewer", {},
+          h("div.viewer-bar", {}, viewTabs,
+            h("label.check", {}, tileToggle, "tile map"), colorSelect, h("div", { style: { flex: 1 } }), legend),
+          stage),
+        h("div.panel", {}, h("h2", {}, "Units"),
+          h("div.panel-body", {}, unitsHead,
+            h("div.unit-table", {}, h("table.grid#units-table", {},
+              h("thead", {}, h("tr", {}, ["#", "Pass", "Tile", "Samples", "State", "Worker", "Attempts",
+                "Render time", "Error"].map((t) => h("th", {}, t)))), unitsBody))))),
+      h("div.side", {},
+        h("div.panel", {}, h("h2", {}, "Progress"), progressBox),
+        h("div.panel", {}, h("h2", {}, "Throughput"), statsBox),
+        h("div.panel", {}, h("h2", {}, "Workers"), workersBox),
+        h("div.panel", {}, h("h2", {}, "Parameters"), paramsBox),
+        h("div.panel", {}, h("h2", {}, "Downloads"), downloads))));
+
+  tileToggle.addEventListener("change", () => { showTiles = tileToggle.checked; renderTiles(); });
+  colorSelect.addEventListener("change", () => { colorBy = colorSelect.value; renderTiles(); });
+
+  // -- actions ----------------------------------------------------------------------
+  async function act(label, fn, reopen = false) {
+    try {
+      const result = await fn();
+      if (result && result.id) setJob(result);
+      toast(`${label}: done`);
+      if (reopen) openStream();
+    } catch (err) {
+      toast(`${label}: ${err.message}`, true);
+    }
+  }
+
+  function renderActions() {
+    if (!job || deleted) { replace(actions); return; }
+    const s = job.status;
+    const failedUnits = [...units.values()].some((u) => u.state === "failed");
+    const button = (label, enabled, onclick, cls = "") =>
+      h(`button${cls}`, { disabled: !enabled, onclick, "data-action": label.toLowerCase() }, label);
+    const priority = h("input#priority", { type: "number", min: -100, max: 100, value: job.priority,
+      style: { width: "70px" }, "aria-label": "priority" });
+    replace(actions,
+      button("Pause", s === "queued" || s === "running",
+        () => act("Pause", () => api.post(`/jobs/${jobId}/pause`))),
+      button("Resume", s === "paused", () => act("Resume", () => api.post(`/jobs/${jobId}/resume`))),
+      button("Cancel", !FINAL.has(s), () => act("Cancel", () => api.post(`/jobs/${jobId}/cancel`))),
+      button("Retry", s === "failed" || (failedUnits && (s === "running" || s === "paused")),
+        () => act("Retry", () => api.post(`/jobs/${jobId}/retry`), true)),
+      button("Requeue", s !== "queued", () => act("Requeue", () => api.post(`/jobs/${jobId}/requeue`), true)),
+      h("span.muted", { style: { marginLeft: "8px" } }, "priority"), priority,
+      button("Set", true, () => {
+        const value = Number(priority.value);
+        act("Priority", () => api.patch(`/jobs/${jobId}`, { priority: value }));
+      }),
+      button("Delete", true, () => {
+        if (!confirm(`Delete job ${jobId}, its units and its images?`)) return;
+        api.del(`/jobs/${jobId}`).then(() => { toast(`Job ${jobId} deleted`); location.hash = "#/jobs"; })
+          .catch((err) => toast(`Delete: ${err.message}`, true));
+      }, ".danger"));
+  }
+
+  // -- the viewer ---------------------------------------------------------------------
+  function sizeStage() {
+    if (!job) return;
+    const { width, height } = job;
+    const maxWidth = Math.max(width, 512);
+    stage.style.aspectRatio = `${width} / ${height}`;
+    stage.style.width = `min(100%, ${maxWidth}px, calc(72vh * ${width / height}))`;
+  }
+
+  function renderViewTabs() {
+    replace(viewTabs, [["image", "Image"], ["noise", "Noise"]].map(([key, label]) =>
+      h(`button${view === key ? ".active" : ""}`, { "data-view": key, role: "tab",
+        onclick: () => { view = key; renderViewTabs(); loadImage(); renderLegend(); } }, label)));
+  }
+
+  function imageUrl() {
+    if (!job || !(job.preview_url)) return null;
+    const base = view === "noise" ? job.noise_url : job.preview_url;
+    return `${base}?v=${previewVersion}-${job.status === "done" ? "final" : job.progress.units_done}`;
+  }
+
+  let loading = null;
+  function loadImage() {
+    const url = imageUrl();
+    if (!url) return;
+    const img = new Image();
+    img.alt = view === "noise" ? "noise heatmap" : "preview";
+    img.id = "preview";
+    img.dataset.view = view;
+    loading = img;
+    img.onload = () => {
+      if (loading !== img) return; // a newer one is on its way
+      const old = stage.querySelector("img");
+      if (old) old.replaceWith(img); else stage.insertBefore(img, tiles);
+      placeholder.remove();
+      img.dataset.loaded = String(previewVersion);
+    };
+    img.src = url;
+  }
+
+  function renderLegend() {
+    if (view === "noise") {
+      replace(legend, h("span", {}, "rel. std. error"), h("span", {}, "0.1%"), h("span.noise-scale"),
+        h("span", {}, "100%"), h("span", {}, h("span.sw", { style: { background: "#808080" } }), "< 2 samples"));
+      return;
+    }
+    if (!tilesShown()) { replace(legend); return; }
+    if (colorBy === "worker") {
+      replace(legend, [...workerColors().entries()].map(([name, color]) =>
+        h("span", {}, h("span.sw", { style: { background: color } }), name)));
+      return;
+    }
+    const items = [["pending", "#6c7a89"], ["queued", "#4aa3ff"], ["running", "#ffb547"],
+      ["partial", "#3ecf8e80"], ["done", "transparent"], ["failed", "#ff5c69"]];
+    replace(legend, items.map(([name, color]) =>
+      h("span", {}, h("span.sw", { style: { background: color, border: "1px solid #2a3542" } }), name)));
+  }
+
+  function tilesShown() {
+    return showTiles === null ? !!job && !FINAL.has(job.status) : showTiles;
+  }
+
+  function workerColors() {
+    const names = [...new Set([...units.values()].map((u) => u.worker).filter(Boolean))].sort();
+    return new Map(names.map((name, i) => [name, WORKER_COLORS[i % WORKER_COLORS.length]]));
+  }
+
+  function renderTiles() {
+    if (!job) return;
+    tileToggle.checked = tilesShown();
+    tiles.classList.toggle("show", tilesShown());
+    const groups = new Map();
+    for (const u of units.values()) {
+      const r = u.region;
+      const key = `${r.x0},${r.y0},${r.x1},${r.y1}`;
+      if (!groups.has(key)) groups.set(key, []);
+      groups.get(key).push(u);
+    }
+    const colors = workerColors();
+    const passes = Math.max(1, ...[...units.values()].map((u) => u.region.pass + 1));
+    const frag = document.createDocumentFragment();
+    for (const [key, group] of groups) {
+      const [x0, y0, x1, y1] = key.split(",").map(Number);
+      group.sort((a, b) => a.region.pass - b.region.pass);
+      const state = tileState(group);
+      const done = group.filter((u) => u.state === "done").length;
+      const workers = [...new Set(group.map((u) => u.worker).filter(Boolean))];
+      const current = group.find((u) => u.state === "running") || [...group].reverse().find((u) => u.worker);
+      const tile = h(`div.tile.t-${state}`, {
+        "data-state": state, "data-tile": key,
+        title: [`tile ${x0}–${x1} × ${y0}–${y1}`, `${state} · passes done ${done}/${group.length}`,
+          workers.length ? `worker${workers.length > 1 ? "s" : ""}: ${workers.join(", ")}` : "no worker yet",
+          `render time ${fmt.duration(group.reduce((s, u) => s + (u.seconds || 0), 0))}`].join("\n"),
+        style: { left: `${100 * x0 / job.width}%`, top: `${100 * y0 / job.height}%`,
+          width: `${100 * (x1 - x0) / job.width}%`, height: `${100 * (y1 - y0) / job.height}%` },
+      });
+      if (colorBy === "worker" && current && current.worker) {
+        tile.style.background = `${colors.get(current.worker)}66`;
+        tile.style.animation = "none";
+      }
+      if (passes > 1 && state !== "done") {
+        tile.append(h("div.bar", { style: { width: `${100 * done / group.length}%` } }));
+      }
+      frag.append(tile);
+    }
+    tiles.replaceChildren(frag);
+    renderLegend();
+  }
+
+  // -- panels -------------------------------------------------------------------------
+  function kv(pairs) {
+    return h("dl.kv", {}, pairs.map(([k, v, id]) => [h("dt", {}, k), h("dd", id ? { id } : {}, v)]));
+  }
+
+  function renderProgress() {
+    const p = job.progress;
+    replace(progressBox,
+      progressBar(p.fraction, progressLabel(job), job.status, true),
+      h("div", { style: { height: "10px" } }),
+      kv([
+        ["samples", `${p.samples_done.toLocaleString()} / ${p.samples_total.toLocaleString()}`, "samples"],
+        ["units", `${p.units_done} / ${p.units_total}`, "units"],
+        ["elapsed", fmt.duration(elapsedNow(job)), "elapsed"],
+        ["ETA", job.status === "running" ? fmt.duration(etaNow(job)) : job.status === "done" ? "finished" : "–", "eta"],
+        ["submitted", fmt.time(job.created)],
+        ["started", fmt.time(job.started)],
+        ["finished", fmt.time(job.finished)],
+      ]),
+      job.error ? h("div.error-box#job-error", {}, job.error) : null);
+  }
+
+  function renderStats() {
+    const s = job.stats;
+    replace(statsBox, kv([
+      ["samples/s", fmt.rate(s.samples_per_second), "samples-per-second"],
+      ["samples/s, last 10 s", fmt.rate(s.recent_samples_per_second), "recent-samples-per-second"],
+      ["rays/s", fmt.rate(s.rays_per_second), "rays-per-second"],
+      ["seconds per unit", s.seconds_per_unit === null ? "–" : `${s.seconds_per_unit.toFixed(3)} s`],
+      ["units retried", s.units_retried],
+      ["rays", fmt.count(job.rays)],
+    ]));
+  }
+
+  function renderParams() {
+    const options = Object.entries(job.options || {});
+    replace(paramsBox, kv([
+      ["scene", job.scene],
+      ["scene hash", h("span.mono", { title: job.scene_hash }, job.scene_hash.slice(0, 12))],
+      ["method", job.method],
+      ...options.map(([k, v]) => [`  ${k}`, String(v)]),
+      ["sampler", job.sampler],
+      ["spp", job.spp],
+      ["depth", job.depth],
+      ["resolution", `${job.width} × ${job.height}`],
+      ["tile size", job.tile_size],
+      ["seed", job.seed],
+      ["passes", job.progressive ? "progressive (1, 1, 2, 4, … spp)" : "one"],
+      ["priority", job.priority],
+    ]));
+  }
+
+  function renderDownloads() {
+    const link = (label, url, id) => url
+      ? h("a.button", { href: url, download: "", id }, label)
+      : h("button", { disabled: true, id }, label);
+    replace(downloads,
+      link("EXR", job.result_url, "download-exr"),
+      link("PNG", job.preview_url && job.status === "done" ? job.preview_url : null, "download-png"),
+      link("Noise PNG", job.status === "done" ? job.noise_url : null, "download-noise"),
+      h("span.muted", { style: { fontSize: "12px" } },
+        job.status === "done" ? "float32 R, G, B and var.R, var.G, var.B" : "available when the job is done"));
+  }
+
+  function renderWorkers() {
+    const colors = workerColors();
+    const tally = new Map();
+    for (const u of units.values()) {
+      if (!u.worker) continue;
+      const t = tally.get(u.worker) || { done: 0, running: 0, seconds: 0 };
+      if (u.state === "done") { t.done += 1; t.seconds += u.seconds || 0; }
+      if (u.state === "running") t.running += 1;
+      tally.set(u.worker, t);
+    }
+    replace(workersBox, tally.size ? h("div.worker-list", {}, [...tally.entries()].map(([name, t]) =>
+      h("div.row", {}, h("span.sw", { style: { background: colors.get(name), width: "10px", height: "10px",
+        borderRadius: "2px", display: "inline-block" } }), h("span.name", { title: name }, name),
+      h("span.num", {}, `${t.done} done${t.running ? ` · ${t.running} running` : ""}`),
+      h("span.num.muted", {}, fmt.duration(t.seconds)))))
+      : h("span.muted", {}, "No unit has run yet."));
+  }
+
+  function renderUnits() {
+    const counts = {};
+    for (const u of units.values()) counts[u.state] = (counts[u.state] || 0) + 1;
+    replace(unitsHead, h("div.tabs", {}, ["all", "running", "queued", "pending", "done", "failed", "canceled"]
+      .filter((s) => s === "all" || counts[s]).map((s) => h(`button${s === unitFilter ? ".active" : ""}`,
+        { onclick: () => { unitFilter = s; renderUnits(); }, "data-units": s },
+        s, h("span.count", {}, s === "all" ? units.size : counts[s])))));
+    const shown = [...units.values()].filter((u) => unitFilter === "all" || u.state === unitFilter)
+      .sort((a, b) => a.index - b.index).slice(0, 1000);
+    replace(unitsBody, shown.length ? shown.map((u) => h("tr", { "data-unit": u.index },
+      h("td.num", {}, u.index), h("td.num", {}, u.region.pass),
+      h("td.mono", {}, `${u.region.x0},${u.region.y0}–${u.region.x1},${u.region.y1}`),
+      h("td.mono", {}, `${u.region.sample_start}–${u.region.sample_end}`),
+      h("td", {}, badge(u.state)), h("td.mono", {}, u.worker || "–"),
+      h("td.num", {}, u.tasks > u.attempts ? `${u.attempts} (${u.tasks} tasks)` : u.attempts),
+      h("td.num", {}, u.seconds === null ? "–" : `${u.seconds.toFixed(3)} s`),
+      h("td.wrap", {}, u.error || "")))
+      : h("tr", {}, h("td.empty", { colspan: 9 }, job && job.progress.units_total ? "No such units."
+        : "The job is not planned yet.")));
+  }
+
+  // -- state ----------------------------------------------------------------------------
+  function setJob(next) {
+    const planned = job && job.progress.units_total;
+    job = next;
+    job._received = Date.now();
+    replace(title, job.id);
+    replace(status, badge(job.status));
+    replace(summary, `${job.scene} · ${job.method} · ${job.sampler} · ${job.spp} spp · depth ${job.depth}`);
+    document.title = `${job.id} · ${job.status} · rayfarm`;
+    sizeStage();
+    renderActions(); renderProgress(); renderStats(); renderParams(); renderDownloads();
+    if (!planned && job.progress.units_total) renderTiles();
+    if (job.status === "done") loadImage();
+    tiles.classList.toggle("show", tilesShown());
+    tileToggle.checked = tilesShown();
+  }
+
+  let unitsDirty = false;
+  function unitsChanged() {
+    if (unitsDirty) return;
+    unitsDirty = true;
+    requestAnimationFrame(() => {
+      unitsDirty = false;
+      renderTiles(); renderUnits(); renderWorkers(); renderActions();
+    });
+  }
+
+  function openStream() {
+    if (closeStream) closeStream();
+    closeStream = stream(`/jobs/${jobId}/events`, {
+      job: (data) => setJob(data),
+      units: (list) => { units.clear(); list.forEach((u) => units.set(u.index, u)); unitsChanged(); },
+      unit: (u) => { units.set(u.index, u); unitsChanged(); },
+      preview: (p) => { previewVersion = p.version; loadImage(); },
+      deleted: () => {
+        deleted = true;
+        replace(banner, h("div.error-box", {}, "This job was deleted."));
+        renderActions();
+      },
+      end: () => { if (closeStream) { closeStream(); closeStream = null; } },
+    });
+  }
+
+  renderViewTabs();
+  api.get(`/jobs/${jobId}`).then((data) => {
+    setJob(data);
+    if (data.preview_url) loadImage();
+    openStream();
+  }).catch((err) => {
+    replace(root, h("div.page-head", {}, h("a.muted", { href: "#/jobs" }, "← Jobs")),
+      h("div.error-box", {}, err instanceof ApiError && err.status === 404
+        ? `There is no job ${jobId}.` : `Could not load job ${jobId}: ${err.message}`));
+  });
+  const ticker = setInterval(() => {
+    if (!job || job.status !== "running") return;
+    const elapsed = document.getElementById("elapsed");
+    const eta = document.getElementById("eta");
+    if (elapsed) elapsed.textContent = fmt.duration(elapsedNow(job));
+    if (eta) eta.textContent = fmt.duration(etaNow(job));
+  }, 1000);
+  return () => { if (closeStream) closeStream(); clearInterval(ticker); };
+}

@@ -1,0 +1,123 @@
+// The jobs list: every job with its progress, filtered by status, live.
+// It loads GET /jobs once, then follows GET /events (job, deleted, resync).
+
+import { api, stream } from "../api.js";
+import { badge, fmt, h, progressBar, replace, toast } from "../ui.js";
+
+const STATUSES = ["all", "queued", "running", "paused", "done", "failed", "canceled"];
+const LIMIT = 500;
+
+// Elapsed seconds now: the server's figure plus the time since we received
+// it, while the job runs (so the column ticks between events).
+export function elapsedNow(job) {
+  const base = job.progress.elapsed;
+  if (base === null || base === undefined) return null;
+  return job.status === "running" ? base + (Date.now() - job._received) / 1000 : base;
+}
+
+export function etaNow(job) {
+  const eta = job.progress.eta;
+  if (eta === null || eta === undefined || job.status !== "running") return eta;
+  return Math.max(eta - (Date.now() - job._received) / 1000, 0);
+}
+
+export function progressLabel(job) {
+  const p = job.progress;
+  if (!p.units_total) return job.status === "queued" ? "waiting" : "–";
+  return `${fmt.percent(p.fraction)} · ${fmt.count(p.samples_done)}/${fmt.count(p.samples_total)}`;
+}
+
+export function jobsView(root) {
+  const jobs = new Map(); // id -> job, newest first by `created`
+  let filter = new URLSearchParams(location.hash.split("?")[1] || "").get("status") || "all";
+  const tabs = h("div.tabs", { role: "tablist", "aria-label": "filter by status" });
+  const body = h("tbody");
+  const table = h("table.grid#jobs-table", {},
+    h("thead", {}, h("tr", {}, ["Job", "Scene", "Method", "Sampler", "spp", "Depth", "Priority",
+      "Status", "Progress", "Elapsed", "ETA", "Submitted"].map((t, i) =>
+      h(i >= 4 && i <= 6 || i >= 9 && i <= 10 ? "th.num" : "th", {}, t)))),
+    body);
+  const error = h("div");
+  replace(root,
+    h("div.page-head", {}, h("h1", {}, "Jobs"), tabs, h("div.spacer"),
+      h("a.button", { href: "#/submit" }, "+ New job")),
+    error,
+    h("div.panel", {}, table));
+
+  function renderTabs() {
+    const counts = { all: jobs.size };
+    for (const job of jobs.values()) counts[job.status] = (counts[job.status] || 0) + 1;
+    replace(tabs, STATUSES.map((s) => h(`button${s === filter ? ".active" : ""}`, {
+      role: "tab", "aria-selected": String(s === filter), "data-status": s,
+      onclick: () => { filter = s; history.replaceState(null, "", s === "all" ? "#/jobs" : `#/jobs?status=${s}`); render(); },
+    }, s, h("span.count", {}, counts[s] || 0))));
+  }
+
+  function row(job) {
+    return h("tr.clickable", { "data-job": job.id, onclick: () => { location.hash = `#/jobs/${job.id}`; } },
+      h("td", {}, h("a.mono", { href: `#/jobs/${job.id}` }, job.id)),
+      h("td", { title: job.scene_hash }, job.scene),
+      h("td", {}, job.method),
+      h("td", {}, job.sampler),
+      h("td.num", {}, job.spp),
+      h("td.num", {}, job.depth),
+      h("td.num", {}, job.priority),
+      h("td", {}, badge(job.status)),
+      h("td", {}, progressBar(job.progress.fraction, progressLabel(job), job.status)),
+      h("td.num.elapsed", {}, fmt.duration(elapsedNow(job))),
+      h("td.num.eta", {}, job.status === "running" ? fmt.duration(etaNow(job)) : "–"),
+      h("td", { title: job.created }, fmt.time(job.created)));
+  }
+
+  function render() {
+    renderTabs();
+    const shown = [...jobs.values()]
+      .filter((job) => filter === "all" || job.status === filter)
+      .sort((a, b) => (a.created < b.created ? 1 : a.created > b.created ? -1 : 0));
+    replace(body, shown.length ? shown.map(row)
+      : h("tr", {}, h("td.empty", { colspan: 12 }, filter === "all"
+        ? h("span", {}, "No jobs yet. ", h("a", { href: "#/submit" }, "Submit one."))
+        : `No ${filter} jobs.`)));
+  }
+
+  function put(job) {
+    job._received = Date.now();
+    jobs.set(job.id, job);
+  }
+
+  async function load() {
+    try {
+      const list = await api.get(`/jobs?limit=${LIMIT}`);
+      jobs.clear();
+      list.forEach(put);
+      replace(error);
+      render();
+    } catch (err) {
+      replace(error, h("div.error-box", {}, `Could not load the jobs: ${err.message}`));
+    }
+  }
+
+  let pending = false; // coalesce bursts of events into one render per frame
+  function scheduleRender() {
+    if (pending) return;
+    pending = true;
+    requestAnimationFrame(() => { pending = false; render(); });
+  }
+
+  const close = stream("/events", {
+    job: (job) => { put(job); scheduleRender(); },
+    deleted: ({ job_id }) => { jobs.delete(job_id); scheduleRender(); },
+    resync: () => load(),
+  }, (state) => { if (state === "open") load(); });
+  const ticker = setInterval(() => {
+    for (const tr of body.querySelectorAll("tr[data-job]")) {
+      const job = jobs.get(tr.dataset.job);
+      if (job && job.status === "running") {
+        tr.querySelector(".elapsed").textContent = fmt.duration(elapsedNow(job));
+        tr.querySelector(".eta").textContent = fmt.duration(etaNow(job));
+      }
+    }
+  }, 1000);
+  load().catch((err) => toast(err.message, true));
+  return () => { close(); clearInterval(ticker); };
+}

@@ -1,0 +1,215 @@
+// The submit form. Scenes, methods (with their options) and samplers come
+// from the API (GET /scenes, /methods, /samplers): no second list lives here.
+// The service validates; its 422 messages are shown next to their fields.
+
+import { ApiError, api } from "../api.js";
+import { h, replace, toast } from "../ui.js";
+
+const NUMBER_FIELDS = [
+  // [name, label, default, hint]
+  ["spp", "Samples per pixel", 16, "per pixel, over all passes"],
+  ["depth", "Max depth", 5, "surface bounces; 1 = direct light"],
+  ["width", "Width", "", "blank: the scene camera's"],
+  ["height", "Height", "", "blank: the scene camera's"],
+  ["tile_size", "Tile size", 32, "pixels per side of a work unit"],
+  ["seed", "Seed", 0, "same seed, same pixels"],
+  ["priority", "Priority", 0, "-100 … 100, higher runs first"],
+];
+
+export function submitView(root) {
+  let scenes = [];
+  let methods = [];
+  const form = h("form#submit-form", { novalidate: true });
+  const formError = h("div#form-error");
+  replace(root, h("div.page-head", {}, h("h1", {}, "New render job")), formError, form);
+
+  const field = (name, label, control, hint) => h("div.field", { "data-field": name },
+    h("label", { for: `f-${name}` }, label), control, hint ? h("span.hint", {}, hint) : null,
+    h("span.error", { "data-error-for": name, role: "alert" }));
+
+  // -- controls ---------------------------------------------------------------
+  const sceneSelect = h("select#f-scene", { name: "scene" });
+  const thumb = h("div.scene-thumb#scene-thumb", {}, "no preview");
+  const sceneInfo = h("div.muted#scene-info", { style: { fontSize: "12.5px" } });
+  const upload = h("input#f-upload", { type: "file", multiple: true, accept: ".json,.obj",
+    "aria-label": "scene file and its mesh files" });
+  const uploadButton = h("button#upload-button", { type: "button" }, "Upload");
+  const methodSelect = h("select#f-method", { name: "method" });
+  const methodDoc = h("div.method-doc#method-doc");
+  const optionsBox = h("div.form-grid#method-options");
+  const samplerSelect = h("select#f-sampler", { name: "sampler" });
+  const samplerDoc = h("div.method-doc#sampler-doc");
+  const numbers = Object.fromEntries(NUMBER_FIELDS.map(([name, , value]) =>
+    [name, h(`input#f-${name}`, { type: "number", name, value, step: 1 })]));
+  const progressive = h("input#f-progressive", { type: "checkbox", checked: true });
+  const submit = h("button.primary#submit-button", { type: "submit" }, "Submit job");
+
+  replace(form, h("div.submit-layout", {},
+    h("div.panel", {}, h("h2", {}, "Scene"), h("div.panel-body.scene-card", {},
+      field("scene", "Scene", sceneSelect), thumb, sceneInfo,
+      h("div.field", { "data-field": "upload" }, h("label", { for: "f-upload" },
+        "Upload a scene (.json with its .obj meshes)"), h("div.actions", {}, upload, uploadButton),
+      h("span.error", { "data-error-for": "upload", role: "alert" })))),
+    h("div", {},
+      h("div.panel.form-section", {}, h("h2", {}, "Method"), h("div.panel-body", {},
+        h("div.form-grid", {}, field("method", "Method", methodSelect), field("sampler", "Pixel sampler", samplerSelect)),
+        methodDoc, samplerDoc, h("div", { style: { height: "10px" } }), optionsBox)),
+      h("div.panel.form-section", {}, h("h2", {}, "Render"), h("div.panel-body", {},
+        h("div.form-grid", {}, NUMBER_FIELDS.map(([name, label, , hint]) => field(name, label, numbers[name], hint))),
+        h("div", { style: { height: "12px" } }),
+        field("progressive", "Passes", h("label.check", {}, progressive,
+          "progressive: 1, 1, 2, 4, … spp per pass, the preview sharpens while it runs")))),
+      h("div.actions", {}, submit, h("span.muted", {}, "The service checks every field.")))));
+
+  // -- registries --------------------------------------------------------------
+  function renderScenes(selected) {
+    replace(sceneSelect, scenes.map((s) => h("option", { value: s.id ?? s.name,
+      selected: (s.id ?? s.name) === selected }, s.kind === "uploaded" ? `${s.name} (uploaded)` : s.name)));
+    showScene();
+  }
+
+  function showScene() {
+    const scene = scenes.find((s) => (s.id ?? s.name) === sceneSelect.value);
+    if (!scene) return;
+    numbers.width.placeholder = scene.width;
+    numbers.height.placeholder = scene.height;
+    replace(sceneInfo, `${scene.width} × ${scene.height}`,
+      scene.triangles ? ` · ${scene.triangles.toLocaleString()} triangles` : "",
+      scene.description ? h("div", {}, scene.description) : null);
+    if (scene.thumbnail_url) {
+      const img = h("img", { alt: `${scene.name} thumbnail` });
+      img.onerror = () => replace(thumb, "thumbnail not rendered yet");
+      img.src = scene.thumbnail_url;
+      replace(thumb, img);
+    } else replace(thumb, "no preview");
+  }
+
+  function renderMethods() {
+    replace(methodSelect, methods.map((m) => h("option", { value: m.name, selected: m.name === "path-mis" },
+      m.aliases && m.aliases.length ? `${m.name} (${m.aliases.join(", ")})` : m.name)));
+    showMethod();
+  }
+
+  function showMethod() {
+    const method = methods.find((m) => m.name === methodSelect.value);
+    if (!method) return;
+    replace(methodDoc, method.description);
+    replace(optionsBox, method.options.map((o) => {
+      let control;
+      if (o.choices) {
+        control = h(`select#f-opt-${o.name}`, { "data-option": o.name },
+          o.choices.map((c) => h("option", { value: c, selected: c === o.default }, String(c))));
+      } else if (o.type === "bool") {
+        control = h(`input#f-opt-${o.name}`, { type: "checkbox", checked: !!o.default, "data-option": o.name });
+      } else {
+        control = h(`input#f-opt-${o.name}`, { type: o.type === "str" ? "text" : "number",
+          value: o.default, "data-option": o.name, "data-type": o.type });
+      }
+      return field(`options.${o.name}`, `${o.name}`, control, o.description);
+    }));
+  }
+
+  function renderSamplers(samplers) {
+    replace(samplerSelect, samplers.map((s) => h("option", { value: s.name, "data-doc": s.description }, s.name)));
+    const showDoc = () => replace(samplerDoc,
+      samplerSelect.selectedOptions[0] ? samplerSelect.selectedOptions[0].dataset.doc : "");
+    samplerSelect.addEventListener("change", showDoc);
+    showDoc();
+  }
+
+  sceneSelect.addEventListener("change", showScene);
+  methodSelect.addEventListener("change", showMethod);
+
+  Promise.all([api.get("/scenes"), api.get("/methods"), api.get("/samplers")]).then(([s, m, samplers]) => {
+    scenes = s;
+    methods = m;
+    renderScenes(scenes.some((x) => (x.id ?? x.name) === "cornell-box") ? "cornell-box" : undefined);
+    renderMethods();
+    renderSamplers(samplers);
+  }).catch((err) => replace(formError, h("div.error-box", {}, `Could not load the registries: ${err.message}`)));
+
+  // -- errors ------------------------------------------------------------------
+  function clearErrors() {
+    replace(formError);
+    for (const el of form.querySelectorAll("[data-error-for]")) el.textContent = "";
+    for (const el of form.querySelectorAll(".field.invalid")) el.classList.remove("invalid");
+  }
+
+  function showErrors(err) {
+    const unplaced = [];
+    for (const [name, message] of Object.entries(err.fields)) {
+      const slot = form.querySelector(`[data-error-for="${CSS.escape(name)}"]`)
+        || (name.startsWith("options.") && form.querySelector(`[data-error-for="method"]`));
+      if (slot) {
+        slot.textContent = message;
+        slot.closest(".field").classList.add("invalid");
+      } else unplaced.push(message);
+    }
+    if (!Object.keys(err.fields).length) unplaced.push(err.message);
+    if (unplaced.length) replace(formError, h("div.error-box", {}, unplaced.join("\n")));
+    const first = form.querySelector(".field.invalid input, .field.invalid select");
+    if (first) first.focus();
+  }
+
+  // -- upload ------------------------------------------------------------------
+  uploadButton.addEventListener("click", async () => {
+    clearErrors();
+    const files = [...upload.files];
+    const sceneFile = files.find((f) => f.name.toLowerCase().endsWith(".json"));
+    const slot = form.querySelector('[data-error-for="upload"]');
+    if (!sceneFile) {
+      slot.textContent = "choose a scene .json file (and the .obj files it references)";
+      slot.closest(".field").classList.add("invalid");
+      return;
+    }
+    const data = new FormData();
+    data.append("scene", sceneFile);
+    for (const f of files) if (f !== sceneFile) data.append("files", f);
+    uploadButton.disabled = true;
+    try {
+      const record = await api.upload("/scenes", data);
+      scenes = await api.get("/scenes");
+      renderScenes(record.id);
+      toast(`Scene ${record.name} uploaded`);
+      upload.value = "";
+    } catch (err) {
+      const messages = err instanceof ApiError && Object.keys(err.fields).length
+        ? Object.values(err.fields).join("\n") : err.message;
+      slot.textContent = err.status === 413 ? `too large: ${messages}` : messages;
+      slot.closest(".field").classList.add("invalid");
+    } finally {
+      uploadButton.disabled = false;
+    }
+  });
+
+  // -- submit ------------------------------------------------------------------
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    clearErrors();
+    const body = { scene: sceneSelect.value, method: methodSelect.value, sampler: samplerSelect.value,
+      progressive: progressive.checked, options: {} };
+    for (const [name] of NUMBER_FIELDS) {
+      const raw = numbers[name].value.trim();
+      if (raw !== "") body[name] = Number(raw);
+      else if (numbers[name].validity.badInput) body[name] = numbers[name].value; // let the API say why
+    }
+    for (const control of optionsBox.querySelectorAll("[data-option]")) {
+      const name = control.dataset.option;
+      if (control.type === "checkbox") body.options[name] = control.checked;
+      else if (control.dataset.type === "int" || control.dataset.type === "float") body.options[name] = Number(control.value);
+      else body.options[name] = control.value;
+    }
+    submit.disabled = true;
+    try {
+      const job = await api.post("/jobs", body);
+      toast(`Job ${job.id} submitted`);
+      location.hash = `#/jobs/${job.id}`;
+    } catch (err) {
+      if (err instanceof ApiError && err.status === 422) showErrors(err);
+      else replace(formError, h("div.error-box", {}, `Submit failed: ${err.message}`));
+    } finally {
+      submit.disabled = false;
+    }
+  });
+  return null;
+}
