@@ -43,6 +43,11 @@ class Settings(BaseSettings):
     local_workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1,
                                description="processes of the embedded pool")
     poll_interval: float = Field(0.2, gt=0, description="seconds between scheduler ticks")
+    max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0,
+                                  description="largest request body of POST /scenes (413 above)")
+    max_upload_files: int = Field(64, ge=0, description="most mesh files in one POST /scenes")
+    max_job_bytes: int = Field(16 * 1024 * 1024, gt=0,
+                               description="largest request body of POST /jobs (413 above)")
 
     @field_validator("broker_url", "database_url")
     @classmethod
