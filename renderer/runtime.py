@@ -8,7 +8,6 @@ per process by content hash, so a worker builds each scene once.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections import OrderedDict
 from typing import Callable
@@ -48,18 +47,13 @@ class SceneCache:
 
 
 _CACHE = SceneCache()
-# One unit at a time per process: Numba's workqueue threading layer (its
-# fallback without TBB or OpenMP) aborts the process when two threads launch
-# parallel kernels at once, and the service renders thumbnails in a thread.
-_KERNEL_LOCK = threading.Lock()
 
 
 def run_unit(scene: Scene, spec: RenderSpec, unit: Unit) -> PartialFilm:
     """Render one unit and return its partial film, with its timing in `stats`."""
-    with _KERNEL_LOCK:
-        t0 = time.perf_counter()
-        film = METHODS[spec.method].run(scene, spec, unit)
-        film.stats["seconds"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    film = METHODS[spec.method].run(scene, spec, unit)
+    film.stats["seconds"] = time.perf_counter() - t0
     return film
 
 

@@ -387,13 +387,13 @@ def test11_thumbnail_is_404_until_rendered_and_rendered_once(tmp_path):
         with sessions() as session:
             with pytest.raises(ResultNotReady, match="no thumbnail yet"):
                 scenes.thumbnail_file(session, store, info.id)
-        thumbnails = Thumbnailer(store)  # not started: driven by hand
-        assert thumbnails.make(info.id) and thumbnails.rendered == 1
+        thumbnails = Thumbnailer(store)  # its thread not started: driven by hand
+        assert thumbnails.make([info.id]) == 1 and thumbnails.failed == {}
         with sessions() as session:
             path = scenes.thumbnail_file(session, store, info.id)
         assert path == store.root / "store" / "scenes" / f"{info.id}.png"
         assert Image.open(path).size == (128, 96)
-        assert thumbnails.make(info.id) and thumbnails.rendered == 1  # content-addressed: once
+        assert thumbnails.make([info.id]) == 0 and thumbnails.rendered == 1  # once per hash
     finally:
         engine.dispose()
 
