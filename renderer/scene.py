@@ -18,7 +18,7 @@ import numpy as np
 from .bvh import build_bvh
 from .scene_format import resolve_document, scene_hash
 
-__all__ = ["Scene", "SceneArrays", "build_scene", "load_scene", "camera_array",
+__all__ = ["Scene", "SceneArrays", "build_scene", "load_scene", "camera_array", "triangle_count",
            "MAT_DIFFUSE", "MAT_MIRROR", "MAT_DIELECTRIC", "MAT_GLOSSY", "LIGHT_MESH", "LIGHT_SPHERE",
            "LIGHT_POINT"]
 
@@ -247,6 +247,13 @@ def build_scene(doc: dict) -> Scene:
         bvh_info=bvh_info, bvh_prims=bvh_prims,
     )
     return Scene(doc=doc, hash=scene_hash(doc), arrays=arrays)
+
+
+def triangle_count(doc: dict) -> int:
+    """Triangles a resolved document becomes (analytic spheres count none),
+    without building it: ``triangle_count(resolve_document("cornell-box"))``."""
+    fixed = {"rectangle": len(_RECT_F), "disk": len(_DISK_F), "cube": len(_CUBE_F), "sphere": 0}
+    return sum(len(s["faces"]) if s["type"] == "mesh" else fixed[s["type"]] for s in doc["shapes"])
 
 
 def load_scene(source) -> Scene:

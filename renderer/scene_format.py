@@ -255,7 +255,8 @@ def _read_mesh_file(path: Path, loc: str) -> tuple[list, list]:
                     for k in range(1, len(idx) - 1):
                         faces.append([idx[0], idx[k], idx[k + 1]])
             except (ValueError, IndexError):
-                raise SceneError(f"cannot parse line {lineno}: {line.strip()[:60]}", loc) from None
+                raise SceneError(f"cannot parse line {lineno} of {path.name}: {line.strip()[:60]}",
+                                 loc) from None
     return vertices, faces
 
 
@@ -341,17 +342,19 @@ def _resolve_emitter(i: int, em: Any) -> dict:
             "intensity": _vec3(_require(em, "intensity", loc), f"{loc}.intensity", nonneg=True)}
 
 
-def resolve_document(source: str | Path | dict, *, allow_files: bool = True) -> dict:
+def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
+                     base_dir: Path | None = None) -> dict:
     """Validate a scene and return its resolved, self-contained document.
 
     `source` is a built-in scene name (``"cornell-box"``), a path to a JSON
-    scene file (only if `allow_files`), or an already-parsed dict.
+    scene file (only if `allow_files`), or an already-parsed dict. A dict's
+    mesh `file`s are read from `base_dir` (and must lie inside it); without
+    one, a dict must inline its meshes.
     """
-    base_dir: Path | None = None
     if isinstance(source, dict):
         doc = copy.deepcopy(source)
     elif isinstance(source, (str, Path)) and str(source) in builtin_scene_names():
-        doc = _load_builtin(str(source))
+        doc, base_dir = _load_builtin(str(source)), None
     elif isinstance(source, (str, Path)) and allow_files and Path(source).is_file():
         path = Path(source)
         if path.stat().st_size > MAX_FILE_BYTES:

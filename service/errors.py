@@ -5,7 +5,8 @@
      │    └── ResultNotReady      the job exists but has no finished image
      ├── Conflict                 the request contradicts the job's state
      │    └── IllegalTransition   a status change the state table forbids
-     └── InvalidRequest           a field of the request is invalid (names it)
+     ├── InvalidRequest           a field of the request is invalid (names it)
+     └── TooLarge                 the request exceeds a size limit (names it)
 
 The renderer's `SceneError` and `SpecError` are invalid requests too. Domain
 code raises these; `service.api.errors` maps them to HTTP in one place.
@@ -14,7 +15,7 @@ code raises these; `service.api.errors` maps them to HTTP in one place.
 from __future__ import annotations
 
 __all__ = ["ServiceError", "NotFound", "ResultNotReady", "Conflict", "IllegalTransition",
-           "InvalidRequest"]
+           "InvalidRequest", "TooLarge"]
 
 
 class ServiceError(Exception):
@@ -44,9 +45,13 @@ class IllegalTransition(Conflict):
 
 
 class InvalidRequest(ServiceError):
-    """An invalid request field; `field` is its name (dotted for nested ones),
-    `source` where it was sent (body, query, path)."""
+    """An invalid request field; `field` is its name (dotted for nested ones,
+    ``files[2]`` for list items), `source` where it was sent (body, query, path)."""
 
     def __init__(self, field: str, message: str, source: str = "body"):
         self.field, self.message, self.source = field, message, source
         super().__init__(f"{field}: {message}")
+
+
+class TooLarge(ServiceError):
+    """The request is bigger than a limit allows (bytes, number of files)."""

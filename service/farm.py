@@ -1,5 +1,5 @@
 """The running service's parts, assembled from settings: ledger, store,
-executor, scheduler and the event hub. Built by the app's lifespan, closed with it.
+executor, scheduler, event hub and thumbnailer. Built by the app's lifespan, closed with it.
 
     with Farm.open(Settings(data_dir="/tmp/farm")) as farm:
         farm.scheduler.tick()
@@ -15,9 +15,11 @@ from sqlalchemy.orm import Session, sessionmaker
 from .db import open_ledger
 from .events import EventHub, publish_commits
 from .executors import Executor, make_executor
+from .scenes import scene_hashes
 from .scheduler import Scheduler
 from .settings import Settings
 from .store import Store
+from .thumbnails import Thumbnailer
 
 __all__ = ["Farm"]
 
@@ -31,10 +33,11 @@ class Farm:
     executor: Executor
     scheduler: Scheduler
     events: EventHub
+    thumbnails: Thumbnailer
 
     @classmethod
     def open(cls, settings: Settings) -> "Farm":
-        """Connect to everything; the scheduler is built but not started."""
+        """Connect to everything; the scheduler and the thumbnailer are built but not started."""
         store = Store(settings.data_dir)
         engine, sessions = open_ledger(settings)
         try:
@@ -45,9 +48,11 @@ class Farm:
         hub = EventHub()
         publish_commits(sessions, hub)
         return cls(settings, engine, sessions, store, executor,
-                   Scheduler(settings, sessions, store, executor, hub=hub), hub)
+                   Scheduler(settings, sessions, store, executor, hub=hub), hub,
+                   Thumbnailer(store, lambda: scene_hashes(sessions, store)))
 
     def close(self) -> None:
+        self.thumbnails.stop()
         self.scheduler.stop()
         self.executor.close()
         self.engine.dispose()

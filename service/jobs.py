@@ -19,7 +19,7 @@ from sqlalchemy.orm.exc import StaleDataError
 
 from renderer import RenderSpec, SceneError, builtin_scene_names, resolve_document, scene_text
 
-from . import events, states
+from . import events, scenes, states
 from .errors import Conflict, InvalidRequest, NotFound, ResultNotReady
 from .models import Job, WorkUnit
 from .schemas import JobCreate
@@ -35,14 +35,18 @@ def new_job_id() -> str:
     return uuid.uuid4().hex[:12]
 
 
-def _resolve_scene(scene: str | dict) -> tuple[dict, str]:
-    """The resolved document and a display name; never reads server files."""
+def _resolve_scene(session: Session, store: Store, scene: str | dict) -> tuple[dict, str]:
+    """The resolved document and a display name; never reads server files
+    other than the store's (uploaded scenes are named by their id)."""
     if isinstance(scene, str):
-        names = builtin_scene_names()
-        if scene not in names:
-            raise InvalidRequest("scene", f"unknown scene '{scene}' (allowed: {', '.join(names)}; "
+        if scene in builtin_scene_names():
+            return resolve_document(scene, allow_files=False), scene
+        uploaded = scenes.uploaded_document(session, store, scene)
+        if uploaded is None:
+            hint = scenes.unknown_scene_hint()
+            raise InvalidRequest("scene", f"unknown scene '{scene}' ({hint}; "
                                           "or an inline scene object)")
-        return resolve_document(scene, allow_files=False), scene
+        return uploaded
     try:
         doc = resolve_document(scene, allow_files=False)
     except SceneError:
@@ -60,7 +64,7 @@ def create_job(session: Session, store: Store, settings: Settings, request: JobC
 
     Raises `InvalidRequest`, `SceneError` or `SpecError` naming what is wrong.
     """
-    doc, scene_name = _resolve_scene(request.scene)
+    doc, scene_name = _resolve_scene(session, store, request.scene)
     camera = doc["camera"]
     spec = RenderSpec(method=request.method, spp=request.spp, depth=request.depth,
                       width=camera["width"] if request.width is None else request.width,

@@ -12,6 +12,7 @@ from fastapi import FastAPI
 from starlette.concurrency import run_in_threadpool
 
 from .api.errors import install_error_handlers
+from .api.limits import install_body_limits
 from .api.routes import dashboard, events, health, jobs, methods, scenes, workers
 from .farm import Farm
 from .settings import Settings
@@ -28,6 +29,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         farm = await run_in_threadpool(Farm.open, settings)  # the local pool warms up
         app.state.farm = farm
         farm.scheduler.start()
+        farm.thumbnails.start()
         try:
             yield
         finally:
@@ -39,6 +41,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                   description="A render farm: submit render jobs, follow them, fetch the EXR.")
     app.state.settings = settings
     install_error_handlers(app)
+    install_body_limits(app, settings)
     for module in (jobs, events, scenes, workers, methods, health, dashboard):
         app.include_router(module.router)
     dashboard.mount_assets(app)

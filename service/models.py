@@ -1,4 +1,5 @@
-"""The job ledger's tables: `jobs` and their work `units` (SQLAlchemy 2).
+"""The job ledger's tables: `jobs` and their work `units` (SQLAlchemy 2), and
+the uploaded `scenes`.
 
 Both carry a version counter (optimistic locking): the API (cancel) and the
 scheduler (progress) change the same rows from different threads or
@@ -16,7 +17,7 @@ from sqlalchemy import (JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, 
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
-__all__ = ["Base", "Job", "WorkUnit", "utcnow"]
+__all__ = ["Base", "Job", "SceneRecord", "WorkUnit", "utcnow"]
 
 
 def utcnow() -> datetime:
@@ -139,3 +140,19 @@ class WorkUnit(Base):
     error: Mapped[str | None] = mapped_column(Text)
 
     __mapper_args__ = {"version_id_col": version}
+
+
+class SceneRecord(Base):
+    """An uploaded scene. Its resolved text lives in the store under `id` (its
+    content hash) and stays there when the record is deleted: jobs carry it."""
+
+    __tablename__ = "scenes"
+
+    id: Mapped[str] = mapped_column(String(64), primary_key=True)
+    name: Mapped[str] = mapped_column(String(200))
+    description: Mapped[str] = mapped_column(Text, default="")
+    created: Mapped[datetime] = mapped_column(UTCDateTime, index=True)
+    triangles: Mapped[int] = mapped_column(BigInteger)
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    bytes: Mapped[int] = mapped_column(BigInteger, doc="length of the resolved canonical text")

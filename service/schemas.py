@@ -9,7 +9,7 @@ things with the same words.
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictInt
 
@@ -45,7 +45,8 @@ class JobCreate(BaseModel):
          "seed": 0, "width": 128, "height": 128}]})
 
     scene: str | dict[str, Any] = Field(
-        description="a built-in scene name (GET /scenes) or an inline scene document")
+        description="a built-in scene's name, an uploaded scene's id (GET /scenes) "
+                    "or an inline scene document")
     method: str = Field(description="rendering method (GET /methods)",
                         json_schema_extra={"enum": list(METHODS)})
     spp: _bounded("spp", "samples per pixel")
@@ -171,10 +172,27 @@ class JobPublic(BaseModel):
 
 
 class ScenePublic(BaseModel):
+    """A scene as the API shows it: built in (id = name) or uploaded (id = hash)."""
+
+    id: str = Field(description="what a job's `scene` names: a built-in's name, an upload's hash")
+    kind: Literal["builtin", "uploaded"]
     name: str
     description: str
-    width: int
+    width: int = Field(description="the camera's default image width")
     height: int
+    triangles: int = Field(description="triangles after tessellation (analytic spheres: none)")
+    scene_hash: str = Field(description="content hash of the resolved scene (jobs show it)")
+    bytes: int = Field(description="size of the resolved scene's canonical text")
+    created: datetime | None = Field(description="when it was uploaded (built-ins: null)")
+    thumbnail_url: str | None = Field(description="its PNG thumbnail, null until rendered")
+
+    @classmethod
+    def from_info(cls, info, thumbnail_ready: bool) -> "ScenePublic":
+        """From a `service.scenes.SceneInfo`."""
+        return cls(id=info.id, kind=info.kind, name=info.name, description=info.description,
+                   width=info.width, height=info.height, triangles=info.triangles,
+                   scene_hash=info.scene_hash, bytes=info.bytes, created=info.created,
+                   thumbnail_url=f"/scenes/{info.id}/thumbnail.png" if thumbnail_ready else None)
 
 
 class UnitPublic(BaseModel):

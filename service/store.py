@@ -1,6 +1,8 @@
 """The data directory: scenes by hash, unit films, finished images.
 
     <data_dir>/store/scenes/<hash>.json        canonical scene text
+    <data_dir>/store/scenes/<hash>.png         its thumbnail
+    <data_dir>/uploads/<random>/               an upload while it is checked (then deleted)
     <data_dir>/jobs/<job_id>/units/<i>.film    a unit's PartialFilm bytes
     <data_dir>/jobs/<job_id>/result.exr        the merged image
     <data_dir>/jobs/<job_id>/preview.png       its tonemapped preview
@@ -17,7 +19,10 @@ import os
 import re
 import shutil
 import tempfile
+import time
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 __all__ = ["Store"]
 
@@ -38,10 +43,14 @@ class Store:
         self.root = Path(root).resolve()
         (self.root / "store" / "scenes").mkdir(parents=True, exist_ok=True)
         (self.root / "jobs").mkdir(parents=True, exist_ok=True)
+        self._remove_stale_uploads()
 
     # -- paths ---------------------------------------------------------------
     def scene_path(self, scene_hash: str) -> Path:
         return self.root / "store" / "scenes" / f"{_check(_HASH, scene_hash, 'scene hash')}.json"
+
+    def thumbnail_path(self, scene_hash: str) -> Path:
+        return self.scene_path(scene_hash).with_suffix(".png")
 
     def job_dir(self, job_id: str) -> Path:
         return self.root / "jobs" / _check(_JOB_ID, job_id, "job id")
@@ -66,6 +75,29 @@ class Store:
 
     def scene_text(self, scene_hash: str) -> str:
         return self.scene_path(scene_hash).read_text()
+
+    def put_thumbnail(self, scene_hash: str, png: bytes) -> None:
+        self._write_atomic(self.thumbnail_path(scene_hash), png)
+
+    @contextmanager
+    def upload_dir(self) -> Iterator[Path]:
+        """A new private directory (mode 0700) for one upload, deleted on exit."""
+        parent = self.root / "uploads"
+        parent.mkdir(exist_ok=True)
+        path = Path(tempfile.mkdtemp(dir=parent, prefix="upload-"))
+        try:
+            yield path
+        finally:
+            shutil.rmtree(path, ignore_errors=True)
+
+    def _remove_stale_uploads(self, age: float = 24 * 3600) -> None:
+        # Left behind only if a service died mid-upload; a day is far past any upload.
+        for path in (self.root / "uploads").glob("upload-*"):
+            try:
+                if time.time() - path.stat().st_mtime > age:
+                    shutil.rmtree(path, ignore_errors=True)
+            except OSError:
+                pass
 
     def put_unit_film(self, job_id: str, index: int, film: bytes) -> None:
         self._write_atomic(self.unit_path(job_id, index), film)

@@ -47,6 +47,11 @@ class Settings(BaseSettings):
         2.0, gt=0, description="how often a Celery worker reports that it is alive")
     worker_lost_seconds: float = Field(
         10.0, gt=0, description="a worker silent this long is shown as lost")
+    max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0,
+                                  description="largest request body of POST /scenes (413 above)")
+    max_upload_files: int = Field(64, ge=0, description="most mesh files in one POST /scenes")
+    max_job_bytes: int = Field(16 * 1024 * 1024, gt=0,
+                               description="largest request body of POST /jobs (413 above)")
 
     @field_validator("broker_url", "database_url")
     @classmethod

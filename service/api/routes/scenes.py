@@ -1,22 +1,92 @@
-"""/scenes: the built-in scenes."""
+"""/scenes: the built-in scenes and uploaded ones: upload, list, inspect,
+thumbnail, delete."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request, Response, status
+from fastapi.responses import FileResponse
+from starlette.concurrency import run_in_threadpool
 
-from renderer import builtin_scene_names, resolve_document
-
+from ... import scenes
+from ...errors import InvalidRequest
+from ...models import utcnow
 from ...schemas import ScenePublic
+from ..deps import FarmDep, SessionDep
+from ..multipart import receive_parts
 
-router = APIRouter(tags=["registry"])
+router = APIRouter(prefix="/scenes", tags=["scenes"])
+
+_UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
+    "type": "object", "required": ["scene"], "properties": {
+        "scene": {"type": "string", "format": "binary",
+                  "description": "the scene JSON file (docs/scene-format.md)"},
+        "files": {"type": "array", "items": {"type": "string", "format": "binary"},
+                  "description": "the .obj files its mesh shapes name by \"file\" (base names)"},
+    }}}}}}
 
 
-@router.get("/scenes", response_model=list[ScenePublic])
-def list_scenes() -> list[ScenePublic]:
-    """Built-in scenes a job may name (or send an inline scene document instead)."""
-    out = []
-    for name in builtin_scene_names():
-        doc = resolve_document(name, allow_files=False)
-        out.append(ScenePublic(name=name, description=doc.get("description", ""),
-                               width=doc["camera"]["width"], height=doc["camera"]["height"]))
-    return out
+def _public(farm, info: scenes.SceneInfo) -> ScenePublic:
+    return ScenePublic.from_info(info, farm.store.thumbnail_path(info.scene_hash).is_file())
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=ScenePublic,
+             openapi_extra=_UPLOAD_BODY,
+             responses={200: {"model": ScenePublic, "description": "uploaded before: the same id"},
+                        413: {"description": "body or number of files above the limit"}})
+async def upload_scene(request: Request, farm: FarmDep, response: Response) -> ScenePublic:
+    """Upload a scene file (multipart field `scene`) with the mesh files it
+    names (field `files`, repeated). It is validated (422 naming the field, or
+    the location in the scene and the line in a file), stored by content hash
+    and its thumbnail rendered in the background. 201 with a Location; 200 with
+    the existing record for content uploaded before."""
+    settings = farm.settings
+    with farm.store.upload_dir() as directory:
+        parts = await receive_parts(
+            request, directory, fields={"scene": 1, "files": settings.max_upload_files},
+            too_many={"files": f"at most {settings.max_upload_files} mesh files per upload "
+                               "(RAYFARM_MAX_UPLOAD_FILES)"})
+        scene_parts = [p for p in parts if p.field == "scene"]
+        if not scene_parts:
+            raise InvalidRequest("scene", "field required: the scene JSON file "
+                                          "(curl -F scene=@room.json)")
+        scene = scenes.UploadedFile("scene", 0, scene_parts[0].filename or "", scene_parts[0].path)
+        files = [scenes.UploadedFile("files", i, p.filename or "", p.path)
+                 for i, p in enumerate(p for p in parts if p.field == "files")]
+        info, created = await run_in_threadpool(scenes.add_upload, farm.sessions, farm.store,
+                                                scene, files, directory, utcnow())
+    farm.thumbnails.request(info.scene_hash)  # a no-op if it exists
+    if created:
+        response.headers["Location"] = f"/scenes/{info.id}"
+    else:
+        response.status_code = status.HTTP_200_OK
+    return _public(farm, info)
+
+
+@router.get("", response_model=list[ScenePublic])
+def list_scenes(session: SessionDep, farm: FarmDep) -> list[ScenePublic]:
+    """Built-in scenes (id = name), then uploaded ones (id = hash), newest first;
+    a job's `scene` names either by its id (or is an inline scene document)."""
+    return [_public(farm, info) for info in scenes.list_scenes(session)]
+
+
+@router.get("/{scene_id}", response_model=ScenePublic)
+def get_scene(scene_id: str, session: SessionDep, farm: FarmDep) -> ScenePublic:
+    """One scene (404 naming the id)."""
+    return _public(farm, scenes.get_scene(session, scene_id))
+
+
+@router.get("/{scene_id}/thumbnail.png", response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}}}, 404: {}})
+def thumbnail(scene_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
+    """The scene's thumbnail, at most 128 px on the long side (404 until rendered)."""
+    return FileResponse(scenes.thumbnail_file(session, farm.store, scene_id),
+                        media_type="image/png")
+
+
+@router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_scene(scene_id: str, session: SessionDep) -> Response:
+    """Forget an uploaded scene (409 for a built-in one). Jobs submitted with it
+    keep running: they carry its hash, and its text stays in the store."""
+    scenes.delete_scene(session, scene_id)
+    session.commit()
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
