@@ -83,8 +83,10 @@ def test02_a_finished_job_stream_is_its_snapshot_and_end(local_client):
 def test03_cancel_ends_the_stream_and_delete_removes_everything(local_client, local_settings):
     job = submit(local_client, BIG)
     with local_client.stream("GET", f"/jobs/{job['id']}/events") as response:
-        wait_for(lambda: get_json(local_client)(f"/jobs/{job['id']}")["progress"]["units_done"],
-                 300, "a unit to land")
+        # The running preview is written just after a landed unit is committed: wait
+        # for the file itself, not the unit count, or the check below races it.
+        wait_for(lambda: local_client.get(f"/jobs/{job['id']}/preview.png").status_code == 200,
+                 300, "the first preview")
         canceled = local_client.post(f"/jobs/{job['id']}/cancel")
         assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
         events = read_events(response)
