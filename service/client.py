@@ -382,7 +382,8 @@ class RayfarmClient:
         A connection that drops (or ends without `end`) is re-opened once,
         after the delay the service asked for in its `retry:` line; the
         service then sends a fresh snapshot, so a `job` event follows. If the
-        re-opened stream fails before delivering an event, `ServerUnavailable`.
+        re-opened stream fails before delivering an event, `ServerUnavailable`;
+        if the job was deleted meanwhile, `NotFound`.
         """
         retry = 2.0
         last_id: str | None = None
