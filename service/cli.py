@@ -4,6 +4,10 @@
     rayfarm worker --concurrency 4                a Celery worker (needs RAYFARM_BROKER_URL)
     rayfarm render ...                            render locally (the renderer's own CLI)
 
+    rayfarm submit SCENE --spp 64 ...             the client commands (service/client_cli.py):
+    rayfarm watch|fetch|cancel ID                 they talk to a service over HTTP (--server URL
+    rayfarm jobs | workers                        or RAYFARM_SERVER)
+
 Configuration comes from the environment (`RAYFARM_*`, see worker/settings.py).
 """
 
@@ -12,6 +16,8 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+
+from .client_cli import add_client_commands
 
 __all__ = ["main"]
 
@@ -64,6 +70,7 @@ def _parser() -> argparse.ArgumentParser:
     worker.set_defaults(run=_worker)
     sub.add_parser("render", help="render a scene locally (see `rayfarm render --help`)",
                    add_help=False)
+    add_client_commands(sub)
     return parser
 
 

@@ -6,6 +6,8 @@
   flushed per test.
 - `spawn_worker` / `spawn_serve`: `rayfarm worker` / `rayfarm serve` as child
   processes in their own process groups, killed (the whole group) afterwards.
+- `embedded_serve`: one `rayfarm serve` child in embedded mode (no broker:
+  SQLite, a local pool of 2) per test module; yields (child, base URL).
 - `reference_channels`: an undisturbed render of a job body, in this process.
 """
 
@@ -251,11 +253,24 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
+def wait_healthy(child: Child, base: str) -> None:
+    """Wait until the `rayfarm serve` child answers /healthz with 200 (the first
+    start after a renderer edit compiles the kernels: minutes)."""
+    import httpx
+
+    def healthy():
+        if child.proc.poll() is not None:
+            pytest.fail(f"rayfarm serve exited:\n{child.log()}")
+        try:
+            return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
+        except httpx.HTTPError:
+            return False
+    wait_for(healthy, 300, "rayfarm serve to be healthy", interval=0.2)
+
+
 @pytest.fixture
 def spawn_serve(redis_url, tmp_path):
     """Start `rayfarm serve` on a free port; returns (child, base_url)."""
-    import httpx
-
     children: list[Child] = []
 
     def spawn(**env: str) -> tuple[Child, str]:
@@ -265,17 +280,32 @@ def spawn_serve(redis_url, tmp_path):
                       tmp_path / f"serve-{len(children)}.log")
         children.append(child)
         base = f"http://127.0.0.1:{port}"
-
-        def healthy():
-            if child.proc.poll() is not None:
-                pytest.fail(f"rayfarm serve exited:\n{child.log()}")
-            try:
-                return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
-            except httpx.HTTPError:
-                return False
-        wait_for(healthy, 300, "rayfarm serve to be healthy", interval=0.2)
+        wait_healthy(child, base)
         return child, base
 
     yield spawn
     for child in children:
         child.stop()
+
+
+@pytest.fixture(scope="module")
+def embedded_serve(tmp_path_factory):
+    """`rayfarm serve` in embedded mode (no RAYFARM_BROKER_URL: SQLite ledger, a
+    local pool of 2 processes, a 0.05 s scheduler tick), once per test module;
+    yields (child, base URL), stops the child's process group afterwards and
+    then fails if the service logged a traceback meanwhile."""
+    directory = tmp_path_factory.mktemp("embedded-serve")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
+    env.update(RAYFARM_DATA_DIR=str(directory / "data"), RAYFARM_POLL_INTERVAL="0.05",
+               RAYFARM_LOCAL_WORKERS="2", PYTHONUNBUFFERED="1")
+    port = free_port()
+    child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
+                  env, directory / "serve.log")
+    base = f"http://127.0.0.1:{port}"
+    try:
+        wait_healthy(child, base)
+        yield child, base
+    finally:
+        child.stop()
+    assert child.proc.returncode is not None
+    assert "Traceback" not in child.log(), child.log()

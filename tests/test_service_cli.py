@@ -15,7 +15,8 @@ def test01_console_script_lists_the_subcommands():
     out = subprocess.run([*rayfarm_command(), "--help"], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 0
-    for sub in ("serve", "worker", "render"):
+    for sub in ("serve", "worker", "render", "submit", "watch", "fetch", "jobs", "cancel",
+                "workers"):
         assert sub in out.stdout
 
 
@@ -40,36 +41,17 @@ def test04_worker_without_broker_refuses_with_a_hint(monkeypatch, capsys):
     assert "RAYFARM_BROKER_URL" in capsys.readouterr().err
 
 
-def test05_serve_in_embedded_mode_renders_over_http(tmp_path, reference_channels):
-    import os
-
+def test05_serve_in_embedded_mode_renders_over_http(embedded_serve, tmp_path, reference_channels):
     import httpx
 
-    from conftest import Child, assert_bit_identical, channels_of, free_port, poll_job, wait_for
-    from conftest import TINY
+    from conftest import TINY, assert_bit_identical, channels_of, poll_job
 
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update(RAYFARM_DATA_DIR=str(tmp_path / "data"), RAYFARM_POLL_INTERVAL="0.05",
-               RAYFARM_LOCAL_WORKERS="2")
-    port = free_port()
-    serve = Child([*rayfarm_command(), "serve", "--port", str(port)], env, tmp_path / "serve.log")
-    base = f"http://127.0.0.1:{port}"
-    try:
-        def healthy():
-            assert serve.proc.poll() is None, serve.log()
-            try:
-                return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
-            except httpx.HTTPError:
-                return False
-        wait_for(healthy, 300, "rayfarm serve", interval=0.2)
-        with httpx.Client(base_url=base, timeout=30) as client:
-            assert client.get("/healthz").json()["executor"] == "local"
-            job_id = client.post("/jobs", json=TINY).json()["id"]
-            job = poll_job(lambda path: client.get(path).json(), job_id)
-            assert job["status"] == "done", job
-            (tmp_path / "out.exr").write_bytes(client.get(job["result_url"]).content)
-    finally:
-        serve.stop()
-    assert serve.proc.returncode is not None
+    serve, base = embedded_serve
+    with httpx.Client(base_url=base, timeout=30) as client:
+        assert client.get("/healthz").json()["executor"] == "local"
+        job_id = client.post("/jobs", json=TINY).json()["id"]
+        job = poll_job(lambda path: client.get(path).json(), job_id)
+        assert job["status"] == "done", job
+        (tmp_path / "out.exr").write_bytes(client.get(job["result_url"]).content)
     assert "Traceback" not in serve.log(), serve.log()
     assert_bit_identical(channels_of(tmp_path / "out.exr"), reference_channels(TINY))

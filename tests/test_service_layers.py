@@ -41,3 +41,19 @@ def test03_workers_never_touch_the_ledger():
     offenders = [str(p.relative_to(ROOT)) for p in (ROOT / "worker").rglob("*.py")
                  if "sqlalchemy" in imported_packages(p)]
     assert offenders == []
+
+
+def test04_the_client_speaks_http_only():
+    # service/client.py ships alone: the standard library and httpx, nothing of the
+    # service or the renderer; the client commands add tqdm and the client itself.
+    import sys
+
+    allowed = set(sys.stdlib_module_names) | {"__future__"}
+    for name, extra, siblings in (("client.py", {"httpx"}, set()),
+                                  ("client_cli.py", {"tqdm"}, {"client"})):
+        path = ROOT / "service" / name
+        assert imported_packages(path) - allowed - extra == set(), name
+        tree = ast.parse(path.read_text(), filename=str(path))
+        relative = {node.module for node in ast.walk(tree)
+                    if isinstance(node, ast.ImportFrom) and node.level > 0}
+        assert relative <= siblings, (name, relative)

@@ -1,0 +1,393 @@
+"""The client commands of `rayfarm`, on `service.client` (HTTP only).
+
+    ID=$(rayfarm submit cornell-box --method path --spp 64 --depth 5)
+    rayfarm watch $ID                  # a live progress bar until the job is final
+    rayfarm fetch $ID -o cornell.exr   # --png: the preview; --wait: wait for the job first
+    rayfarm jobs --status running      # a table of jobs, newest first
+    rayfarm cancel $ID
+    rayfarm workers
+
+Every command takes `--server URL` (default: $RAYFARM_SERVER, else
+http://127.0.0.1:8000). Results go to stdout (only the job id for `submit`),
+messages to stderr. Exit codes: 0 done; 1 the job failed, was canceled or
+deleted, or the service refused (no such job, wrong state); 2 an invalid
+request (the field and its message are printed); 3 the service could not be
+reached or failed.
+
+Like the client, this module imports neither the server nor the renderer, so
+the commands start quickly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+from .client import (DEFAULT_SERVER, FINAL_STATUSES, ClientError, Conflict, Invalid, NotFound,
+                     NotSupported, RayfarmClient, ServerError, ServerUnavailable, mesh_files)
+
+__all__ = ["add_client_commands", "EXIT_FAILED", "EXIT_INVALID", "EXIT_UNAVAILABLE"]
+
+EXIT_FAILED = 1  # the job failed / was canceled, or the service refused the request
+EXIT_INVALID = 2  # as argparse: the request (or its scene file) is invalid
+EXIT_UNAVAILABLE = 3  # no service at the URL, or it failed
+
+
+def _say(command: str, message: str) -> None:
+    print(f"rayfarm {command}: {message}", file=sys.stderr, flush=True)
+
+
+def _run(command: str, body: Callable[[argparse.Namespace, RayfarmClient], int]):
+    """Wrap a command: open the client, turn every ClientError into a message and an exit code."""
+    def run(args: argparse.Namespace) -> int:
+        try:
+            with RayfarmClient(args.server, timeout=args.timeout) as client:
+                return body(args, client)
+        except Invalid as exc:
+            for field, message in exc.errors:
+                _say(command, f"{field}: {message}")
+            return EXIT_INVALID
+        except (ServerUnavailable, ServerError) as exc:
+            _say(command, str(exc))
+            return EXIT_UNAVAILABLE
+        except ClientError as exc:
+            _say(command, str(exc))
+            return EXIT_FAILED
+        except KeyboardInterrupt:
+            _say(command, "interrupted (jobs keep running on the service)")
+            return 130
+    return run
+
+
+# -- formatting -----------------------------------------------------------------------------
+
+def _duration(seconds: float | None) -> str:
+    if seconds is None:
+        return "-"
+    seconds = max(float(seconds), 0.0)
+    if seconds < 60:
+        return f"{seconds:.1f}s"
+    minutes, secs = divmod(int(round(seconds)), 60)
+    if minutes < 60:
+        return f"{minutes}m{secs:02d}s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}h{minutes:02d}m"
+
+
+def _count(n: float | None) -> str:
+    """1234567 -> 1.23M (three significant digits), 512 -> 512."""
+    if n is None:
+        return "-"
+    for factor, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(n) >= factor:
+            return f"{n / factor:.3g}{suffix}"
+    return f"{n:.3g}" if isinstance(n, float) else str(n)
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(str(row[i])) for row in [header, *rows]) for i in range(len(header))]
+    return "\n".join("  ".join(str(cell).ljust(w) for cell, w in zip(row, widths)).rstrip()
+                     for row in [header, *rows])
+
+
+# -- submit ---------------------------------------------------------------------------------
+
+def _coerce_options(client: RayfarmClient, method: str, items: list[str]) -> dict[str, Any]:
+    """`KEY=VALUE` pairs; values typed by the option tables of GET /methods
+    (unknown methods and options stay strings: the service names the mistake)."""
+    pairs = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise Invalid([("option", f"expects KEY=VALUE, got {item!r}")])
+        pairs[key] = value
+    if not pairs:
+        return {}
+    types = {}
+    for entry in client.methods():
+        if method == entry["name"] or method in entry.get("aliases", []):
+            types = {o["name"]: o.get("type", "str") for o in entry.get("options", [])}
+    out: dict[str, Any] = {}
+    for key, value in pairs.items():
+        kind = types.get(key, "str")
+        try:
+            if kind == "int":
+                out[key] = int(value)
+            elif kind == "float":
+                out[key] = float(value)
+            elif kind == "bool":
+                lowered = value.lower()
+                if lowered not in ("true", "false", "1", "0", "yes", "no", "on", "off"):
+                    raise ValueError(value)
+                out[key] = lowered in ("true", "1", "yes", "on")
+            else:
+                out[key] = value
+        except ValueError:
+            raise Invalid([(f"options.{key}", f"expects a {kind}, got {value!r}")]) from None
+    return out
+
+
+def _scene_field(client: RayfarmClient, scene: str) -> str | dict:
+    """A scene file is uploaded (with its meshes) and its id returned; a
+    service without uploads gets a mesh-less file inline. Names and ids pass."""
+    path = Path(scene)
+    if not path.is_file():
+        if path.suffix.lower() == ".json" or os.sep in scene:
+            raise Invalid([("scene", f"no such scene file: {scene}")])
+        return scene  # a built-in scene's name or an uploaded scene's id
+    try:
+        record = client.upload_scene(path)
+    except NotSupported:
+        doc = json.loads(path.read_bytes())  # upload_scene has read and checked it
+        meshes = mesh_files(doc, path.parent)
+        if meshes:
+            raise NotSupported(
+                f"the service at {client.base_url} takes no scene uploads, and {path} "
+                f"references mesh files ({', '.join(m.name for m in meshes)}), which only an "
+                "upload carries; inline them as vertices/faces, or update the service") from None
+        _say("submit", f"the service takes no scene uploads; sending {path.name} inline")
+        return doc
+    _say("submit", f"uploaded {path.name} as scene {record['id']}")
+    return record["id"]
+
+
+def _submit(args: argparse.Namespace, client: RayfarmClient) -> int:
+    options = _coerce_options(client, args.method, args.option)
+    job = client.submit(scene=_scene_field(client, args.scene), method=args.method,
+                        spp=args.spp, depth=args.depth, tile_size=args.tile_size,
+                        seed=args.seed, sampler=args.sampler, width=args.width,
+                        height=args.height, options=options or None, priority=args.priority,
+                        progressive=False if args.no_progressive else None)
+    print(job["id"], flush=True)  # stdout holds the id alone: ID=$(rayfarm submit ...)
+    _say("submit", f"job {job['id']} {job['status']}: {job['scene']} {job['method']} "
+                   f"{job['width']}x{job['height']} {job['spp']} spp ({client.base_url})")
+    if args.watch:
+        return _follow(client, job["id"], quiet=args.quiet, command="submit")
+    return 0
+
+
+# -- watch ----------------------------------------------------------------------------------
+
+class _ProgressBar:
+    """A tqdm bar over a job's camera samples, with its status, rate and ETA
+    as the service measures them (not tqdm's own estimates)."""
+
+    def __init__(self, job_id: str, quiet: bool):
+        self.job_id, self.quiet, self.bar = job_id, quiet, None
+
+    def update(self, job: dict) -> None:
+        if self.quiet:
+            return
+        progress, stats = job["progress"], job["stats"]
+        total = max(int(progress["samples_total"]), 1)
+        desc = f"{self.job_id} {job['status']:<8}"
+        text = (f"{_count(progress['samples_done'])}/{_count(progress['samples_total'])} samples, "
+                f"units {progress['units_done']}/{progress['units_total'] or '?'}, "
+                f"{_count(stats.get('samples_per_second'))} samples/s, "
+                f"elapsed {_duration(progress['elapsed'])}, ETA {_duration(progress['eta'])}")
+        if self.bar is None:
+            self.bar = _make_bar(total, min(int(progress["samples_done"]), total), desc, text)
+            return
+        self.bar.total, self.bar.stats = total, text
+        self.bar.n = min(int(progress["samples_done"]), total)
+        self.bar.set_description_str(desc, refresh=False)
+        if job["status"] not in FINAL_STATUSES:  # the final state is drawn by close()
+            self.bar.update(0)  # redraws once mininterval has passed
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _make_bar(total: int, done: int, desc: str, stats: str):
+    from tqdm import tqdm
+
+    class Bar(tqdm):
+        """`{stats}` in the bar format: our own text, without tqdm's ', ' before a postfix."""
+
+        def __init__(self, *args, stats: str, **kwargs):
+            self.stats = stats  # before tqdm's constructor draws the first frame
+            super().__init__(*args, **kwargs)
+
+        @property
+        def format_dict(self):
+            return {**super().format_dict, "stats": self.stats}
+
+    return Bar(total=total, initial=done, desc=desc, stats=stats, file=sys.stderr,
+               dynamic_ncols=True, mininterval=0.2,
+               bar_format="{desc} {percentage:3.0f}%|{bar}| {stats}")
+
+
+def _follow(client: RayfarmClient, job_id: str, *, quiet: bool, command: str) -> int:
+    bar = _ProgressBar(job_id, quiet)
+    status = None
+    try:
+        for kind, data in client.events(job_id):
+            if kind == "job":
+                bar.update(data)
+            elif kind == "end":
+                status = data.get("status") if isinstance(data, dict) else None
+    finally:
+        bar.close()
+    if status == "deleted":
+        _say(command, f"job {job_id} was deleted")
+        return EXIT_FAILED
+    job = client.job(job_id)
+    if job["status"] == "done":
+        _say(command, f"job {job_id} done: {_count(job['samples'])} samples in "
+                      f"{_duration(job['progress']['elapsed'])} "
+                      f"({_count(job['stats']['samples_per_second'])} samples/s); "
+                      f"rayfarm fetch {job_id} -o {job_id}.exr")
+        return 0
+    _say(command, f"job {job_id} {job['status']}: {job.get('error') or 'no error recorded'}")
+    return EXIT_FAILED
+
+
+def _watch(args: argparse.Namespace, client: RayfarmClient) -> int:
+    return _follow(client, args.job_id, quiet=args.quiet, command="watch")
+
+
+# -- fetch, jobs, cancel, workers -----------------------------------------------------------
+
+def _fetch(args: argparse.Namespace, client: RayfarmClient) -> int:
+    kind = "noise" if args.noise else "png" if args.png else "exr"
+    default = {"exr": f"{args.job_id}.exr", "png": f"{args.job_id}.png",
+               "noise": f"{args.job_id}-noise.png"}[kind]
+    out = Path(args.output or default)
+    if args.wait:
+        job = client.wait(args.job_id)
+        if job["status"] != "done" and kind == "exr":
+            _say("fetch", f"job {args.job_id} {job['status']}: {job.get('error') or ''}".rstrip())
+            return EXIT_FAILED
+    download = {"exr": client.download_result, "png": client.download_preview,
+                "noise": client.download_noise}[kind]
+    try:
+        download(args.job_id, out)
+    except NotFound as exc:
+        hint = "" if args.wait else " (rayfarm fetch --wait waits for it)"
+        raise NotFound(f"{exc}{hint}", exc.status_code) from None
+    _say("fetch", f"wrote {out} ({_count(out.stat().st_size)}B)")
+    return 0
+
+
+def _jobs(args: argparse.Namespace, client: RayfarmClient) -> int:
+    jobs = client.jobs(status=args.status, limit=args.limit)
+    if args.json:
+        print(json.dumps(jobs, indent=2))
+        return 0
+    rows = [[j["id"], j["status"], j["scene"] if len(j["scene"]) <= 24 else j["scene"][:23] + "…",
+             j["method"], j["sampler"], str(j["spp"]),
+             f"{100 * j['progress']['fraction']:.0f}%", _duration(j["progress"]["elapsed"]),
+             _duration(j["progress"]["eta"])] for j in jobs]
+    print(_table(["ID", "STATUS", "SCENE", "METHOD", "SAMPLER", "SPP", "PROGRESS", "ELAPSED",
+                  "ETA"], rows))
+    if not jobs:
+        _say("jobs", "no jobs" + (f" with status {args.status}" if args.status else ""))
+    return 0
+
+
+def _cancel(args: argparse.Namespace, client: RayfarmClient) -> int:
+    code = 0
+    for job_id in args.job_ids:
+        try:
+            job = client.cancel(job_id)
+        except (NotFound, Conflict) as exc:
+            _say("cancel", str(exc))
+            code = EXIT_FAILED
+            continue
+        print(f"{job['id']} {job['status']}")
+    return code
+
+
+def _workers(args: argparse.Namespace, client: RayfarmClient) -> int:
+    workers = client.workers()
+    if args.json:
+        print(json.dumps(workers, indent=2))
+        return 0
+    rows = [[w["name"], w["kind"], w["state"], str(w["concurrency"]),
+             ", ".join(f"{r['job_id']}/{r['index']}" for r in w["running"]) or "-",
+             str(w["units_done"]), _count(w["samples_per_second"]),
+             _duration(w["silent_seconds"]) + " ago"] for w in workers]
+    print(_table(["NAME", "KIND", "STATE", "PROCS", "RUNNING", "UNITS", "SAMPLES/S",
+                  "LAST SEEN"], rows))
+    return 0
+
+
+# -- the parsers ------------------------------------------------------------------------------
+
+def _server_options() -> argparse.ArgumentParser:
+    parent = argparse.ArgumentParser(add_help=False)
+    default = os.environ.get("RAYFARM_SERVER") or DEFAULT_SERVER
+    parent.add_argument("--server", default=default, metavar="URL",
+                        help=f"the rayfarm service (default: $RAYFARM_SERVER or {DEFAULT_SERVER}; "
+                             f"now {default})")
+    parent.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS",
+                        help="how long to wait for an answer (default: 30)")
+    return parent
+
+
+def add_client_commands(sub: argparse._SubParsersAction) -> None:
+    """Add submit, watch, fetch, jobs, cancel and workers to `rayfarm`'s subcommands."""
+    server = [_server_options()]
+
+    submit = sub.add_parser("submit", parents=server, help="submit a render job; prints its id",
+                            description="Submit a render job to the service; prints the job id "
+                                        "(alone) on stdout.")
+    submit.add_argument("scene", help="a built-in scene name, an uploaded scene's id, or a path "
+                                      "to a scene JSON file (uploaded with its mesh files)")
+    submit.add_argument("--method", default="path", help="rendering method (default: path; "
+                                                         "the service lists them at /methods)")
+    submit.add_argument("--spp", type=int, default=16, help="samples per pixel (default: 16)")
+    submit.add_argument("--depth", type=int, default=5,
+                        help="surface bounces: 0 = emitters only, 1 = direct light (default: 5)")
+    submit.add_argument("--sampler", help="pixel sampler (default: the service's, random)")
+    submit.add_argument("--width", type=int, help="image width (default: the scene camera's)")
+    submit.add_argument("--height", type=int, help="image height (default: the scene camera's)")
+    submit.add_argument("--tile-size", type=int, help="side of a work unit's tile in pixels")
+    submit.add_argument("--seed", type=int, help="random seed (same seed, same pixels)")
+    submit.add_argument("--priority", type=int, help="-100..100, higher runs first (default: 0)")
+    submit.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="a method option, e.g. --option heuristic=balance (repeatable)")
+    submit.add_argument("--no-progressive", action="store_true",
+                        help="render all samples of a tile in one unit (no improving preview)")
+    submit.add_argument("--watch", action="store_true",
+                        help="then follow the job like `rayfarm watch`")
+    submit.add_argument("--quiet", action="store_true", help="with --watch: no progress bar")
+    submit.set_defaults(run=_run("submit", _submit))
+
+    watch = sub.add_parser("watch", parents=server, help="follow a job with a progress bar",
+                           description="Follow a job's progress live until it is final; exit "
+                                       "0 when done, 1 when it failed or was canceled.")
+    watch.add_argument("job_id", metavar="ID")
+    watch.add_argument("--quiet", action="store_true", help="no progress bar; only the outcome")
+    watch.set_defaults(run=_run("watch", _watch))
+
+    fetch = sub.add_parser("fetch", parents=server, help="download a job's EXR (or preview)",
+                           description="Download a done job's EXR, or its preview or noise PNG.")
+    fetch.add_argument("job_id", metavar="ID")
+    fetch.add_argument("-o", "--output", metavar="PATH",
+                       help="where to write it (default: ID.exr, ID.png or ID-noise.png)")
+    kind = fetch.add_mutually_exclusive_group()
+    kind.add_argument("--png", action="store_true", help="the tonemapped preview PNG instead")
+    kind.add_argument("--noise", action="store_true", help="the noise heatmap PNG instead")
+    fetch.add_argument("--wait", action="store_true", help="wait for the job to be final first")
+    fetch.set_defaults(run=_run("fetch", _fetch))
+
+    jobs = sub.add_parser("jobs", parents=server, help="list jobs, newest first")
+    jobs.add_argument("--status", help="only jobs with this status (queued, running, paused, "
+                                       "done, failed, canceled)")
+    jobs.add_argument("--limit", type=int, default=20, help="at most this many (default: 20)")
+    jobs.add_argument("--json", action="store_true", help="the jobs as JSON instead of a table")
+    jobs.set_defaults(run=_run("jobs", _jobs))
+
+    cancel = sub.add_parser("cancel", parents=server, help="cancel jobs")
+    cancel.add_argument("job_ids", nargs="+", metavar="ID")
+    cancel.set_defaults(run=_run("cancel", _cancel))
+
+    workers = sub.add_parser("workers", parents=server, help="list the render workers")
+    workers.add_argument("--json", action="store_true", help="as JSON instead of a table")
+    workers.set_defaults(run=_run("workers", _workers))
