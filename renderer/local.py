@@ -34,7 +34,13 @@ _rendering = None
 
 def _init_child(claimed, rendering) -> None:
     global _slot, _rendering
+    import signal
+
     import numba
+
+    # Ctrl-C in a terminal reaches the whole process group: let the parent
+    # shut the pool down in order instead of every child dying mid-unit.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
     with claimed.get_lock():
         _slot = claimed.value % len(rendering)

@@ -9,14 +9,12 @@ dashboard must work offline).
 from __future__ import annotations
 
 import os
-import shutil
-import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from conftest import ROOT, Child, free_port, rayfarm_command, wait_for
+from conftest import ROOT, wait_for
 
 CHROMIUM = os.environ.get("RAYFARM_CHROMIUM", "/usr/bin/chromium")
 SHOTS = ROOT / "test-artifacts" / "screenshots"
@@ -24,32 +22,14 @@ SHOTS = ROOT / "test-artifacts" / "screenshots"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update",
                  "--disable-sync", "--disable-dev-shm-usage"]
-SLOW = {"scene": "cornell-box", "method": "path", "spp": 4096, "depth": 5, "width": 128,
-        "height": 128, "tile_size": 32, "seed": 3}  # a minute of work: still running when canceled
+SLOW = {"scene": "cornell-box", "method": "path", "spp": 4096, "depth": 5, "width": 256,
+        "height": 256, "tile_size": 32, "seed": 3}  # minutes of work: still running when canceled
 
 
 @pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    """A `rayfarm serve` process in embedded mode (SQLite, local pool of two)."""
-    tmp = tmp_path_factory.mktemp("dashboard")
-    port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update(RAYFARM_DATA_DIR=str(tmp / "data"), RAYFARM_LOCAL_WORKERS="2",
-               RAYFARM_POLL_INTERVAL="0.1", PYTHONUNBUFFERED="1")
-    child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
-                  env, tmp / "serve.log")
-    base = f"http://127.0.0.1:{port}"
-
-    def healthy():
-        if child.proc.poll() is not None:
-            pytest.fail(f"rayfarm serve exited:\n{child.log()}")
-        try:
-            return httpx.get(f"{base}/healthz", timeout=2).status_code == 200
-        except httpx.HTTPError:
-            return False
-    wait_for(healthy, 300, "rayfarm serve to be healthy", interval=0.2)
-    yield base
-    child.stop()
+def server(embedded_serve):
+    """The base URL of a `rayfarm serve` in embedded mode (conftest's `embedded_serve`)."""
+    return embedded_serve[1]
 
 
 @pytest.fixture(scope="module")
@@ -187,7 +167,7 @@ def test04_the_jobs_list_updates_live_and_filters(page):
     page.goto(f"{page.base}/#/jobs")
     page.wait_for_selector("#jobs-table")
     with api(page.base) as client:
-        job = client.post("/jobs", json=dict(SLOW, spp=64, width=64, height=64)).json()
+        job = client.post("/jobs", json=dict(SLOW, spp=64, width=64, height=64, tile_size=32)).json()
     page.wait_for_selector(f"tr[data-job='{job['id']}']")  # no reload
     page.wait_for_selector(f"tr[data-job='{job['id']}'] .badge[data-state='done']",
                            timeout=120_000)

@@ -92,32 +92,48 @@ export function jobView(root, jobId) {
     }
   }
 
+  // The action buttons are built once and only enabled or disabled afterwards:
+  // re-creating them on every event would swallow clicks and flicker.
+  const button = (label, onclick, cls = "") =>
+    h(`button${cls}`, { onclick, "data-action": label.toLowerCase(), disabled: true }, label);
+  const priorityInput = h("input#priority", { type: "number", min: -100, max: 100,
+    style: { width: "70px" }, "aria-label": "priority" });
+  const buttons = {
+    pause: button("Pause", () => act("Pause", () => api.post(`/jobs/${jobId}/pause`))),
+    resume: button("Resume", () => act("Resume", () => api.post(`/jobs/${jobId}/resume`))),
+    cancel: button("Cancel", () => act("Cancel", () => api.post(`/jobs/${jobId}/cancel`))),
+    retry: button("Retry", () => act("Retry", () => api.post(`/jobs/${jobId}/retry`), true)),
+    requeue: button("Requeue", () => act("Requeue", () => api.post(`/jobs/${jobId}/requeue`), true)),
+    priority: button("Set", () => {
+      const value = Number(priorityInput.value);
+      act("Priority", () => api.patch(`/jobs/${jobId}`, { priority: value }));
+    }),
+    delete: button("Delete", () => {
+      if (!confirm(`Delete job ${jobId}, its units and its images?`)) return;
+      api.del(`/jobs/${jobId}`).then(() => { toast(`Job ${jobId} deleted`); location.hash = "#/jobs"; })
+        .catch((err) => toast(`Delete: ${err.message}`, true));
+    }, ".danger"),
+  };
+  buttons.priority.title = "change the priority (higher runs first)";
+  replace(actions, buttons.pause, buttons.resume, buttons.cancel, buttons.retry, buttons.requeue,
+    h("span.muted", { style: { marginLeft: "8px" } }, "priority"), priorityInput, buttons.priority,
+    buttons.delete);
+
   function renderActions() {
-    if (!job || deleted) { replace(actions); return; }
-    const s = job.status;
+    const s = job && !deleted ? job.status : null;
     const failedUnits = [...units.values()].some((u) => u.state === "failed");
-    const button = (label, enabled, onclick, cls = "") =>
-      h(`button${cls}`, { disabled: !enabled, onclick, "data-action": label.toLowerCase() }, label);
-    const priority = h("input#priority", { type: "number", min: -100, max: 100, value: job.priority,
-      style: { width: "70px" }, "aria-label": "priority" });
-    replace(actions,
-      button("Pause", s === "queued" || s === "running",
-        () => act("Pause", () => api.post(`/jobs/${jobId}/pause`))),
-      button("Resume", s === "paused", () => act("Resume", () => api.post(`/jobs/${jobId}/resume`))),
-      button("Cancel", !FINAL.has(s), () => act("Cancel", () => api.post(`/jobs/${jobId}/cancel`))),
-      button("Retry", s === "failed" || (failedUnits && (s === "running" || s === "paused")),
-        () => act("Retry", () => api.post(`/jobs/${jobId}/retry`), true)),
-      button("Requeue", s !== "queued", () => act("Requeue", () => api.post(`/jobs/${jobId}/requeue`), true)),
-      h("span.muted", { style: { marginLeft: "8px" } }, "priority"), priority,
-      button("Set", true, () => {
-        const value = Number(priority.value);
-        act("Priority", () => api.patch(`/jobs/${jobId}`, { priority: value }));
-      }),
-      button("Delete", true, () => {
-        if (!confirm(`Delete job ${jobId}, its units and its images?`)) return;
-        api.del(`/jobs/${jobId}`).then(() => { toast(`Job ${jobId} deleted`); location.hash = "#/jobs"; })
-          .catch((err) => toast(`Delete: ${err.message}`, true));
-      }, ".danger"));
+    const enabled = {
+      pause: s === "queued" || s === "running",
+      resume: s === "paused",
+      cancel: s !== null && !FINAL.has(s),
+      retry: s === "failed" || (failedUnits && (s === "running" || s === "paused")),
+      requeue: s !== null && s !== "queued",
+      priority: s !== null,
+      delete: s !== null,
+    };
+    for (const [name, on] of Object.entries(enabled)) buttons[name].disabled = !on;
+    priorityInput.disabled = s === null;
+    if (job && document.activeElement !== priorityInput) priorityInput.value = job.priority;
   }
 
   // -- the viewer ---------------------------------------------------------------------
