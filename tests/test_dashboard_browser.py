@@ -193,3 +193,32 @@ def test06_the_api_docs_load_offline(page):
     page.wait_for_selector(".swagger-ui .info .title")
     assert "rayfarm" in page.inner_text(".swagger-ui .info .title")
     shot(page, "10-api-docs")
+
+
+def test07_upload_a_scene_with_its_mesh_through_the_form_and_render_it(page, tmp_path):
+    from test_service_scenes import CUBE_OBJ, room
+
+    scene = tmp_path / "browser-room.json"
+    scene.write_text(__import__("json").dumps(room("browser-room")))
+    (tmp_path / "cube.obj").write_text(CUBE_OBJ)
+    page.goto(f"{page.base}/#/submit")
+    page.wait_for_selector("#f-scene option", state="attached")
+    # A scene file without the mesh it references: the API's message, next to the upload.
+    page.set_input_files("#f-upload", [str(scene)])
+    page.click("#upload-button")
+    error = page.wait_for_selector("[data-error-for='upload']:not(:empty)")
+    assert "shapes[6].file" in error.inner_text() and "cube.obj" in error.inner_text()
+    page.set_input_files("#f-upload", [str(scene), str(tmp_path / "cube.obj")])
+    page.click("#upload-button")
+    page.wait_for_function("() => document.querySelector('#f-scene').selectedOptions[0]"
+                           "?.textContent.includes('browser-room')")
+    # Its thumbnail is rendered in the background; the form shows it once it is there.
+    page.wait_for_function("() => { const i = document.querySelector('#scene-thumb img');"
+                           " return i && i.complete && i.naturalWidth > 0; }")
+    for name, value in (("spp", "4"), ("width", "64"), ("height", "48"), ("tile_size", "32")):
+        page.fill(f"#f-{name}", value)
+    shot(page, "11-submit-uploaded-scene")
+    page.click("#submit-button")
+    page.wait_for_url("**/#/jobs/*")
+    page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=120_000)
+    assert "browser-room" in page.inner_text("#view .page-head")

@@ -16,8 +16,11 @@ const NUMBER_FIELDS = [
   ["priority", "Priority", 0, "-100 … 100, higher runs first"],
 ];
 
+const THUMB_POLL_MS = 1000;
+
 export function submitView(root) {
   let scenes = [];
+  let thumbTimer = null;
   let methods = [];
   const form = h("form#submit-form", { novalidate: true });
   const formError = h("div#form-error");
@@ -76,12 +79,22 @@ export function submitView(root) {
     replace(sceneInfo, `${scene.width} × ${scene.height}`,
       scene.triangles ? ` · ${scene.triangles.toLocaleString()} triangles` : "",
       scene.description ? h("div", {}, scene.description) : null);
+    clearTimeout(thumbTimer);
     if (scene.thumbnail_url) {
       const img = h("img", { alt: `${scene.name} thumbnail` });
-      img.onerror = () => replace(thumb, "thumbnail not rendered yet");
+      img.onerror = () => replace(thumb, "no thumbnail");
       img.src = scene.thumbnail_url;
       replace(thumb, img);
-    } else replace(thumb, "no preview");
+      return;
+    }
+    // Thumbnails are rendered in the background: ask again until this one is there.
+    replace(thumb, "rendering a thumbnail…");
+    const id = scene.id ?? scene.name;
+    thumbTimer = setTimeout(() => api.get(`/scenes/${encodeURIComponent(id)}`).then((fresh) => {
+      const i = scenes.findIndex((x) => (x.id ?? x.name) === id);
+      if (i >= 0) scenes[i] = fresh;
+      if (sceneSelect.value === id) showScene();
+    }).catch(() => replace(thumb, "no thumbnail")), THUMB_POLL_MS);
   }
 
   function renderMethods() {
@@ -93,7 +106,7 @@ export function submitView(root) {
   function showMethod() {
     const method = methods.find((m) => m.name === methodSelect.value);
     if (!method) return;
-    replace(methodDoc, method.description);
+    replace(methodDoc, h("b", {}, `${method.name}: `), method.description);
     replace(optionsBox, method.options.map((o) => {
       let control;
       if (o.choices) {
@@ -111,8 +124,8 @@ export function submitView(root) {
 
   function renderSamplers(samplers) {
     replace(samplerSelect, samplers.map((s) => h("option", { value: s.name, "data-doc": s.description }, s.name)));
-    const showDoc = () => replace(samplerDoc,
-      samplerSelect.selectedOptions[0] ? samplerSelect.selectedOptions[0].dataset.doc : "");
+    const showDoc = () => replace(samplerDoc, samplerSelect.selectedOptions[0]
+      ? [h("b", {}, `${samplerSelect.value}: `), samplerSelect.selectedOptions[0].dataset.doc] : "");
     samplerSelect.addEventListener("change", showDoc);
     showDoc();
   }
@@ -211,5 +224,5 @@ export function submitView(root) {
       submit.disabled = false;
     }
   });
-  return null;
+  return () => clearTimeout(thumbTimer);
 }
