@@ -13,7 +13,9 @@ of `--repeat`:
 1b. service: the same job submitted over HTTP to a `rayfarm serve` process
    (embedded executor, SQLite ledger, a temporary data dir), timed from the
    POST until GET /jobs/{id} says done: planning, the ledger, storing unit
-   films, merging and writing the EXR and PNG included.
+   films, the running preview, merging and writing the EXR and PNGs
+   included; once planned as one pass per tile and once progressively (the
+   default: passes of 1, 1, 2, 4, ... spp per tile, many more units).
 2. kernel: one `renderer.run_unit` over the whole image in this process,
    Numba threads = all cores. farm overhead = farm wall time / kernel wall time.
 3. Mitsuba 3 (only if importable; `pip install -e '.[mitsuba]'`): the same
@@ -90,10 +92,10 @@ def bench_service(spec, workers: int, repeat: int) -> dict:
                     raise RuntimeError("rayfarm serve did not come up")
                 time.sleep(0.2)
 
-            def run(spp: int, seed: int) -> float:
+            def run(spp: int, seed: int, progressive: bool = False) -> float:
                 body = {"scene": "cornell-box", "method": spec.method, "spp": spp, "depth": spec.depth,
                         "tile_size": spec.tile_size, "seed": seed, "width": spec.width,
-                        "height": spec.height}
+                        "height": spec.height, "progressive": progressive}
                 t0 = time.perf_counter()
                 job = client.post("/jobs", json=body).raise_for_status().json()
                 while True:
@@ -106,10 +108,12 @@ def bench_service(spec, workers: int, repeat: int) -> dict:
 
             run(1, 0)  # warm-up: every pool process has loaded its kernels
             seconds = min(run(spec.spp, spec.seed) for _ in range(repeat))
+            progressive = min(run(spec.spp, spec.seed, True) for _ in range(repeat))
     finally:
         server.terminate()
         server.wait(60)
-    return {"seconds": seconds, "samples": spec.width * spec.height * spec.spp}
+    return {"seconds": seconds, "progressive_seconds": progressive,
+            "samples": spec.width * spec.height * spec.spp}
 
 
 def bench_kernel(spec, threads: int, repeat: int) -> dict:
@@ -194,15 +198,19 @@ def main(argv: list[str] | None = None) -> int:
     print(f"  image mean R G B = {' '.join(f'{v:.6f}' for v in farm['mean'])}")
 
     service = bench_service(spec, args.workers, args.repeat)
-    print(f"service (rayfarm serve, embedded executor, submit -> done): {service['seconds']:.3f} s  "
+    print(f"service (rayfarm serve, embedded executor, submit -> done), one pass: "
+          f"{service['seconds']:.3f} s  "
           f"{service['samples'] / service['seconds'] / 1e6:.3f} M camera samples/s")
+    print(f"service, progressive passes: {service['progressive_seconds']:.3f} s  "
+          f"{service['samples'] / service['progressive_seconds'] / 1e6:.3f} M camera samples/s")
 
     kernel = bench_kernel(spec, args.workers, args.repeat)
     print(f"kernel, whole image in-process: {kernel['seconds']:.3f} s  "
           f"{kernel['samples'] / kernel['seconds'] / 1e6:.3f} M camera samples/s  "
           f"{kernel['rays'] / kernel['seconds'] / 1e6:.3f} M rays/s")
     print(f"farm overhead: local pool time / kernel time = {farm['seconds'] / kernel['seconds']:.2f}x; "
-          f"service time / kernel time = {service['seconds'] / kernel['seconds']:.2f}x")
+          f"service time / kernel time = {service['seconds'] / kernel['seconds']:.2f}x "
+          f"(progressive {service['progressive_seconds'] / kernel['seconds']:.2f}x)")
 
     if args.no_mitsuba:
         return 0

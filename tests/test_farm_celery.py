@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from service.main import create_app
 from service.settings import Settings
 
-from conftest import TINY, assert_bit_identical, channels_of, get_json, poll_job, wait_for
+from conftest import TINY, assert_bit_identical, channels_of, get_json, poll_job, submit, wait_for
 
 pytestmark = pytest.mark.farm
 
@@ -184,3 +184,30 @@ def test05_workers_are_shown_busy_idle_lost_and_offline(redis_url, spawn_worker,
         workers = by_pid()
         assert workers[leaving.pid]["state"] == "offline", workers[leaving.pid]
         assert workers[doomed.pid]["silent_seconds"] > 2.0
+
+
+def test06_a_higher_priority_job_overtakes_the_units_already_in_the_broker(
+        redis_url, spawn_worker, tmp_path):
+    # Every unit of the low job is in Redis before the high job arrives (the Celery
+    # executor enqueues everything); the broker's priority lists serve the high
+    # job's units next, so it finishes while most of the low job still waits.
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05)
+    spawn_worker(concurrency=1)
+    with TestClient(create_app(settings)) as client:
+        get = get_json(client)
+        low = submit(client, dict(TINY, width=64, height=64, spp=2048, tile_size=8,
+                                  progressive=False, priority=-10))  # 64 units
+        wait_for(lambda: get(f"/jobs/{low['id']}")["progress"]["units_done"] >= 2, 120,
+                 "the low job to be under way")
+        assert sum(u["state"] == "queued" for u in get(f"/jobs/{low['id']}/units")) > 50
+        high = submit(client, dict(TINY, progressive=False, tile_size=16, priority=60))  # 4 units
+        done_before = get(f"/jobs/{low['id']}")["progress"]["units_done"]
+        high = poll_job(get, high["id"])
+        assert high["status"] == "done"
+        finished_high = max(u["finished_at"] for u in get(f"/jobs/{high['id']}/units"))
+        low_first = sum(u["finished_at"] is not None and u["finished_at"] < finished_high
+                        for u in get(f"/jobs/{low['id']}/units"))
+        # Only the low unit rendering when the high job came (and one the ledger had not
+        # yet seen land) finish first: the high job's four units jumped the queue.
+        assert low_first <= done_before + 2 < 20, (low_first, done_before)
+        assert client.post(f"/jobs/{low['id']}/cancel").status_code == 200
