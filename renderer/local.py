@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
+from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from typing import Callable
 
@@ -61,7 +63,16 @@ def _run(scene_key: str, text: str, spec: dict, unit: dict, tag: int) -> bytes:
 
 
 class LocalPool:
-    """A pool of single-threaded render processes (default: one per core)."""
+    """A pool of single-threaded render processes (default: one per core).
+
+    Units wait in the pool's own queue and are handed to the process pool only
+    when a process is about to be free (at most one waiting per process), by a
+    feeder thread. So a future canceled while it waits is simply dropped here:
+    the process pool never holds canceled work. (Python 3.11's process pool
+    raises InvalidStateError from its manager thread if a child dies, for
+    example from a Ctrl-C or a SIGTERM to the process group, while canceled
+    futures are still in its queue.)
+    """
 
     def __init__(self, workers: int | None = None):
         self.workers = workers or os.cpu_count() or 1
@@ -71,17 +82,70 @@ class LocalPool:
         self._executor = ProcessPoolExecutor(
             max_workers=self.workers, mp_context=context, initializer=_init_child,
             initargs=(context.Value("i", 0), self._rendering))
+        self._waiting: deque[tuple[Future, tuple]] = deque()
+        self._handed = 0  # units in the process pool (rendering or next in line)
+        self._closed = False
+        self._changed = threading.Condition()
+        self._feeder = threading.Thread(target=self._feed, name="rayfarm-pool-feeder", daemon=True)
+        self._feeder.start()
 
     def submit(self, scene_key: str, text: str, spec: dict, unit: dict, tag: int = 0) -> Future:
         """Run one unit; the future's result is the partial film's bytes. A
-        nonzero `tag` shows in `rendering()` while a process renders the unit."""
-        return self._executor.submit(_run, scene_key, text, spec, unit, tag)
+        nonzero `tag` shows in `rendering()` while a process renders the unit.
+        Canceling the future works until a process is about to take it."""
+        future: Future = Future()
+        with self._changed:
+            if self._closed:
+                raise RuntimeError("the pool is shut down")
+            self._waiting.append((future, (scene_key, text, spec, unit, tag)))
+            self._changed.notify()
+        return future
+
+    def _feed(self) -> None:
+        while True:
+            with self._changed:
+                while not self._closed and (not self._waiting or self._handed > self.workers):
+                    self._changed.wait()
+                if self._closed:
+                    return
+                future, args = self._waiting.popleft()
+                if not future.set_running_or_notify_cancel():
+                    continue  # canceled while it waited
+                self._handed += 1
+            try:
+                inner = self._executor.submit(_run, *args)
+            except Exception as exc:  # a broken pool: the unit fails, its executor decides
+                self._settle(future, None, exc)
+                continue
+            inner.add_done_callback(lambda done, outer=future: self._settle(outer, done))
+
+    def _settle(self, outer: Future, inner: Future | None, error: BaseException | None = None):
+        if inner is not None:
+            error = inner.exception() if not inner.cancelled() else RuntimeError("canceled")
+        if error is None:
+            outer.set_result(inner.result())
+        else:
+            outer.set_exception(error)
+        with self._changed:
+            self._handed -= 1
+            self._changed.notify()
 
     def rendering(self) -> list[int]:
         """Tags of the units the processes are rendering right now."""
         return [tag for tag in self._rendering[:] if tag]
 
     def shutdown(self, cancel: bool = True) -> None:
+        """Stop the pool: units still waiting are canceled (or, with `cancel`
+        False, all work is finished first); units in the processes finish."""
+        with self._changed:
+            while not cancel and (self._waiting or self._handed):
+                self._changed.wait()
+            self._closed = True
+            waiting, self._waiting = list(self._waiting), deque()
+            self._changed.notify_all()
+        self._feeder.join()
+        for future, _args in waiting:
+            future.cancel()
         self._executor.shutdown(wait=True, cancel_futures=cancel)
 
     def __enter__(self) -> "LocalPool":
