@@ -366,6 +366,11 @@ class RayfarmClient:
                             out.write(chunk)
                 except httpx.TransportError as exc:
                     raise self._unavailable(exc, f"while sending {url} ") from None
+            # mkstemp makes the file private (0600); a downloaded image gets the
+            # permissions any new file of this user would get.
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(part, 0o666 & ~umask)
             os.replace(part, path)
         except BaseException:
             Path(part).unlink(missing_ok=True)

@@ -209,6 +209,9 @@ def test05_fetch_writes_the_exr_bit_identical_to_an_in_process_render(tiny_job, 
     out = cli("fetch", job_id, "-o", str(tmp_path / "sub" / "tiny.exr"), server=server)
     assert out.returncode == 0 and out.stdout == "", out.stderr
     assert_bit_identical(channels_of(tmp_path / "sub" / "tiny.exr"), reference_channels(TINY))
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "sub" / "tiny.exr").stat().st_mode & 0o777 == 0o666 & ~umask  # not private
     out = cli("fetch", job_id, "--png", server=server, cwd=tmp_path)  # default name: ID.png
     assert out.returncode == 0, out.stderr
     from PIL import Image
