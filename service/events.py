@@ -38,7 +38,7 @@ from sqlalchemy import event as sa_event
 from sqlalchemy import inspect as sa_inspect
 from sqlalchemy.orm import Session, object_session, sessionmaker
 
-__all__ = ["Event", "EventHub", "Subscription", "note", "publish_commits", "JOB_KINDS"]
+__all__ = ["Event", "EventHub", "Subscription", "note", "publish_commits", "sse_frame", "JOB_KINDS"]
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,13 @@ class Event:
 
     def sse(self) -> str:
         """The event in `text/event-stream` framing."""
-        return f"id: {self.id}\nevent: {self.kind}\ndata: {json.dumps(self.data)}\n\n"
+        return sse_frame(self.kind, self.data, self.id)
+
+
+def sse_frame(kind: str, data, event_id: int | None = None) -> str:
+    """One server-sent event: `id:` (if given), `event:` and one JSON `data:` line."""
+    head = f"id: {event_id}\n" if event_id is not None else ""
+    return f"{head}event: {kind}\ndata: {json.dumps(data)}\n\n"
 
 
 class Subscription:

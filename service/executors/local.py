@@ -49,7 +49,7 @@ class LocalExecutor(Executor):
         self._tags = itertools.count(1)
         self._tag_of: dict[str, int] = {}  # task id -> its pool tag
         self._unit_of: dict[int, tuple[str, int]] = {}  # pool tag -> (job id, unit index)
-        self._since: dict[int, datetime] = {}  # pool tag -> first seen rendering
+        self._since: dict[int, datetime] = {}  # pool tag -> first seen rendering (by observe)
         self._counted: set[str] = set()  # done tasks already counted
         self.units_done = self.samples = self.rays = 0
         self.seconds = 0.0
@@ -81,6 +81,9 @@ class LocalExecutor(Executor):
 
     def observe(self, flights: Sequence[Flight], now: datetime) -> list[Observation]:
         rendering = set(self._pool.rendering())
+        with self._lock:  # when each unit was first seen rendering (workers() shows it)
+            for tag in rendering:
+                self._since.setdefault(tag, now)
         return [self._observe(flight, rendering) for flight in flights]
 
     def _count(self, task_id: str, film: bytes) -> None:

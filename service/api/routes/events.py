@@ -16,7 +16,6 @@ snapshot rather than a replay.
 from __future__ import annotations
 
 import asyncio
-import json
 from typing import AsyncIterator
 
 from fastapi import APIRouter
@@ -24,7 +23,7 @@ from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from ... import jobs, states
-from ...events import JOB_KINDS, Subscription
+from ...events import JOB_KINDS, Subscription, sse_frame
 from ...farm import Farm
 from ...models import utcnow
 from ...schemas import JobPublic, UnitPublic
@@ -37,10 +36,6 @@ RETRY_MS = 2000  # how soon EventSource reconnects after a dropped stream
 _HEADERS = {"Cache-Control": "no-cache", "X-Accel-Buffering": "no"}
 _SSE_DOC = {200: {"content": {"text/event-stream": {}},
                   "description": "a stream of server-sent events"}}
-
-
-def _frame(kind: str, data) -> str:
-    return f"event: {kind}\ndata: {json.dumps(data)}\n\n"
 
 
 def _job_snapshot(farm: Farm, job_id: str) -> tuple[dict, list[dict]]:
@@ -57,11 +52,11 @@ async def _job_stream(farm: Farm, sub: Subscription, job_id: str, snapshot: tupl
         yield f"retry: {RETRY_MS}\n\n"
         while True:
             job, units = snapshot
-            yield _frame("job", job)
+            yield sse_frame("job", job)
             if units:
-                yield _frame("units", units)
+                yield sse_frame("units", units)
             if job["status"] in states.FINAL_JOB and not follow:
-                yield _frame("end", {"job_id": job_id, "status": job["status"]})
+                yield sse_frame("end", {"job_id": job_id, "status": job["status"]})
                 return
             while True:
                 event = await sub.next(KEEPALIVE)
@@ -73,11 +68,11 @@ async def _job_stream(farm: Farm, sub: Subscription, job_id: str, snapshot: tupl
                     continue
                 yield event.sse()
                 if event.kind == "deleted":
-                    yield _frame("end", {"job_id": job_id, "status": "deleted"})
+                    yield sse_frame("end", {"job_id": job_id, "status": "deleted"})
                     return
                 if (event.kind == "job" and event.data["status"] in states.FINAL_JOB
                         and not follow):
-                    yield _frame("end", {"job_id": job_id, "status": event.data["status"]})
+                    yield sse_frame("end", {"job_id": job_id, "status": event.data["status"]})
                     return
             snapshot = await run_in_threadpool(_job_snapshot, farm, job_id)
     finally:
@@ -106,7 +101,7 @@ async def _all_stream(sub: Subscription) -> AsyncIterator[str]:
             event = await sub.next(KEEPALIVE)
             if sub.overflowed:
                 sub.overflowed = False
-                yield _frame("resync", {})  # reload the list: events were dropped
+                yield sse_frame("resync", {})  # reload the list: events were dropped
             if event is None:
                 yield ": keep-alive\n\n"
                 continue

@@ -1,7 +1,6 @@
 // The dashboard's entry point: a hash router over four views and a health light.
 //   #/jobs  #/jobs/<id>  #/submit  #/workers
 
-import { api } from "./api.js";
 import { h, replace } from "./ui.js";
 import { jobsView } from "./views/jobs.js";
 import { jobView } from "./views/job.js";
@@ -57,4 +56,3 @@ window.addEventListener("hashchange", route);
 route();
 health();
 setInterval(health, 5000);
-export { api };
