@@ -13,7 +13,7 @@ from .film import Film, PartialFilm, merge, read_exr, sample_blocks
 from .local import LocalPool, render
 from .plan import Unit, plan
 from .registry import METHODS, SAMPLERS
-from .runtime import execute_unit, run_unit, scene_text, warm_up
+from .runtime import execute_unit, render_serial, run_plan, run_unit, scene_text, warm_up
 from .scene import Scene, build_scene, load_scene
 from .scene_format import builtin_scene_names, resolve_document, scene_hash
 from .spec import BOUNDS, DEFAULT_MAX_WORK, RenderSpec
@@ -22,5 +22,5 @@ __all__ = [
     "BOUNDS", "DEFAULT_MAX_WORK", "Film", "LocalPool", "METHODS", "PartialFilm", "RenderError",
     "RenderSpec", "SAMPLERS", "Scene", "SceneError", "SpecError", "Unit", "build_scene",
     "builtin_scene_names", "execute_unit", "load_scene", "merge", "plan", "read_exr", "render",
-    "resolve_document", "run_unit", "sample_blocks", "scene_hash", "scene_text", "warm_up",
+    "render_serial", "resolve_document", "run_plan", "run_unit", "sample_blocks", "scene_hash", "scene_text", "warm_up",
 ]

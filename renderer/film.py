@@ -13,6 +13,24 @@ left fold of its block sums in block order. A unit that covers a whole pixel
 range of blocks computes that fold itself; a unit that covers one later block
 returns just that block's sum and the merge adds it next. Either way the bits
 are the same, whatever the tile size, the executor or the pass plan.
+
+Splats. Light tracing, BDPT's t = 1 strategies and Metropolis chains add
+contributions anywhere on the frame, so they cannot be "samples of a pixel".
+A unit's splats form one *batch*: a full-frame `splat` array holding the sum
+of its n paths' (or mutations') contributions, with n in `splat_paths`. The
+frame's splat estimate is sum(splat) / sum(n) over all batches: the scale is
+the job's total path count, not a unit's (pbrt-v4 issue 347 was exactly this
+bug). Its variance comes from the batches, which are independent: with batch
+estimates X_b = S_b / n_b, the weighted sample variance
+sigma^2 = sum n_b (X_b - X)^2 / (K - 1) = (sum S_b^2 / n_b - S^2 / n) / (K - 1),
+and Var(X) = sigma^2 / n. So each batch also carries S_b^2 / n_b (`splat_sq`)
+and the merge only adds. With equal batches this is the plain batch-means
+variance; it needs K >= 2 batches (reported as +inf otherwise).
+
+Artefacts. A prepass unit's result (a photon map, a radiosity solution, a
+bootstrap estimate, per-pixel statistics carried to the next iteration) is a
+film with named arrays in `artefact`, often over an empty region; the units
+that need it receive it as input (renderer/plan.py) and the merge ignores it.
 """
 
 from __future__ import annotations
@@ -55,6 +73,12 @@ class PartialFilm:
     sum_sq: np.ndarray
     weight: np.ndarray
     stats: dict = field(default_factory=dict)  # samples, rays, seconds
+    # The splat batch layer (module doc): full-frame (H, W, 3) arrays or None.
+    splat: np.ndarray | None = None
+    splat_sq: np.ndarray | None = None
+    splat_paths: float = 0.0
+    splat_batches: int = 0
+    artefact: dict = field(default_factory=dict)  # name -> numpy array
 
     @property
     def height(self) -> int:
@@ -69,11 +93,36 @@ class PartialFilm:
         return cls(x0, y0, np.zeros((height, width, 3)), np.zeros((height, width, 3)),
                    np.zeros((height, width)), {"samples": 0, "rays": 0, "seconds": 0.0})
 
+    @classmethod
+    def splat_batch(cls, splat: np.ndarray, paths: float) -> "PartialFilm":
+        """A film holding one batch of splats: `splat` (H, W, 3) is the sum of
+        `paths` paths' contributions over the whole frame (no camera samples)."""
+        film = cls.zeros(0, 0, 0, 0)
+        film.splat = np.ascontiguousarray(splat, dtype=np.float64)
+        film.splat_sq = film.splat * film.splat / paths if paths > 0 else np.zeros_like(film.splat)
+        film.splat_paths = float(paths)
+        film.splat_batches = 1
+        return film
+
+    def with_splats(self, other: "PartialFilm") -> "PartialFilm":
+        """This film with `other`'s splat batch attached (a tile film plus the
+        splats its camera paths made elsewhere, as BDPT's t = 1 strategies do)."""
+        self.splat, self.splat_sq = other.splat, other.splat_sq
+        self.splat_paths, self.splat_batches = other.splat_paths, other.splat_batches
+        return self
+
     def to_bytes(self) -> bytes:
         """Serialize losslessly (npz) for the store and the result backend."""
         buf = io.BytesIO()
-        np.savez(buf, origin=np.array([self.x0, self.y0]), sum=self.sum, sum_sq=self.sum_sq,
-                 weight=self.weight, stats=np.frombuffer(json.dumps(self.stats).encode(), np.uint8))
+        arrays = {"origin": np.array([self.x0, self.y0]), "sum": self.sum, "sum_sq": self.sum_sq,
+                  "weight": self.weight,
+                  "stats": np.frombuffer(json.dumps(self.stats).encode(), np.uint8)}
+        if self.splat is not None:
+            arrays.update(splat=self.splat, splat_sq=self.splat_sq,
+                          splat_count=np.array([self.splat_paths, float(self.splat_batches)]))
+        for name, value in self.artefact.items():
+            arrays[f"artefact.{name}"] = np.asarray(value)
+        np.savez(buf, **arrays)
         return buf.getvalue()
 
     @staticmethod
@@ -86,8 +135,15 @@ class PartialFilm:
     def from_bytes(cls, data: bytes) -> "PartialFilm":
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             x0, y0 = (int(v) for v in z["origin"])
-            return cls(x0, y0, z["sum"].copy(), z["sum_sq"].copy(), z["weight"].copy(),
+            film = cls(x0, y0, z["sum"].copy(), z["sum_sq"].copy(), z["weight"].copy(),
                        json.loads(z["stats"].tobytes().decode()))
+            if "splat" in z.files:
+                film.splat, film.splat_sq = z["splat"].copy(), z["splat_sq"].copy()
+                paths, batches = z["splat_count"]
+                film.splat_paths, film.splat_batches = float(paths), int(batches)
+            film.artefact = {name[len("artefact."):]: z[name].copy()
+                             for name in z.files if name.startswith("artefact.")}
+            return film
 
 
 @dataclass
@@ -95,21 +151,37 @@ class Film(PartialFilm):
     """A whole frame's accumulated samples, with the estimates derived from them."""
 
     def mean(self) -> np.ndarray:
-        """Per-pixel mean radiance (h, w, 3)."""
+        """Per-pixel mean radiance (h, w, 3): the camera samples' mean plus
+        the splat estimate (module doc)."""
         n = self.weight[..., None]
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(n > 0, self.sum / np.maximum(n, 1e-300), 0.0)
+            out = np.where(n > 0, self.sum / np.maximum(n, 1e-300), 0.0)
+        if self.splat is not None and self.splat_paths > 0:
+            out = out + self.splat / self.splat_paths
+        return out
 
     def variance_of_mean(self) -> np.ndarray:
-        """Per-pixel variance of the mean estimate: the unbiased sample
-        variance divided by the sample count. Undefined with fewer than two
-        samples; reported as +inf there."""
+        """Per-pixel variance of the mean estimate: the camera samples'
+        unbiased sample variance divided by their count, plus the splat
+        estimate's batch variance. Undefined with fewer than two samples (or
+        batches); reported as +inf there. A frame made of splats only has no
+        camera-sample part."""
         n = self.weight[..., None]
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = self.sum / n
             sample_var = np.maximum(self.sum_sq - n * mean * mean, 0.0) / (n - 1.0)
             out = sample_var / n
-        return np.where(n >= 2, out, np.inf)
+        splats = self.splat is not None and self.splat_paths > 0
+        out = np.where(n >= 2, out, 0.0 if splats else np.inf)
+        out = np.where((n > 0) & (n < 2), np.inf, out)
+        if splats:
+            k, paths = self.splat_batches, self.splat_paths
+            if k >= 2:
+                spread = np.maximum(self.splat_sq - self.splat * self.splat / paths, 0.0)
+                out = out + spread / (k - 1.0) / paths
+            else:
+                out = np.full_like(out, np.inf)
+        return out
 
     def add(self, part: PartialFilm) -> None:
         """Merge one partial film into this frame (plain addition)."""
@@ -118,6 +190,14 @@ class Film(PartialFilm):
         self.sum[ys, xs] += part.sum
         self.sum_sq[ys, xs] += part.sum_sq
         self.weight[ys, xs] += part.weight
+        if part.splat is not None:
+            if self.splat is None:
+                self.splat = np.zeros((self.height, self.width, 3))
+                self.splat_sq = np.zeros((self.height, self.width, 3))
+            self.splat += part.splat
+            self.splat_sq += part.splat_sq
+            self.splat_paths += part.splat_paths
+            self.splat_batches += part.splat_batches
         for key in ("samples", "rays", "seconds"):
             self.stats[key] = self.stats.get(key, 0) + part.stats.get(key, 0)
 

@@ -18,11 +18,12 @@ import multiprocessing
 import os
 import threading
 from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Callable
 
 from .film import Film, PartialFilm, merge
-from .plan import Unit, plan
+from .plan import Unit
+from .registry import METHODS
 from .runtime import execute_unit, scene_text, warm_up
 from .scene_format import resolve_document
 from .spec import RenderSpec
@@ -52,11 +53,12 @@ def _init_child(claimed, rendering) -> None:
     warm_up()
 
 
-def _run(scene_key: str, text: str, spec: dict, unit: dict, tag: int) -> bytes:
+def _run(scene_key: str, text: str, spec: dict, unit: dict, tag: int,
+         inputs: dict[int, bytes] | None = None) -> bytes:
     if _rendering is not None:
         _rendering[_slot] = tag
     try:
-        return execute_unit(scene_key, lambda: text, spec, unit)
+        return execute_unit(scene_key, lambda: text, spec, unit, inputs)
     finally:
         if _rendering is not None:
             _rendering[_slot] = 0
@@ -89,15 +91,17 @@ class LocalPool:
         self._feeder = threading.Thread(target=self._feed, name="rayfarm-pool-feeder", daemon=True)
         self._feeder.start()
 
-    def submit(self, scene_key: str, text: str, spec: dict, unit: dict, tag: int = 0) -> Future:
+    def submit(self, scene_key: str, text: str, spec: dict, unit: dict, tag: int = 0,
+               inputs: dict[int, bytes] | None = None) -> Future:
         """Run one unit; the future's result is the partial film's bytes. A
-        nonzero `tag` shows in `rendering()` while a process renders the unit.
-        Canceling the future works until a process is about to take it."""
+        nonzero `tag` shows in `rendering()` while a process renders the unit;
+        `inputs` are the film bytes of the units it needs. Canceling the
+        future works until a process is about to take it."""
         future: Future = Future()
         with self._changed:
             if self._closed:
                 raise RuntimeError("the pool is shut down")
-            self._waiting.append((future, (scene_key, text, spec, unit, tag)))
+            self._waiting.append((future, (scene_key, text, spec, unit, tag, inputs)))
             self._changed.notify()
         return future
 
@@ -158,21 +162,34 @@ class LocalPool:
 def render(scene_source, spec: RenderSpec, *, pool: LocalPool | None = None,
            workers: int | None = None, progressive: bool = False,
            progress: Callable[[Unit, PartialFilm], None] | None = None) -> Film:
-    """Render a scene locally through plan -> units -> merge, like the farm."""
+    """Render a scene locally through plan -> units -> merge, like the farm: a
+    unit is submitted as soon as every unit it needs is done (plan.py)."""
     doc = resolve_document(scene_source)
     spec.validate()
     key, text = scene_text(doc)
-    units = plan(spec, progressive=progressive)
+    units = METHODS[spec.method].make_plan(spec, progressive)
     own_pool = pool is None
     pool = pool or LocalPool(workers)
     try:
-        futures = {pool.submit(key, text, spec.to_dict(), u.to_dict()): u for u in units}
+        results: dict[int, bytes] = {}
         parts: dict[int, PartialFilm] = {}
-        for fut in as_completed(futures):
-            unit = futures[fut]
-            parts[unit.index] = PartialFilm.from_bytes(fut.result())
-            if progress is not None:
-                progress(unit, parts[unit.index])
+        waiting = list(units)
+        futures: dict[Future, Unit] = {}
+        while waiting or futures:
+            ready = [u for u in waiting if all(i in results for i in u.needs)]
+            waiting = [u for u in waiting if u not in ready]
+            for u in ready:
+                futures[pool.submit(key, text, spec.to_dict(), u.to_dict(),
+                                    inputs={i: results[i] for i in u.needs})] = u
+            if not futures:
+                raise RuntimeError("plan has units whose needs never complete")
+            done, _ = wait(futures, return_when=FIRST_COMPLETED)
+            for fut in done:
+                unit = futures.pop(fut)
+                results[unit.index] = fut.result()
+                parts[unit.index] = PartialFilm.from_bytes(results[unit.index])
+                if progress is not None:
+                    progress(unit, parts[unit.index])
     finally:
         if own_pool:
             pool.shutdown()

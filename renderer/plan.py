@@ -3,7 +3,21 @@
 `plan(spec)` knows no database, no Celery and no scene contents: it cuts the
 image into tiles (row-major) and the samples into passes. A unit is
 identified by its index in the plan; everything a worker needs to run it is
-in the unit itself plus the spec and the scene hash.
+in the unit itself, the spec, the scene hash and the results of the units it
+`needs`.
+
+Methods whose work is not "one tile, one pixel" (light tracing, BDPT, MLT,
+photon mapping, radiosity) plan a small DAG instead (`Method.plan`): every
+unit has a `stage` and the indices of the earlier units whose results it
+reads (`needs`: a photon map, a bootstrap normalisation, a radiosity
+solution, the previous iteration's pixel statistics). A unit may run once all
+of its needs are done; units are listed in stage order, so unit order is a
+topological order. `kind` names the unit's role for its method and for the
+dashboard's phases ("tile", "splat", "bootstrap", "chains", "photons",
+"gather", "solve", ...). For units that are not tiles, `sample_start` and
+`sample_end` are a range of path (or chain, or photon) indices and the
+region is the part of the frame the unit's film covers (the whole frame for
+splatting units, nothing for a pure prepass).
 """
 
 from __future__ import annotations
@@ -29,6 +43,9 @@ class Unit:
     sample_start: int
     sample_end: int
     pass_index: int = 0
+    stage: int = 0  # DAG stage (0 for every unit of a tile job)
+    kind: str = "tile"  # the unit's role for its method (see the module doc)
+    needs: tuple[int, ...] = ()  # indices of the units whose results this one reads
 
     @property
     def pixels(self) -> int:
@@ -36,13 +53,19 @@ class Unit:
 
     @property
     def samples(self) -> int:
+        """Camera samples of a tile unit; for other kinds the methods report
+        their own count in the film's stats."""
         return self.pixels * (self.sample_end - self.sample_start)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["needs"] = list(self.needs)
+        return d
 
     @classmethod
     def from_dict(cls, data: dict) -> "Unit":
+        data = dict(data)
+        data["needs"] = tuple(data.get("needs", ()))
         return cls(**data)
 
 

@@ -28,14 +28,30 @@ class Option:
 
 @dataclass(frozen=True)
 class Method:
-    """A rendering method: `run(scene, spec, unit) -> PartialFilm`."""
+    """A rendering method: `run(scene, spec, unit, inputs) -> PartialFilm`,
+    where `inputs` maps the indices in `unit.needs` to those units' films.
+
+    `plan(spec, progressive) -> list[Unit]` cuts a job into units; None means
+    the tile plan (image tiles x sample passes, `renderer.plan.plan`). Methods
+    of other families plan a DAG (renderer/plan.py); `phases` names their unit
+    kinds in the order they run, for the dashboard.
+    """
 
     name: str
     description: str
     run: Callable
     options: tuple[Option, ...] = ()
-    family: str = "tile"  # how jobs split: "tile" = image tiles x sample passes
+    family: str = "tile"  # how jobs split: "tile", "splat", "chains", "photons", "radiosity"
     aliases: tuple[str, ...] = field(default=())
+    plan: Callable | None = None
+    phases: tuple[str, ...] = ("tile",)
+
+    def make_plan(self, spec, progressive: bool = False) -> list:
+        if self.plan is None:
+            from .plan import plan
+
+            return plan(spec, progressive=progressive)
+        return self.plan(spec, progressive)
 
     def check_options(self, options: dict) -> dict:
         known = {o.name: o for o in self.options}
@@ -55,7 +71,7 @@ class Method:
 
     def describe(self) -> dict:
         return {"name": self.name, "aliases": list(self.aliases), "description": self.description,
-                "family": self.family,
+                "family": self.family, "phases": list(self.phases),
                 "options": [{"name": o.name, "type": o.type.__name__, "default": o.default,
                              "choices": list(o.choices) if o.choices else None,
                              "description": o.description} for o in self.options]}

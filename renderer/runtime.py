@@ -19,7 +19,7 @@ from .scene import Scene, build_scene
 from .scene_format import canonical_json, resolve_document, scene_hash
 from .spec import RenderSpec
 
-__all__ = ["run_unit", "execute_unit", "SceneCache", "warm_up"]
+__all__ = ["run_unit", "run_plan", "render_serial", "execute_unit", "SceneCache", "warm_up"]
 
 
 class SceneCache:
@@ -49,23 +49,31 @@ class SceneCache:
 _CACHE = SceneCache()
 
 
-def run_unit(scene: Scene, spec: RenderSpec, unit: Unit) -> PartialFilm:
-    """Render one unit and return its partial film, with its timing in `stats`."""
+def run_unit(scene: Scene, spec: RenderSpec, unit: Unit,
+             inputs: dict[int, PartialFilm] | None = None) -> PartialFilm:
+    """Render one unit and return its partial film, with its timing in `stats`.
+    `inputs` holds the films of the units in `unit.needs`, by index."""
+    inputs = inputs or {}
+    missing = [i for i in unit.needs if i not in inputs]
+    if missing:
+        raise ValueError(f"unit {unit.index} needs the results of units {missing}")
     t0 = time.perf_counter()
-    film = METHODS[spec.method].run(scene, spec, unit)
+    film = METHODS[spec.method].run(scene, spec, unit, inputs)
     film.stats["seconds"] = time.perf_counter() - t0
     return film
 
 
 def execute_unit(scene_key: str, load_scene_text: Callable[[], str], spec: dict,
-                 unit: dict) -> bytes:
+                 unit: dict, inputs: dict[int, bytes] | None = None) -> bytes:
     """Run a unit from plain data; returns the partial film's bytes.
 
     `load_scene_text()` is called only if this process has not built the
     scene `scene_key` yet (the farm fetches it from the broker by hash).
+    `inputs` are the film bytes of the units it needs, by index.
     """
     scene = _CACHE.get(scene_key, load_scene_text)
-    return run_unit(scene, RenderSpec.from_dict(spec), Unit.from_dict(unit)).to_bytes()
+    films = {int(i): PartialFilm.from_bytes(b) for i, b in (inputs or {}).items()}
+    return run_unit(scene, RenderSpec.from_dict(spec), Unit.from_dict(unit), films).to_bytes()
 
 
 def warm_up() -> None:
@@ -75,7 +83,25 @@ def warm_up() -> None:
     scene = build_scene(doc)
     for method in dict.fromkeys(METHODS.values()):
         spec = RenderSpec(method=method.name, spp=2, depth=2, width=4, height=4, tile_size=4)
-        run_unit(scene, spec, Unit(0, 0, 0, 4, 4, 0, 2))
+        run_plan(scene, spec)
+
+
+def run_plan(scene: Scene, spec: RenderSpec, progressive: bool = False) -> list[PartialFilm]:
+    """Run every unit of a job's plan in this process, in unit order (which is
+    a topological order of its DAG); returns the films in unit order. For
+    tests, warm-up and small renders; `renderer.local.render` runs the same
+    DAG on a process pool."""
+    films: list[PartialFilm] = []
+    for unit in METHODS[spec.method].make_plan(spec, progressive):
+        films.append(run_unit(scene, spec, unit, {i: films[i] for i in unit.needs}))
+    return films
+
+
+def render_serial(scene: Scene, spec: RenderSpec, progressive: bool = False):
+    """`run_plan` merged into the finished film (in-process, no pool)."""
+    from .film import merge
+
+    return merge(spec.width, spec.height, run_plan(scene, spec, progressive))
 
 
 def scene_text(doc: dict) -> tuple[str, str]:

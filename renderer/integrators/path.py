@@ -325,7 +325,7 @@ def unit_blocks(spp: int, sample_start: int, sample_end: int) -> np.ndarray:
     return np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
 
 
-def render_tile(scene, spec, unit, *, strategy: int) -> PartialFilm:
+def render_tile(scene, spec, unit, inputs=None, *, strategy: int) -> PartialFilm:
     """Run the kernel over one unit's tile and sample range."""
     options = METHODS[spec.method].check_options(spec.options)
     heuristic = BALANCE if options.get("heuristic") == "balance" else POWER

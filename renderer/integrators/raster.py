@@ -255,7 +255,7 @@ def _run(scene, spec, unit, centres=False):
     return film, buffers[2]
 
 
-def render_tile(scene, spec, unit) -> PartialFilm:
+def render_tile(scene, spec, unit, inputs=None) -> PartialFilm:
     return _run(scene, spec, unit)[0]
 
 

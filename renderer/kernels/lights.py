@@ -13,7 +13,7 @@ Area lights emit only from their front side.
 import math
 
 from . import kernel, kernel_inline
-from .sampling import onb, uniform_sphere, uniform_triangle
+from .sampling import cosine_hemisphere, onb, to_world, uniform_sphere, uniform_triangle
 
 LIGHT_MESH, LIGHT_SPHERE, LIGHT_POINT = 0, 1, 2
 
@@ -155,3 +155,64 @@ def light_pdf(sc, light, prim, px, py, pz, qx, qy, qz, cos_l):
             cos_max = math.sqrt(max(0.0, 1.0 - sin2_max))
             return p_pick / (2.0 * math.pi * (sin2_max / (1.0 + cos_max)))
     return p_pick * d2 / (cos_l * sc.light_area[light])
+
+
+@kernel_inline
+def sample_emission(sc, u_pick, u1, u2, u3, u4):
+    """Sample a ray leaving a light (light tracing, BDPT's light subpaths,
+    photons), the way pbrt's Light::SampleLe does.
+
+    The light is picked uniformly (1/L, as for `sample_light`); then
+    - mesh light: a triangle by area and a uniform point on it, a
+      cosine-distributed direction about its front normal;
+    - sphere light: a uniform point on the sphere, a cosine direction about
+      its front normal there;
+    - point light: its position, a uniform direction on the sphere.
+    Returns (light, prim, ox, oy, oz, nx, ny, nz, dx, dy, dz, Le_r, Le_g, Le_b,
+    pdf_pos, pdf_dir, delta): the light and primitive hit, the origin, the
+    front normal (0 for point lights), the direction, the emitted radiance
+    along it (the intensity for point lights), the area pdf of the origin
+    including the pick (the pick probability alone for point lights) and
+    the solid-angle pdf of the direction. The light subpath's first
+    throughput is Le |cos| / (pdf_pos pdf_dir) (no cos for point lights).
+    """
+    n_lights = sc.light_type.shape[0]
+    li = min(int(u_pick * n_lights), n_lights - 1)
+    p_pick = 1.0 / n_lights
+    ltype = sc.light_type[li]
+    if ltype == LIGHT_POINT:
+        dx, dy, dz = uniform_sphere(u3, u4)
+        return (li, -1, sc.light_pos[li, 0], sc.light_pos[li, 1], sc.light_pos[li, 2],
+                0.0, 0.0, 0.0, dx, dy, dz, sc.light_rgb[li, 0], sc.light_rgb[li, 1],
+                sc.light_rgb[li, 2], p_pick, 1.0 / (4.0 * math.pi), True)
+    if ltype == LIGHT_MESH:
+        tri = _pick_triangle(sc, li, u_pick * n_lights - li)
+        b0, b1 = uniform_triangle(u1, u2)
+        b2 = 1.0 - b0 - b1
+        ox = b0 * sc.tri_p[tri, 0, 0] + b1 * sc.tri_p[tri, 1, 0] + b2 * sc.tri_p[tri, 2, 0]
+        oy = b0 * sc.tri_p[tri, 0, 1] + b1 * sc.tri_p[tri, 1, 1] + b2 * sc.tri_p[tri, 2, 1]
+        oz = b0 * sc.tri_p[tri, 0, 2] + b1 * sc.tri_p[tri, 1, 2] + b2 * sc.tri_p[tri, 2, 2]
+        nx, ny, nz = sc.tri_n[tri, 0], sc.tri_n[tri, 1], sc.tri_n[tri, 2]
+        prim = tri
+    else:
+        s = sc.light_sphere[li]
+        ux, uy, uz = uniform_sphere(u1, u2)
+        r = sc.sph[s, 3]
+        ox, oy, oz = sc.sph[s, 0] + r * ux, sc.sph[s, 1] + r * uy, sc.sph[s, 2] + r * uz
+        nx, ny, nz = _sphere_front_normal(sc.sph, sc.sph_flip, s, ox, oy, oz)
+        prim = sc.tri_p.shape[0] + s
+    lx, ly, lz = cosine_hemisphere(u3, u4)
+    dx, dy, dz = to_world(lx, ly, lz, nx, ny, nz)
+    return (li, prim, ox, oy, oz, nx, ny, nz, dx, dy, dz, sc.light_rgb[li, 0], sc.light_rgb[li, 1],
+            sc.light_rgb[li, 2], p_pick / sc.light_area[li], lz / math.pi, False)
+
+
+@kernel_inline
+def emission_pdfs(sc, light, cos_l):
+    """(pdf_pos, pdf_dir) with which `sample_emission` produces a ray leaving
+    area light `light` at any point with cosine `cos_l` to its front normal
+    (pdf_dir 0 behind it); point lights: (pick probability, 1/(4 pi))."""
+    p_pick = 1.0 / sc.light_type.shape[0]
+    if sc.light_type[light] == LIGHT_POINT:
+        return p_pick, 1.0 / (4.0 * math.pi)
+    return p_pick / sc.light_area[light], max(cos_l, 0.0) / math.pi

@@ -42,3 +42,19 @@ def sample_key(seed, pixel, sample):
 def uniform(key, dim):
     """A uniform float64 in [0, 1) for dimension `dim` of the sample `key`."""
     return float(mix64(key + np.uint64(dim) * _GOLDEN) >> _S11) * _INV_2_53
+
+
+# Streams of random numbers that are not camera samples, each keyed by
+# (seed, stream, index): light paths, photons, chains... never collide with
+# each other or with camera samples (whose keys mix a pixel instead).
+STREAM_LIGHT_PATHS, STREAM_PHOTONS, STREAM_CHAINS, STREAM_BOOTSTRAP, STREAM_RADIOSITY = 1, 2, 3, 4, 5
+_K_STREAM = np.uint64(0xA24BAED4963EE407)
+
+
+@kernel
+def stream_key(seed, stream, index):
+    """The key of path (photon, chain...) `index` of stream `stream`: use it
+    with `uniform(key, dim)` like a camera sample's key."""
+    k = mix64(np.uint64(seed) * _GOLDEN + _K_STREAM)
+    k = mix64(k ^ (np.uint64(stream) * _K_PIXEL))
+    return mix64(k ^ (np.uint64(index) * _K_SAMPLE))
