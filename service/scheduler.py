@@ -2,15 +2,17 @@
 
 Each tick, for every queued, running or paused job (higher priority first,
 then oldest):
-1. plan a queued job into unit rows (`renderer.plan`, progressive or not) and
-   mark it running;
+1. plan a queued job into unit rows (its method's plan: tiles x passes,
+   progressive or not, or a small DAG of prepass -> units, renderer/plan.py)
+   and mark it running;
 2. observe its units in flight: store a finished unit's film (atomically)
    *before* marking the unit done, exactly once; re-enqueue lost units;
    retry failed ones up to `max_attempts`, then fail the job;
-3. enqueue pending units while the executor has capacity, unless the job is
-   paused or a job before it in the order still has pending units (so
-   priority holds on both executors: the Celery executor also passes it to
-   the broker as the message priority);
+3. enqueue pending units whose needs are done (a DAG unit travels with the
+   stored films of the units it needs) while the executor has capacity,
+   unless the job is paused or a job before it in the order still has
+   pending units ready to go (so priority holds on both executors: the
+   Celery executor also passes it to the broker as the message priority);
 4. refresh the job's `preview.png` and `noise.png` from the units landed so
    far, and publish a `preview` event;
 5. when every unit is done, merge the stored films in unit order into
@@ -44,7 +46,7 @@ from sqlalchemy.orm.exc import StaleDataError
 
 import numpy as np
 
-from renderer import Film, PartialFilm, RenderSpec, merge, plan
+from renderer import METHODS, Film, PartialFilm, RenderSpec, merge
 
 from . import events, states
 from .events import EventHub
@@ -70,6 +72,9 @@ class _Preview:
         self.sum = np.zeros((height, width, 3), np.float32)
         self.sum_sq = np.zeros((height, width, 3), np.float32)
         self.weight = np.zeros((height, width), np.float32)
+        self.splat: np.ndarray | None = None  # splat batches (film.py), when the method splats
+        self.splat_sq: np.ndarray | None = None
+        self.splat_paths, self.splat_batches = 0.0, 0
         self.added: set[int] = set()
         self.written = -1e9  # time.monotonic() of the last PNG
         self.dirty = False
@@ -82,11 +87,20 @@ class _Preview:
         self.sum[ys, xs] += part.sum
         self.sum_sq[ys, xs] += part.sum_sq
         self.weight[ys, xs] += part.weight
+        if part.splat is not None:
+            if self.splat is None:
+                self.splat, self.splat_sq = np.zeros_like(self.sum), np.zeros_like(self.sum)
+            self.splat += part.splat
+            self.splat_sq += part.splat_sq
+            self.splat_paths += part.splat_paths
+            self.splat_batches += part.splat_batches
         self.added.add(index)
         self.dirty = True
 
     def write(self, preview_path, noise_path) -> None:
-        film = Film(0, 0, self.sum, self.sum_sq, self.weight)
+        film = Film(0, 0, self.sum, self.sum_sq, self.weight, splat=self.splat,
+                    splat_sq=self.splat_sq, splat_paths=self.splat_paths,
+                    splat_batches=self.splat_batches)
         film.write_png(preview_path)
         film.write_noise_png(noise_path)
         self.written, self.dirty = time.monotonic(), False
@@ -215,9 +229,7 @@ class Scheduler:
             if job.status == "running":
                 # Asked after collecting: finished units free their slots at once.
                 slots = max(self.executor.capacity(), 0) if may_enqueue else 0
-                pending = list(session.scalars(
-                    select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending")
-                    .order_by(WorkUnit.index).limit(slots + 1)))
+                pending = self._ready_units(session, job, slots + 1)
                 waiting = len(pending) > slots
                 for unit in pending[:slots]:
                     try:
@@ -241,8 +253,30 @@ class Scheduler:
             raise enqueue_error
         return complete, waiting
 
+    def _ready_units(self, session: Session, job: Job, limit: int) -> list[WorkUnit]:
+        """Up to `limit` pending units of the job whose needs are all done, in
+        unit order. Tile jobs need nothing; a DAG's later stages wait here."""
+        pending = session.scalars(
+            select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending")
+            .order_by(WorkUnit.index))
+        ready: list[WorkUnit] = []
+        done: set[int] | None = None
+        for unit in pending:
+            needs = unit.unit.get("needs") or ()
+            if needs:
+                if done is None:
+                    done = set(session.scalars(select(WorkUnit.index).where(
+                        WorkUnit.job_id == job.id, WorkUnit.state == "done")))
+                if not done.issuperset(needs):
+                    continue
+            ready.append(unit)
+            if len(ready) >= limit:
+                break
+        return ready
+
     def _plan(self, session: Session, job: Job, now: datetime) -> None:
-        units = plan(RenderSpec.from_dict(job.spec), progressive=bool(job.progressive))
+        spec = RenderSpec.from_dict(job.spec)
+        units = METHODS[spec.method].make_plan(spec, bool(job.progressive))
         self._previews.pop(job.id, None)  # planned anew (e.g. requeued): a fresh preview
         for unit in units:
             session.add(WorkUnit(job_id=job.id, index=unit.index, state="pending",
@@ -252,8 +286,11 @@ class Scheduler:
         session.flush()
 
     def _enqueue(self, job: Job, unit: WorkUnit, now: datetime) -> None:
+        inputs = {int(i): self.store.unit_film(job.id, int(i))
+                  for i in unit.unit.get("needs") or ()}
         task_id = self.executor.submit(Ticket(job.id, unit.index, job.scene_hash, job.spec,
-                                              unit.unit, priority=job.priority or 0))
+                                              unit.unit, priority=job.priority or 0,
+                                              inputs=inputs))
         unit.task_ids = [*unit.task_ids, task_id]
         states.change_unit(unit, "queued", now)
         self._tracked[(job.id, unit.index)] = tuple(unit.task_ids)

@@ -201,6 +201,10 @@ class UnitPublic(BaseModel):
     index: int
     state: str
     region: dict[str, int] = Field(description="x0, y0, x1, y1, sample_start, sample_end, pass")
+    stage: int = Field(0, description="DAG stage: a unit runs once the units it needs are done")
+    kind: str = Field("tile", description="the unit's phase: tile, splat, bootstrap, chains, "
+                                          "photons, gather, solve...")
+    needs: list[int] = Field(default_factory=list, description="indices of the units it reads")
     attempts: int
     tasks: int = Field(description="task ids the unit had (more than attempts: re-enqueued)")
     worker: str | None
@@ -217,7 +221,8 @@ class UnitPublic(BaseModel):
                    region={"x0": u["x0"], "y0": u["y0"], "x1": u["x1"], "y1": u["y1"],
                            "sample_start": u["sample_start"], "sample_end": u["sample_end"],
                            "pass": u.get("pass_index", 0)},
-                   attempts=unit.attempts, tasks=len(unit.task_ids), worker=unit.worker,
+                   stage=u.get("stage", 0), kind=u.get("kind", "tile"),
+                   needs=list(u.get("needs") or ()), attempts=unit.attempts, tasks=len(unit.task_ids), worker=unit.worker,
                    enqueued_at=unit.enqueued_at, started_at=unit.started_at,
                    finished_at=unit.finished_at, seconds=unit.seconds, error=unit.error)
 

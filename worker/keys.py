@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 __all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "scene_key", "heartbeat_key", "cancel_key",
-           "worker_key", "worker_running_key"]
+           "worker_key", "worker_running_key", "input_key"]
 
 TASK_RENDER_UNIT = "rayfarm.render_unit"
 QUEUE = "rayfarm.units"
@@ -13,6 +13,12 @@ WORKERS = "rayfarm:workers"  # the set of worker names that ever reported
 def scene_key(scene_hash: str) -> str:
     """Where the service publishes a scene's canonical text for the workers."""
     return f"rayfarm:scene:{scene_hash}"
+
+
+def input_key(digest: str) -> str:
+    """Where the service publishes a unit's input (another unit's film bytes,
+    e.g. a photon map) for the workers, by its SHA-256."""
+    return f"rayfarm:input:{digest}"
 
 
 def heartbeat_key(job_id: str, index: int) -> str:

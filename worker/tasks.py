@@ -23,15 +23,37 @@ from celery import Celery
 from renderer import PartialFilm, execute_unit
 
 from . import presence
-from .keys import TASK_RENDER_UNIT, cancel_key, heartbeat_key, scene_key
+from .keys import TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key
 
-__all__ = ["register_tasks", "render_unit", "Heartbeat", "SceneUnavailable"]
+__all__ = ["register_tasks", "render_unit", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
 
 log = logging.getLogger(__name__)
 
 
 class SceneUnavailable(RuntimeError):
     """The scene's text is not in Redis (expired, or Redis lost it)."""
+
+
+class InputUnavailable(RuntimeError):
+    """A unit's input (another unit's film) is not in Redis."""
+
+
+_inputs: dict[str, bytes] = {}  # digest -> bytes: the inputs this process fetched lately
+_INPUTS_KEPT = 4
+
+
+def _fetch_input(client: redis.Redis, digest: str) -> bytes:
+    """An input's bytes by digest, from this process's small cache or Redis
+    (every gather tile of a photon pass needs the same photon map)."""
+    data = _inputs.get(digest)
+    if data is None:
+        data = client.get(input_key(digest))
+        if data is None:
+            raise InputUnavailable(f"input {digest[:12]} is not in the broker")
+        _inputs[digest] = data
+        while len(_inputs) > _INPUTS_KEPT:
+            _inputs.pop(next(iter(_inputs)))
+    return data
 
 
 class Heartbeat:
@@ -87,7 +109,9 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> di
     """Run one unit described by `payload` and return ``{"film": b64, "worker": name}``.
 
     `payload`: ``job_id``, ``index``, ``scene_hash``, ``spec`` (a RenderSpec
-    dict), ``unit`` (a Unit dict) and ``lease_seconds`` (the heartbeat's TTL).
+    dict), ``unit`` (a Unit dict), ``lease_seconds`` (the heartbeat's TTL)
+    and ``inputs`` (unit index -> SHA-256 of the film bytes it needs, published
+    in Redis by the service).
     """
     job_id, index, scene = payload["job_id"], int(payload["index"]), payload["scene_hash"]
     if client.exists(cancel_key(job_id)):
@@ -104,7 +128,9 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> di
     try:
         with Heartbeat(client, heartbeat_key(job_id, index), float(payload["lease_seconds"]),
                        worker):
-            film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"])
+            inputs = {int(i): _fetch_input(client, digest)
+                      for i, digest in (payload.get("inputs") or {}).items()}
+            film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs)
         stats = PartialFilm.stats_from_bytes(film)
     finally:
         presence.unit_finished(client, worker, stats)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Literal, Sequence
 
@@ -23,6 +23,9 @@ class Ticket:
     spec: dict
     unit: dict
     priority: int = 0  # the job's; higher first (executors may pass it to the broker)
+    # The film bytes of the units this one needs (a DAG job's photon map,
+    # bootstrap, radiosity solution...), by unit index; empty for tile units.
+    inputs: dict[int, bytes] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

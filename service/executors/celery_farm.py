@@ -14,6 +14,7 @@ and since units are deterministic a late duplicate changes nothing.
 from __future__ import annotations
 
 import base64
+import hashlib
 import logging
 import time
 import uuid
@@ -23,7 +24,7 @@ from typing import Any, Callable, Sequence
 import redis
 
 from worker.celery_app import create_celery_app
-from worker.keys import QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, scene_key
+from worker.keys import QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key
 from worker.presence import read_workers
 
 from ..settings import Settings
@@ -34,6 +35,7 @@ __all__ = ["CeleryExecutor"]
 log = logging.getLogger(__name__)
 
 SCENE_TTL = 7 * 24 * 3600  # refreshed whenever a unit of the scene is enqueued
+INPUT_TTL = 24 * 3600  # refreshed whenever a unit needing the input is enqueued
 CANCEL_TTL = 24 * 3600
 PRIORITY_SEP = "\x06\x16"  # kombu's Redis transport: queue<sep><priority> lists
 PRIORITY_STEPS = (0, 3, 6, 9)  # kombu's default; a message goes to the step at or below
@@ -75,6 +77,18 @@ class CeleryExecutor(Executor):
             self.redis.set(key, self._load_scene_text(scene_hash), ex=SCENE_TTL)
         self._published[scene_hash] = now
 
+    def _publish_inputs(self, inputs: dict[int, bytes]) -> dict[str, str]:
+        """Put each input's bytes in Redis under its SHA-256 (once; a DAG's
+        tiles share one photon map or solution) and return index -> digest."""
+        digests = {}
+        for index, data in inputs.items():
+            digest = hashlib.sha256(data).hexdigest()
+            key = input_key(digest)
+            if not self.redis.expire(key, INPUT_TTL):
+                self.redis.set(key, data, ex=INPUT_TTL)
+            digests[str(index)] = digest
+        return digests
+
     def submit(self, ticket: Ticket) -> str:
         self._publish_scene(ticket.scene_hash)
         if ticket.job_id not in self._uncanceled:  # a retried or requeued job runs again
@@ -85,7 +99,8 @@ class CeleryExecutor(Executor):
         task_id = uuid.uuid4().hex
         payload = {"job_id": ticket.job_id, "index": ticket.index,
                    "scene_hash": ticket.scene_hash, "spec": ticket.spec, "unit": ticket.unit,
-                   "lease_seconds": self.lease_seconds}
+                   "lease_seconds": self.lease_seconds,
+                   "inputs": self._publish_inputs(ticket.inputs)}
         self.app.send_task(TASK_RENDER_UNIT, args=[payload], queue=QUEUE, task_id=task_id,
                            priority=redis_priority(ticket.priority))
         return task_id

@@ -71,7 +71,7 @@ class LocalExecutor(Executor):
         task_id = uuid.uuid4().hex
         tag = next(self._tags)
         future = self._pool.submit(ticket.scene_hash, self._scene(ticket.scene_hash), ticket.spec,
-                                   ticket.unit, tag=tag)
+                                   ticket.unit, tag=tag, inputs=ticket.inputs or None)
         future.add_done_callback(lambda _future: self._progress())
         with self._lock:
             self._futures[task_id] = future
