@@ -68,7 +68,7 @@ export function jobView(root, jobId) {
         h("div.panel", {}, h("h2", {}, "Units"),
           h("div.panel-body", {}, unitsHead,
             h("div.unit-table", {}, h("table.grid#units-table", {},
-              h("thead", {}, h("tr", {}, ["#", "Pass", "Tile", "Samples", "State", "Worker", "Attempts",
+              h("thead", {}, h("tr", {}, ["#", "Phase", "Region", "Samples", "State", "Worker", "Attempts",
                 "Render time", "Error"].map((t) => h("th", {}, t)))), unitsBody))))),
       h("div.side", {},
         h("div.panel", {}, h("h2", {}, "Progress"), progressBox),
@@ -210,6 +210,7 @@ export function jobView(root, jobId) {
     const groups = new Map();
     for (const u of units.values()) {
       const r = u.region;
+      if (r.x1 <= r.x0 || r.y1 <= r.y0) continue; // a prepass (photon map, solve): no region
       const key = `${r.x0},${r.y0},${r.x1},${r.y1}`;
       if (!groups.has(key)) groups.set(key, []);
       groups.get(key).push(u);
@@ -264,7 +265,27 @@ export function jobView(root, jobId) {
         ["started", fmt.time(job.started)],
         ["finished", fmt.time(job.finished)],
       ]),
+      phasesBox(),
       job.error ? h("div.error-box#job-error", {}, job.error) : null);
+  }
+
+  // The phases of a DAG job (prepass -> units -> ..., renderer/plan.py): per unit
+  // kind, in the order its first stage runs, how many of its units are done.
+  function phasesBox() {
+    const phases = new Map();
+    for (const u of [...units.values()].sort((a, b) => a.stage - b.stage || a.index - b.index)) {
+      if (!phases.has(u.kind)) phases.set(u.kind, { done: 0, total: 0, running: 0 });
+      const p = phases.get(u.kind);
+      p.total += 1;
+      if (u.state === "done") p.done += 1;
+      if (u.state === "running") p.running += 1;
+    }
+    if (phases.size < 2) return null;
+    return h("div.phases#phases", {}, h("h3", {}, "Phases"),
+      [...phases].map(([kind, p]) => h("div.phase", { "data-phase": kind },
+        h("span.phase-name", {}, kind),
+        progressBar(p.done / p.total, `${p.done} / ${p.total}${p.running ? ` · ${p.running} running` : ""}`,
+          p.done === p.total ? "done" : p.running ? "running" : "queued", false))));
   }
 
   function renderStats() {
@@ -337,7 +358,8 @@ export function jobView(root, jobId) {
     const shown = [...units.values()].filter((u) => unitFilter === "all" || u.state === unitFilter)
       .sort((a, b) => a.index - b.index).slice(0, 1000);
     replace(unitsBody, shown.length ? shown.map((u) => h("tr", { "data-unit": u.index },
-      h("td.num", {}, u.index), h("td.num", {}, u.region.pass),
+      h("td.num", {}, u.index),
+      h("td", {}, u.kind === "tile" ? `pass ${u.region.pass}` : `${u.kind} (stage ${u.stage})`),
       h("td.mono", {}, `${u.region.x0},${u.region.y0}–${u.region.x1},${u.region.y1}`),
       h("td.mono", {}, `${u.region.sample_start}–${u.region.sample_end}`),
       h("td", {}, badge(u.state)), h("td.mono", {}, u.worker || "–"),
@@ -372,6 +394,7 @@ export function jobView(root, jobId) {
     requestAnimationFrame(() => {
       unitsDirty = false;
       renderTiles(); renderUnits(); renderWorkers(); renderActions();
+      if (job) renderProgress(); // the phases
     });
   }
 
