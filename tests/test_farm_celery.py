@@ -30,10 +30,17 @@ def run_job(client, body: dict, exr_path, timeout: float = 300.0) -> dict:
 
 
 # One job per kernel family (the path tracers, the rasterizer) and a
-# low-discrepancy sampler: each must come out of both executors bit for bit.
+# low-discrepancy sampler, and every method that plans a DAG (their units
+# carry other units' films: photon maps, a bootstrap, a radiosity solution):
+# each must come out of both executors bit for bit.
 FAMILIES = [dict(TINY, spp=8, tile_size=16),
             dict(TINY, method="raster", spp=4, tile_size=16),
-            dict(TINY, method="path-onesample", sampler="sobol", spp=8, tile_size=16)]
+            dict(TINY, method="path-onesample", sampler="sobol", spp=8, tile_size=16),
+            dict(TINY, method="light", spp=4, progressive=False),
+            dict(TINY, method="bdpt", spp=4, tile_size=16, progressive=False),
+            dict(TINY, method="mlt", spp=4, progressive=False),
+            dict(TINY, method="photon", spp=3, tile_size=16, progressive=False),
+            dict(TINY, method="radiosity", spp=2, tile_size=16, progressive=False)]
 
 
 def test01_local_pool_and_celery_render_bit_identical_images(local_client, redis_url,
@@ -50,7 +57,8 @@ def test01_local_pool_and_celery_render_bit_identical_images(local_client, redis
         units = client.get(f"/jobs/{farm[0]['id']}/units").json()
     assert {u["worker"] for u in units} == {f"rayfarm-{worker.pid}@{_nodehost(units)}"}
     assert farm[0]["samples"] == local[0]["samples"] == 32 * 32 * 8
-    for i in range(len(FAMILIES)):
+    for i, body in enumerate(FAMILIES):
+        assert farm[i]["samples"] == local[i]["samples"] == 32 * 32 * body["spp"], body
         assert_bit_identical(channels_of(tmp_path / f"local{i}.exr"),
                              channels_of(tmp_path / f"celery{i}.exr"))
 

@@ -1,0 +1,54 @@
+"""Jobs whose method plans a DAG, through the service (embedded executor):
+units of a later stage are enqueued only after the units they need are done,
+the API shows each unit's phase, and the EXR equals the renderer's own
+in-process run of the same DAG bit for bit."""
+
+from __future__ import annotations
+
+from datetime import datetime
+
+import numpy as np
+import pytest
+
+from renderer import RenderSpec, load_scene, render_serial
+
+from conftest import TINY, channels_of, get_json, poll_job, submit
+
+DAG_BODIES = {
+    "photon": dict(TINY, method="photon", spp=3, tile_size=16, progressive=False),
+    "radiosity": dict(TINY, method="radiosity", spp=2, tile_size=16, progressive=False),
+    "mlt": dict(TINY, method="mlt", spp=4, progressive=False),
+}
+
+
+def _time(value: str) -> datetime:
+    return datetime.fromisoformat(value.replace("Z", "+00:00"))
+
+
+@pytest.mark.parametrize("method", sorted(DAG_BODIES))
+def test01_dag_units_wait_for_their_needs_and_the_image_matches_the_renderer(
+        method, local_client, tmp_path):
+    body = DAG_BODIES[method]
+    get = get_json(local_client)
+    job = poll_job(get, submit(local_client, body)["id"])
+    assert job["status"] == "done", job
+    units = get(f"/jobs/{job['id']}/units")
+    assert len({u["kind"] for u in units}) >= 2, "a DAG job has more than one phase"
+    by_index = {u["index"]: u for u in units}
+    for u in units:
+        for need in u["needs"]:
+            assert by_index[need]["stage"] < u["stage"]
+            # Enqueued only once what it needs had finished.
+            assert _time(u["enqueued_at"]) >= _time(by_index[need]["finished_at"]), (u, need)
+    assert job["samples"] == body["width"] * body["height"] * body["spp"]
+
+    exr = tmp_path / f"{method}.exr"
+    exr.write_bytes(local_client.get(job["result_url"]).content)
+    got = channels_of(exr)
+    spec = RenderSpec(**{k: v for k, v in body.items() if k not in ("scene", "progressive")})
+    film = render_serial(load_scene(body["scene"]), spec)
+    mean = film.mean().astype(np.float32)
+    var = film.variance_of_mean().astype(np.float32)
+    for c, name in enumerate("RGB"):
+        assert got[name].tobytes() == np.ascontiguousarray(mean[..., c]).tobytes(), name
+        assert got[f"var.{name}"].tobytes() == np.ascontiguousarray(var[..., c]).tobytes(), name
