@@ -279,3 +279,20 @@ def test08_mlt_kernel_is_an_unbiased_one_strategy_estimator():
     assert z_pass_rate(ref_mean, ref_var, mean, var) == 1.0
     for scale in (0.9, 1.1):
         assert z_pass_rate(ref_mean, ref_var, mean, var, scale) < 1.0
+
+
+def test09_bdpt_agrees_with_path_mis_through_mirror_glass_and_gloss():
+    """The specular scene (area light only: `path-mis` cannot reach a point
+    light through glass, BDPT can) on 4 x 4 blocks: delta vertices, the
+    adjoint dielectric and the GGX pdfs in both directions."""
+    doc = json.loads(json.dumps(_specular_scene().doc))
+    doc["emitters"] = []
+    scene = build_scene(resolve_document(doc))
+    kw = dict(depth=4, width=16, height=16)
+    ref = block_stats(run_plan(scene, RenderSpec(method="path-mis", spp=2048, seed=1, **kw)),
+                      16, 16, 4)
+    got = block_stats(run_plan(scene, RenderSpec(method="bdpt", spp=256, seed=2, tile_size=2,
+                                                 **kw)), 16, 16, 4)
+    assert z_pass_rate(*ref, *got) == 1.0
+    for scale in (0.85, 1.15):
+        assert z_pass_rate(*ref, *got, scale) < 1.0
