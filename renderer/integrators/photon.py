@@ -34,7 +34,7 @@ in `path-mis`.
 
 Radius: the `radius` option, or (0, auto) 1/100 of the scene's bounding box
 diagonal. Photons per iteration: `photons`, or (0, auto) pbrt's default of
-one per pixel with at least 4096.
+one per pixel with at least 16384.
 
 Farm plan (DAG, family "photons", phases ("photons", "gather")): iterations
 are grouped `iterations_per_unit` at a time (0 = auto: at most 16 groups;
@@ -74,7 +74,7 @@ encodes weight = n, sum = n L and sum_sq = n L^2 + (s2 - s1^2 / n), so
 (+inf for n = 1).
 
 `mode=photonmap` is Jensen's classic photon map: one photon pass of
-`photons` photons (0 = auto: 16 per pixel, at least 16384), then gather tiles
+`photons` photons (0 = auto: 4 per pixel, at least 65536), then gather tiles
 with spp camera samples per pixel. The photon map is *visualised directly*
 at the first diffuse or glossy hit (no final gather): L = emission along the
 specular chain + direct light by light sampling + the k-nearest-neighbour
@@ -550,8 +550,8 @@ def photons_per_iteration(spec, options: dict | None = None) -> int:
     if options["photons"] > 0:
         return int(options["photons"])
     if options["mode"] == PHOTONMAP:
-        return max(16384, 16 * spec.width * spec.height)
-    return max(4096, spec.width * spec.height)
+        return max(65536, 4 * spec.width * spec.height)
+    return max(16384, spec.width * spec.height)
 
 
 def initial_radius(scene, options: dict) -> float:
@@ -787,7 +787,7 @@ register_method(Method(
                "iterations); photonmap: one photon pass, k-NN estimate at the first diffuse "
                "hit (direct visualisation, no final gather)", (SPPM, PHOTONMAP)),
         Option("photons", int, 0, "photons per iteration (sppm) or in the map (photonmap); "
-               "0 = auto: one per pixel, at least 4096 (sppm); 16 per pixel, at least 16384 "
+               "0 = auto: one per pixel, at least 16384 (sppm); 4 per pixel, at least 65536 "
                "(photonmap)"),
         Option("radius", float, 0.0, "initial gather radius (sppm) or maximum k-NN search "
                "radius (photonmap) in scene units; 0 = auto: 1/100 (sppm) or 1/20 "
