@@ -606,7 +606,7 @@ def plan_photon(spec, progressive: bool = False) -> list[Unit]:
             for a, b in _photon_ranges(n_photons):
                 needs.append(len(units))
                 units.append(Unit(len(units), 0, 0, 0, 0, it * n_photons + a, it * n_photons + b,
-                                  it, 2 * gi, "photons"))
+                                  gi, 2 * gi, "photons"))
         last = i1 == spec.spp
         current = []
         for ti, (x0, y0, x1, y1) in enumerate(tiles):
@@ -622,6 +622,8 @@ def plan_photon(spec, progressive: bool = False) -> list[Unit]:
 
 def _run_photons(scene, spec, unit, options) -> PartialFilm:
     n = unit.sample_end - unit.sample_start
+    # photon units never straddle iterations (photonmap: one "iteration" 0)
+    iteration = unit.sample_start // photons_per_iteration(spec, options)
     depth = spec.depth
     cap = max(16, n * max(1, min(depth - 1, 4)))
     stack = np.empty(STACK_SIZE, np.int64)
@@ -640,7 +642,7 @@ def _run_photons(scene, spec, unit, options) -> PartialFilm:
                      "photon_dir": dirs[:count].astype(np.float32),
                      "photon_power": power[:count].astype(np.float32),
                      "photon_k": hits[:count].copy(),
-                     "iteration": np.array([unit.pass_index], np.int64)}
+                     "iteration": np.array([iteration], np.int64)}
     film.stats.update(samples=0, rays=int(rays), photons=n)
     return film
 
