@@ -71,7 +71,12 @@ progressive estimate has about the variance of the plain average of the X_i
 the finite radius (which vanishes as n grows). The last tile's film
 encodes weight = n, sum = n L and sum_sq = n L^2 + (s2 - s1^2 / n), so
 `Film.mean()` returns L and `Film.variance_of_mean()` returns that estimate
-(+inf for n = 1).
+(+inf for n = 1). Measured over 24 seeds (16x16, 16 iterations, depth 3):
+estimated / empirical per-pixel variance 1.02 (furnace-point) and 0.86
+(cornell-box, median 1.04). Pixels are not independent (one photon path
+deposits at several places, neighbouring visible points share photons), so
+the sum of pixel variances underestimates the variance of an image average
+(by 1.2x on the furnace, 1.7x on cornell-box in those runs).
 
 `mode=photonmap` is Jensen's classic photon map: one photon pass of
 `photons` photons (0 = auto: 4 per pixel, at least 65536), then gather tiles
