@@ -85,7 +85,7 @@ at the first diffuse or glossy hit (no final gather): L = emission along the
 specular chain + direct light by light sampling + the k-nearest-neighbour
 density estimate of indirect light, sum f * power / (photons * pi r_k^2),
 with the `k` nearest front-side photons within the maximum search radius
-`radius` (0 = auto: 1/20 of the scene diagonal; r_k = that radius if fewer
+`radius` (0 = auto: 1/40 of the scene diagonal; r_k = that radius if fewer
 than k photons are found). It is biased and not consistent at a fixed photon
 count; the film's variance is the camera samples' variance given the photon
 map (the photon map's own noise is a fixed error pattern and is not in it).
@@ -546,7 +546,11 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, smp, depth,
 # ------------------------------------------------------------ plumbing
 
 def _options(spec) -> dict:
-    return METHODS[spec.method].check_options(spec.options)
+    """The checked options, converted to their declared types (the CLI's
+    --option KEY=VALUE passes strings; check_options does not convert)."""
+    method = METHODS[spec.method]
+    options = method.check_options(spec.options)
+    return {o.name: o.type(options[o.name]) for o in method.options}
 
 
 def photons_per_iteration(spec, options: dict | None = None) -> int:
@@ -561,12 +565,12 @@ def photons_per_iteration(spec, options: dict | None = None) -> int:
 
 def initial_radius(scene, options: dict) -> float:
     """The `radius` option, or (0) a fraction of the scene's bounding box
-    diagonal: 1/100 for SPPM's initial radius, 1/20 for the k-NN search."""
+    diagonal: 1/100 for SPPM's initial radius, 1/40 for the k-NN search."""
     if options["radius"] > 0:
         return float(options["radius"])
     box = scene.arrays.bvh_nodes[0]
     diag = float(np.linalg.norm(box[3:6] - box[0:3]))
-    return diag * (0.05 if options["mode"] == PHOTONMAP else 0.01)
+    return diag * (0.025 if options["mode"] == PHOTONMAP else 0.01)
 
 
 def _iterations_per_unit(spec, options: dict) -> int:
@@ -797,7 +801,7 @@ register_method(Method(
                "0 = auto: one per pixel, at least 16384 (sppm); 4 per pixel, at least 65536 "
                "(photonmap)"),
         Option("radius", float, 0.0, "initial gather radius (sppm) or maximum k-NN search "
-               "radius (photonmap) in scene units; 0 = auto: 1/100 (sppm) or 1/20 "
+               "radius (photonmap) in scene units; 0 = auto: 1/100 (sppm) or 1/40 "
                "(photonmap) of the scene's bounding box diagonal"),
         Option("k", int, 64, "photonmap: photons of the k-nearest-neighbour estimate"),
         Option("iterations_per_unit", int, 0, "sppm: iterations per gather unit; 0 = auto "
