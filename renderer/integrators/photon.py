@@ -50,6 +50,13 @@ tile size); only the last group's gather tiles carry pixels, so the merge
 (plain addition) sees each pixel exactly once. `stats["samples"]` of a gather
 unit is pixels x iterations, so a job totals width * height * spp.
 
+Data volume: a photon record is 40 bytes (float32 position, direction and
+power, int32 k); cornell-box at depth 5 stores about one record per emitted
+photon (2.7 MB per 65536-photon unit). Every gather tile of a group reads all
+of the group's photon units, so a 256x256, 256-iteration job with 64-pixel
+tiles moves about 16 x 16 x 43 MB = 11 GB of inputs to gather units and
+stores 0.7 GB of photon results; larger tiles divide the first figure.
+
 Gather acceleration: a uniform hash grid over the photons (pbrt-v3 hashes
 visible points instead), cell size = the initial radius (radii only shrink,
 so a visible point's sphere overlaps at most 2x2x2 cells), photons sorted
