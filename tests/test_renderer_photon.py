@@ -297,3 +297,24 @@ def test10_specular_chains_and_caustics_agree_with_path_mis():
     (pm, pv), (rm, rv) = blocks(film), blocks(ref)
     z = (pm - rm) / np.sqrt(pv + rv)
     assert np.all(np.abs(z) <= Z), z[..., 0]
+
+
+def test11_variance_of_the_estimate_is_calibrated():
+    """var.R/G/B: the per-pixel variance from the per-iteration estimates
+    matches the spread of the estimate over independent seeds on the
+    furnace. With S seeds and P pixels the empirical variance's mean has a
+    relative sd of about sqrt(2 / (S - 1) / P), the estimated one
+    sqrt(2 / (n - 1) / (S P)) with n iterations."""
+    scene = load_scene("furnace-point")
+    seeds, n, side = 16, 16, 8
+    means, variances = [], []
+    for seed in range(seeds):
+        film = render_serial(scene, spec(spp=n, depth=3, width=side, height=side, seed=200 + seed,
+                                         options={"photons": 4096}))
+        means.append(film.mean()[..., 0])
+        variances.append(film.variance_of_mean()[..., 0])
+    empirical = np.var(np.array(means), axis=0, ddof=1).mean()
+    estimated = np.array(variances).mean()
+    p = side * side
+    sd = math.sqrt(2 / (seeds - 1) / p + 2 / (n - 1) / (seeds * p))
+    assert abs(estimated / empirical - 1) <= Z * sd, (estimated, empirical, sd)
