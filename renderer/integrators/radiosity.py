@@ -6,7 +6,7 @@
 | `form_factors` | str | `montecarlo` | how F is estimated: Monte Carlo ray casting with visibility (the only one so far) |
 | `ff_rays` | int | 512 | form-factor rays (and light samples) per patch |
 | `solver` | str | `jacobi` | `jacobi` (one bounce per iteration: honours `depth`), `gauss-seidel`, `progressive` (Southwell shooting) |
-| `tolerance` | float | 1e-4 | stop when an iteration changes B by at most tolerance x max B (progressive: when the largest unshot power is tolerance x the first) |
+| `tolerance` | float | 1e-4 | stop when an iteration changes B by at most tolerance x the largest reflected radiosity max(B - E) (progressive: when the largest unshot power is tolerance x the first) |
 | `direct` | str | `sampled` | first bounce: `sampled` = light sampling with shadow rays from every patch (area and point lights), `formfactor` = emitting patches shine through F like any patch (the textbook; point lights still sampled) |
 | `final_gather` | str | `off` | `on`: at the visible diffuse point, emission + light sampling + one cosine-sampled ray into the patch solution's reflected part |
 
@@ -255,8 +255,13 @@ def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
     else:
         y = source - offset
         unshot = y.copy()
-        iterations = solve_progressive(hits, rho, patches.area, source, offset, tol,
-                                       1000 * len(emit) + 1000, y, unshot)
+        src = np.repeat(np.arange(len(emit), dtype=np.int32), hits.shape[1])
+        dst = hits.ravel()
+        order = np.argsort(dst, kind="stable")
+        order = order[dst[order] >= 0]
+        col_start = np.searchsorted(dst[order], np.arange(len(emit) + 1)).astype(np.int64)
+        iterations = solve_progressive(col_start, np.ascontiguousarray(src[order]), hits.shape[1],
+                                       rho, patches.area, tol, 1000 * len(emit) + 1000, y, unshot)
         history = np.stack([emit, y + offset])
     t3 = time.perf_counter()
     return history, {"patches": len(emit), "rays": rays, "iterations": int(iterations),

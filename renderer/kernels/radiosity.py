@@ -180,12 +180,13 @@ def _jacobi_step(hits, rho, source, offset, history, k):
 
 @kernel
 def _change(history, k):
-    """(max |B(k+1) - B(k)|, max |B(k+1)|) over all entries."""
+    """(max |B(k+1) - B(k)|, max |B(k+1) - B(0)|) over all entries: the
+    change against the reflected radiosity (emitters would dwarf it)."""
     d, m = 0.0, 0.0
     for i in range(history.shape[1]):
         for c in range(3):
             d = max(d, abs(history[k + 1, i, c] - history[k, i, c]))
-            m = max(m, abs(history[k + 1, i, c]))
+            m = max(m, abs(history[k + 1, i, c] - history[0, i, c]))
     return d, m
 
 
@@ -195,7 +196,7 @@ def solve_jacobi(hits, rho, emit, source, offset, tol, history):
     emit: iteration k adds the k-th bounce, so history[k] is the solution
     with at most k reflections (the depth convention). Stops after
     history.shape[0] - 1 iterations or when max|B(k+1) - B(k)| <= tol
-    max|B(k+1)|; returns the last k written."""
+    max|B(k+1) - E|; returns the last k written."""
     for i in range(emit.shape[0]):
         for c in range(3):
             history[0, i, c] = emit[i, c]
@@ -232,17 +233,17 @@ def solve_gauss_seidel(hits, rho, source, offset, tol, max_sweeps, b):
 
 
 @kernel
-def solve_progressive(hits, rho, area, source, offset, tol, max_shots, y, unshot):
+def solve_progressive(col_start, col_src, n_rays, rho, area, tol, max_shots, y, unshot):
     """Progressive refinement (Cohen et al. 1988, Southwell shooting) of
     Y = S + rho F Y (Y = B - offset, S = source - offset): `y` and `unshot`
-    both start at S. The patch j with the most
-    unshot power (sum over channels of unshot_j A_j) shoots along its own
-    rays: a ray of j reaching i adds rho_i unshot_j A_j / (A_i n) to i (the
-    reciprocity A_i F_ij = A_j F_ji turns j's row into i's gathering
-    coefficient). Stops when the largest unshot power is <= tol times the
-    first one; returns the shots done."""
-    n = hits.shape[1]
+    both start at S. The patch j with the most unshot power (sum over
+    channels of unshot_j A_j) shoots: every patch i gains rho_i F_ij unshot_j,
+    with F_ij from i's own rays (the transposed hit lists: col_src[col_start[j]
+    : col_start[j + 1]] are the patches one of whose rays reached j, once per
+    ray), so all three solvers solve the same system. Stops when the largest
+    unshot power is <= tol times the first one; returns the shots done."""
     first = -1.0
+    inv_n = 1.0 / n_rays
     for shot in range(max_shots):
         best, best_p = -1, -1.0
         for j in range(y.shape[0]):
@@ -254,18 +255,15 @@ def solve_progressive(hits, rho, area, source, offset, tol, max_shots, y, unshot
         if best_p <= tol * first or best_p == 0.0:
             return shot
         j = best
-        ur, ug, ub = unshot[j, 0], unshot[j, 1], unshot[j, 2]
+        ur, ug, ub = unshot[j, 0] * inv_n, unshot[j, 1] * inv_n, unshot[j, 2] * inv_n
         unshot[j, 0], unshot[j, 1], unshot[j, 2] = 0.0, 0.0, 0.0
-        scale = area[j] / n
-        for s in range(n):
-            i = hits[j, s]
-            if i >= 0:
-                k = scale / area[i]
-                dr, dg, db = rho[i, 0] * ur * k, rho[i, 1] * ug * k, rho[i, 2] * ub * k
-                y[i, 0] += dr
-                y[i, 1] += dg
-                y[i, 2] += db
-                unshot[i, 0] += dr
-                unshot[i, 1] += dg
-                unshot[i, 2] += db
+        for e in range(col_start[j], col_start[j + 1]):
+            i = col_src[e]
+            dr, dg, db = rho[i, 0] * ur, rho[i, 1] * ug, rho[i, 2] * ub
+            y[i, 0] += dr
+            y[i, 1] += dg
+            y[i, 2] += db
+            unshot[i, 0] += dr
+            unshot[i, 1] += dg
+            unshot[i, 2] += db
     return max_shots
