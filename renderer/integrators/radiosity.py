@@ -3,8 +3,9 @@
 | option | type | default | meaning |
 |---|---|---|---|
 | `patch_size` | float | 0.1 | patch edge length in world units (triangles split into k x k, k = ceil(second-longest edge / patch_size); sphere zones about patch_size on a side) |
-| `form_factors` | str | `montecarlo` | how F is estimated: Monte Carlo ray casting with visibility (the only one so far) |
-| `ff_rays` | int | 512 | form-factor rays (and light samples) per patch |
+| `form_factors` | str | `montecarlo` | how F is estimated, both with visibility: `montecarlo` (area-to-area ray casting) or `hemicube` (point-to-area from each patch's centre, rays through the pixels of a hemicube) |
+| `ff_rays` | int | 512 | Monte Carlo form-factor rays per patch, and light samples per patch (both estimators) |
+| `hemicube_res` | int | 32 | hemicube resolution: res x res top face, 4 res x res/2 sides, so 3 res^2 rays per patch |
 | `solver` | str | `jacobi` | `jacobi` (one bounce per iteration: honours `depth`), `gauss-seidel`, `progressive` (Southwell shooting) |
 | `tolerance` | float | 1e-4 | stop when an iteration changes B by at most tolerance x the largest reflected radiosity max(B - E) (progressive: when the largest unshot power is tolerance x the first) |
 | `direct` | str | `sampled` | first bounce: `sampled` = light sampling with shadow rays from every patch (area and point lights), `formfactor` = emitting patches shine through F like any patch (the textbook; point lights still sampled) |
@@ -19,8 +20,13 @@ and a constant radiosity B_i (W/m^2), solving
 
     B = E + D + rho F (B - X)
 
-F is estimated by ray casting (kernels/radiosity.py): the fraction of
-cosine-distributed rays from uniform points of i that reach the front of j.
+F is estimated by ray casting (kernels/radiosity.py): Monte Carlo, the
+fraction of cosine-distributed rays from uniform points of i that reach the
+front of j (unbiased for the area-to-area F_ij; rows of a closed scene sum
+to 1 exactly; reciprocity A_i F_ij = A_j F_ji holds only within the noise:
+we do not symmetrise, which would break the row sums), or a hemicube at
+the centre of i whose pixels are ray cast (deterministic, but a
+point-to-area F from one point, with the hemicube's aliasing).
 D is the radiosity reflected straight from the lights, rho x irradiance,
 estimated at the same points by light sampling with shadow rays. With
 `direct=sampled` (default) D covers every light and X = E, so light leaves
@@ -86,6 +92,7 @@ from pathlib import Path
 import numpy as np
 from numba import prange
 
+from ..errors import SpecError
 from ..film import PartialFilm
 from ..kernels import kernel_inline, kernel_parallel
 from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
@@ -215,19 +222,52 @@ def _mesh(scene, patch_size: float) -> Patches:
     return _MESHES[key]
 
 
-def form_factor_hits(scene, patches: Patches, n_rays: int, seed: int, direct: str = "sampled"):
-    """Cast every patch's form-factor rays: (hits (P, n) int32, irradiance
-    from the lights (P, 3), rays traced). F_ij = (hits[i] == j).mean()."""
+def hemicube_directions(res: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pixel-centre directions of a hemicube of `res` x `res` pixels on
+    the top face (and res x res/2 on each side), in the local frame (z along
+    the normal), with their delta form factors normalised to sum to 1:
+    top dA / (pi (x^2 + y^2 + 1)^2), side z dA / (pi (y^2 + z^2 + 1)^2)."""
+    if res < 2 or res % 2:
+        raise ValueError(f"hemicube_res must be an even integer >= 2, got {res}")
+    h = 2.0 / res
+    c = -1.0 + (np.arange(res) + 0.5) * h
+    z = (np.arange(res // 2) + 0.5) * h
+    x, y = np.meshgrid(c, c, indexing="ij")
+    top = np.stack([x.ravel(), y.ravel(), np.ones(res * res)], axis=1)
+    w_top = h * h / (np.pi * (x.ravel() ** 2 + y.ravel() ** 2 + 1) ** 2)
+    u, v = np.meshgrid(c, z, indexing="ij")
+    u, v = u.ravel(), v.ravel()
+    one = np.ones_like(u)
+    sides = [np.stack([one, u, v], 1), np.stack([-one, u, v], 1), np.stack([u, one, v], 1),
+             np.stack([u, -one, v], 1)]
+    w_side = v * h * h / (np.pi * (u ** 2 + v ** 2 + 1) ** 2)
+    dirs = np.concatenate([top, *sides])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    weight = np.concatenate([w_top] + [w_side] * 4)
+    return np.ascontiguousarray(dirs), weight / weight.sum()
+
+
+def form_factor_hits(scene, patches: Patches, options: dict, seed: int):
+    """Cast every patch's form-factor rays: (hits (P, n) int32, weight (n,),
+    irradiance from the lights (P, 3), rays traced), with
+    F_ij = sum of weight[s] over the rays s of i with hits[i, s] == j."""
     p = len(patches.kind)
-    hits = np.empty((p, n_rays), np.int32)
+    n_light = int(options["ff_rays"])
+    if options["form_factors"] == "hemicube":
+        hemicube, weight = hemicube_directions(int(options["hemicube_res"]))
+    else:
+        hemicube = np.zeros((0, 3))
+        weight = np.full(n_light, 1.0 / n_light)
+    hits = np.empty((p, len(weight)), np.int32)
     irradiance = np.zeros((p, 3))
     rays = np.zeros(p, np.int64)
     stacks = np.empty((p, STACK_SIZE), np.int64)
-    mode = DIRECT_ALL if direct == "sampled" else DIRECT_POINT
+    mode = DIRECT_ALL if options["direct"] == "sampled" else DIRECT_POINT
     form_factor_rays(scene.arrays, patches.kind, patches.geo, patches.normal, patches.tri_start,
                      patches.tri_k, patches.cells, patches.sph_start, patches.sph_nz,
-                     patches.sph_nphi, seed, n_rays, mode, hits, irradiance, rays, stacks)
-    return hits, irradiance, int(rays.sum())
+                     patches.sph_nphi, seed, hemicube, n_light, mode, hits, irradiance, rays,
+                     stacks)
+    return hits, weight, irradiance, int(rays.sum())
 
 
 def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
@@ -236,8 +276,7 @@ def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
     t0 = time.perf_counter()
     patches = _mesh(scene, options["patch_size"])
     t1 = time.perf_counter()
-    hits, irradiance, rays = form_factor_hits(scene, patches, int(options["ff_rays"]), seed,
-                                              options["direct"])
+    hits, weight, irradiance, rays = form_factor_hits(scene, patches, options, seed)
     t2 = time.perf_counter()
     emit, rho = patches.emit, patches.rho
     source = np.ascontiguousarray(emit + rho * irradiance)  # E + D
@@ -245,23 +284,26 @@ def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
     tol = float(options["tolerance"])
     if options["solver"] == "jacobi":
         history = np.empty((MAX_DEPTH + 1, len(emit), 3))
-        k = solve_jacobi(hits, rho, emit, source, offset, tol, history)
+        k = solve_jacobi(hits, weight, rho, emit, source, offset, tol, history)
         history = history[:k + 1].copy()
         iterations = k
     elif options["solver"] == "gauss-seidel":
         b = emit.copy()
-        iterations = solve_gauss_seidel(hits, rho, source, offset, tol, 100000, b)
+        iterations = solve_gauss_seidel(hits, weight, rho, source, offset, tol, 100000, b)
         history = np.stack([emit, b])
     else:
         y = source - offset
         unshot = y.copy()
+        # the hit lists transposed: who reaches j, with which ray weight
         src = np.repeat(np.arange(len(emit), dtype=np.int32), hits.shape[1])
+        ray_weight = np.tile(weight, len(emit))
         dst = hits.ravel()
         order = np.argsort(dst, kind="stable")
         order = order[dst[order] >= 0]
         col_start = np.searchsorted(dst[order], np.arange(len(emit) + 1)).astype(np.int64)
-        iterations = solve_progressive(col_start, np.ascontiguousarray(src[order]), hits.shape[1],
-                                       rho, patches.area, tol, 1000 * len(emit) + 1000, y, unshot)
+        iterations = solve_progressive(col_start, np.ascontiguousarray(src[order]),
+                                       np.ascontiguousarray(ray_weight[order]), rho, patches.area,
+                                       tol, 1000 * len(emit) + 1000, y, unshot)
         history = np.stack([emit, y + offset])
     t3 = time.perf_counter()
     return history, {"patches": len(emit), "rays": rays, "iterations": int(iterations),
@@ -271,7 +313,8 @@ def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
 
 # ---------------------------------------------------------------- the cache
 
-SOLUTION_OPTIONS = ("patch_size", "form_factors", "ff_rays", "solver", "tolerance", "direct")
+SOLUTION_OPTIONS = ("patch_size", "form_factors", "ff_rays", "hemicube_res", "solver", "tolerance",
+                    "direct")
 _SOLUTIONS: OrderedDict = OrderedDict()
 LRU_CAPACITY = 4
 
@@ -534,8 +577,23 @@ def plan_radiosity(spec, progressive: bool = False) -> list[Unit]:
     return units
 
 
-def run_radiosity(scene, spec, unit, inputs=None) -> PartialFilm:
+def check_options(spec) -> dict:
+    """The method's options with defaults, numbers checked (SpecError)."""
     options = METHODS[spec.method].check_options(spec.options)
+    if not float(options["patch_size"]) > 0.0:
+        raise SpecError("options.patch_size", f"must be > 0, got {options['patch_size']!r}")
+    if int(options["ff_rays"]) < 1:
+        raise SpecError("options.ff_rays", f"must be >= 1, got {options['ff_rays']!r}")
+    res = int(options["hemicube_res"])
+    if res < 2 or res % 2:
+        raise SpecError("options.hemicube_res", f"must be an even integer >= 2, got {res}")
+    if not float(options["tolerance"]) >= 0.0:
+        raise SpecError("options.tolerance", f"must be >= 0, got {options['tolerance']!r}")
+    return options
+
+
+def run_radiosity(scene, spec, unit, inputs=None) -> PartialFilm:
+    options = check_options(spec)
     if unit.kind == "solve":
         history, stats = solution(scene, options, spec.seed)
         film = PartialFilm.zeros(0, 0, 0, 0)
@@ -571,8 +629,9 @@ register_method(Method(
     options=(
         Option("patch_size", float, 0.1, "patch edge length in world units"),
         Option("form_factors", str, "montecarlo", "form factor estimator: Monte Carlo ray "
-               "casting with visibility", ("montecarlo",)),
-        Option("ff_rays", int, 512, "form-factor rays (and light samples) per patch"),
+               "casting or a ray-cast hemicube, both with visibility", ("montecarlo", "hemicube")),
+        Option("ff_rays", int, 512, "Monte Carlo form-factor rays and light samples per patch"),
+        Option("hemicube_res", int, 32, "hemicube top-face resolution (3 res^2 rays per patch)"),
         Option("solver", str, "jacobi", "jacobi (one bounce per iteration, honours depth), "
                "gauss-seidel or progressive (Southwell shooting)", SOLVERS),
         Option("tolerance", float, 1e-4, "relative change at which the solver stops"),

@@ -6,15 +6,20 @@ sphere (geo = centre, radius, z_lo, z_hi, phi0, phi1, +1 or -1 for the
 front side outwards or inwards; z is the sphere's local z, so the zones are
 equal-area bands split in longitude).
 
-Form factors are estimated by ray casting (gathering form): from patch i,
-`n` rays leave uniformly distributed points of i in cosine-distributed
-directions; the fraction that reaches the front of patch j estimates F_ij
-(the cosine density makes the hit probability exactly F_ij). The rays are
-not stored as a matrix but as their hits: `hits[i, s]` is the patch ray s of
-i reached (-1: nothing, a back side, or a surface that is no patch). Then
-(F X)_i = mean_s X[hits[i, s]], O(n) per patch whatever the patch count.
-Directions are stratified on a sqrt(n) x sqrt(n) grid (proportional
-allocation: never more variance than independent rays).
+Form factors are estimated by ray casting (gathering form). Monte Carlo:
+from patch i, `n` rays leave uniformly distributed points of i in
+cosine-distributed directions; the fraction that reaches the front of patch
+j estimates F_ij (the cosine density makes the hit probability exactly
+F_ij). Directions are stratified on a sqrt(n) x sqrt(n) grid (proportional
+allocation: never more variance than independent rays). Hemicube (Cohen and
+Greenberg 1985): rays from the centre of i through the pixel centres of a
+hemicube, each weighing that pixel's delta form factor (an item buffer
+made by ray casting instead of rasterisation). The rays are not stored as a
+matrix but as their hits: `hits[i, s]` is the patch ray s of i reached (-1:
+nothing, a back side, or a surface that is no patch), and ray s weighs
+`weight[s]` (1/n, or the hemicube's delta form factors, summing to 1). Then
+(F X)_i = sum_s weight[s] X[hits[i, s]], O(n) per patch whatever the patch
+count.
 """
 
 import math
@@ -95,78 +100,113 @@ def patch_point(kind, geo, normal, i, u1, u2):
     return geo[i, 0] + r * lx, geo[i, 1] + r * ly, geo[i, 2] + r * z, f * lx, f * ly, f * z
 
 
+@kernel
+def patch_centre(kind, geo, normal, i):
+    """The centroid of patch i (of a sphere zone: its middle in z and phi)
+    and the front normal there: where a hemicube stands."""
+    if kind[i] == PATCH_TRI:
+        return (geo[i, 0] + (geo[i, 3] + geo[i, 6]) / 3.0,
+                geo[i, 1] + (geo[i, 4] + geo[i, 7]) / 3.0,
+                geo[i, 2] + (geo[i, 5] + geo[i, 8]) / 3.0,
+                normal[i, 0], normal[i, 1], normal[i, 2])
+    return patch_point(kind, geo, normal, i, 0.5, 0.5)
+
+
+@kernel
+def _trace_patch(sc, stack, tri_start, tri_k, cells, sph_start, sph_nz, sph_nphi,
+                 ox, oy, oz, dx, dy, dz):
+    """The patch whose front the ray meets first, or -1."""
+    t, prim = intersect_arrays(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph,
+                               stack, ox, oy, oz, dx, dy, dz, np.inf, False)
+    if prim < 0:
+        return -1
+    hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
+    mx, my, mz, mat, light = surface_at_arrays(sc.tri_n, sc.tri_mat, sc.tri_light, sc.sph,
+                                               sc.sph_flip, sc.sph_mat, sc.sph_light,
+                                               prim, hx, hy, hz)
+    if mx * dx + my * dy + mz * dz >= 0.0:  # the back side reflects nothing
+        return -1
+    return patch_of(sc.tri_isect, tri_start, tri_k, cells, sc.sph, sph_start, sph_nz, sph_nphi,
+                    prim, hx, hy, hz)
+
+
 @kernel_parallel
 def form_factor_rays(sc, kind, geo, normal, tri_start, tri_k, cells, sph_start, sph_nz, sph_nphi,
-                     seed, n_rays, direct, hits, irradiance, rays, stacks):
-    """For every patch i (in parallel; each writes only its own rows): the
-    hits of its `n_rays` form-factor rays, and (direct != DIRECT_NONE) the
-    irradiance from the lights estimated by `n_rays` light samples (one per
-    ray, at the same point) with shadow rays: all lights (DIRECT_ALL) or
-    point lights only (DIRECT_POINT). Random numbers: stream_key(seed,
-    STREAM_RADIOSITY, i), DIMS_PER_RAY dimensions per ray."""
+                     seed, hemicube, n_light, direct, hits, irradiance, rays, stacks):
+    """For every patch i (in parallel; each writes only its own rows):
+    - the hits of its form-factor rays, hits.shape[1] of them: Monte Carlo
+      (hemicube is empty: uniform points, stratified cosine directions) or
+      the hemicube's pixel directions (hemicube (M, 3), local to the patch's
+      frame, all from its centre);
+    - with direct != DIRECT_NONE, the irradiance from the lights estimated
+      by `n_light` light samples at uniform points of i with shadow rays:
+      all lights (DIRECT_ALL) or point lights only (DIRECT_POINT).
+    Random numbers: stream_key(seed, STREAM_RADIOSITY, i), DIMS_PER_RAY
+    dimensions per ray s (the light sample s uses the same dimensions)."""
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n_lights = sc.light_type.shape[0]
+    n_rays = hits.shape[1]
     m = int(math.sqrt(n_rays))
     for i in prange(kind.shape[0]):
         stack = stacks[i]
         key = stream_key(seed, STREAM_RADIOSITY, i)
-        er, eg, eb = 0.0, 0.0, 0.0
         count = 0
+        cx, cy, cz, cnx, cny, cnz = patch_centre(kind, geo, normal, i)
         for s in range(n_rays):
-            base = DIMS_PER_RAY * s
-            px, py, pz, nx, ny, nz = patch_point(kind, geo, normal, i, uniform(key, base),
-                                                 uniform(key, base + 1))
-            u3, u4 = uniform(key, base + 2), uniform(key, base + 3)
-            if s < m * m:  # stratified directions
-                u3 = ((s % m) + u3) / m
-                u4 = ((s // m) + u4) / m
-            lx, ly, lz = cosine_hemisphere(u3, u4)
-            dx, dy, dz = to_world(lx, ly, lz, nx, ny, nz)
+            if hemicube.shape[0] > 0:
+                px, py, pz, nx, ny, nz = cx, cy, cz, cnx, cny, cnz
+                dx, dy, dz = to_world(hemicube[s, 0], hemicube[s, 1], hemicube[s, 2],
+                                      nx, ny, nz)
+            else:
+                base = DIMS_PER_RAY * s
+                px, py, pz, nx, ny, nz = patch_point(kind, geo, normal, i, uniform(key, base),
+                                                     uniform(key, base + 1))
+                u3, u4 = uniform(key, base + 2), uniform(key, base + 3)
+                if s < m * m:  # stratified directions
+                    u3 = ((s % m) + u3) / m
+                    u4 = ((s // m) + u4) / m
+                lx, ly, lz = cosine_hemisphere(u3, u4)
+                dx, dy, dz = to_world(lx, ly, lz, nx, ny, nz)
             ox, oy, oz = offset_origin(px, py, pz, nx, ny, nz, 1.0)
-            t, prim = intersect_arrays(nodes, info, prims, tri, sph, stack, ox, oy, oz,
-                                       dx, dy, dz, np.inf, False)
+            hits[i, s] = _trace_patch(sc, stack, tri_start, tri_k, cells, sph_start, sph_nz,
+                                      sph_nphi, ox, oy, oz, dx, dy, dz)
             count += 1
-            hit = -1
-            if prim >= 0:
-                hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
-                mx, my, mz, mat, light = surface_at_arrays(sc.tri_n, sc.tri_mat, sc.tri_light, sph,
-                                                           sc.sph_flip, sc.sph_mat, sc.sph_light,
-                                                           prim, hx, hy, hz)
-                if mx * dx + my * dy + mz * dz < 0.0:  # the front side
-                    hit = patch_of(tri, tri_start, tri_k, cells, sph, sph_start, sph_nz, sph_nphi,
-                                   prim, hx, hy, hz)
-            hits[i, s] = hit
-            if direct == DIRECT_NONE or n_lights == 0:
-                continue
-            wx, wy, wz, dist, pdf, lr, lg, lb, delta = sample_light(
-                sc, px, py, pz, uniform(key, base + 4), uniform(key, base + 5),
-                uniform(key, base + 6))
-            if direct == DIRECT_POINT and not delta:
-                continue
-            cos_i = wx * nx + wy * ny + wz * nz
-            if pdf <= 0.0 or cos_i <= 0.0:
-                continue
-            # the shadow ray of integrators/path.py: measured from the offset origin
-            qx, qy, qz = px + dist * wx, py + dist * wy, pz + dist * wz
-            sx, sy, sz = qx - ox, qy - oy, qz - oz
-            d = math.sqrt(sx * sx + sy * sy + sz * sz)
-            count += 1
-            if intersect_arrays(nodes, info, prims, tri, sph, stack, ox, oy, oz, sx / d, sy / d,
-                                sz / d, d * (1.0 - 1e-9), True)[1] < 0:
-                w = cos_i / pdf
-                er += lr * w
-                eg += lg * w
-                eb += lb * w
-        irradiance[i, 0] = er / n_rays
-        irradiance[i, 1] = eg / n_rays
-        irradiance[i, 2] = eb / n_rays
+        er, eg, eb = 0.0, 0.0, 0.0
+        if direct != DIRECT_NONE and n_lights > 0:
+            for s in range(n_light):
+                base = DIMS_PER_RAY * s
+                px, py, pz, nx, ny, nz = patch_point(kind, geo, normal, i, uniform(key, base),
+                                                     uniform(key, base + 1))
+                wx, wy, wz, dist, pdf, lr, lg, lb, delta = sample_light(
+                    sc, px, py, pz, uniform(key, base + 4), uniform(key, base + 5),
+                    uniform(key, base + 6))
+                if direct == DIRECT_POINT and not delta:
+                    continue
+                cos_i = wx * nx + wy * ny + wz * nz
+                if pdf <= 0.0 or cos_i <= 0.0:
+                    continue
+                # the shadow ray of integrators/path.py: measured from the offset origin
+                ox, oy, oz = offset_origin(px, py, pz, nx, ny, nz, 1.0)
+                qx, qy, qz = px + dist * wx, py + dist * wy, pz + dist * wz
+                sx, sy, sz = qx - ox, qy - oy, qz - oz
+                d = math.sqrt(sx * sx + sy * sy + sz * sz)
+                count += 1
+                if intersect_arrays(nodes, info, prims, tri, sph, stack, ox, oy, oz, sx / d,
+                                    sy / d, sz / d, d * (1.0 - 1e-9), True)[1] < 0:
+                    w = cos_i / pdf
+                    er += lr * w
+                    eg += lg * w
+                    eb += lb * w
+            er, eg, eb = er / n_light, eg / n_light, eb / n_light
+        irradiance[i, 0] = er
+        irradiance[i, 1] = eg
+        irradiance[i, 2] = eb
         rays[i] = count
 
 
 @kernel_parallel
-def _jacobi_step(hits, rho, source, offset, history, k):
-    """history[k + 1] = source + rho F (history[k] - offset), rows in parallel;
-    returns (max |change|, max |history[k + 1]|)."""
+def _jacobi_step(hits, weight, rho, source, offset, history, k):
+    """history[k + 1] = source + rho F (history[k] - offset), rows in parallel."""
     n = hits.shape[1]
     for i in prange(hits.shape[0]):
         for c in range(3):
@@ -174,8 +214,8 @@ def _jacobi_step(hits, rho, source, offset, history, k):
             for s in range(n):
                 j = hits[i, s]
                 if j >= 0:
-                    acc += history[k, j, c] - offset[j, c]
-            history[k + 1, i, c] = source[i, c] + rho[i, c] * acc / n
+                    acc += weight[s] * (history[k, j, c] - offset[j, c])
+            history[k + 1, i, c] = source[i, c] + rho[i, c] * acc
 
 
 @kernel
@@ -191,7 +231,7 @@ def _change(history, k):
 
 
 @kernel
-def solve_jacobi(hits, rho, emit, source, offset, tol, history):
+def solve_jacobi(hits, weight, rho, emit, source, offset, tol, history):
     """Jacobi iteration B(k+1) = source + rho F (B(k) - offset) from B(0) =
     emit: iteration k adds the k-th bounce, so history[k] is the solution
     with at most k reflections (the depth convention). Stops after
@@ -202,7 +242,7 @@ def solve_jacobi(hits, rho, emit, source, offset, tol, history):
             history[0, i, c] = emit[i, c]
     k_max = history.shape[0] - 1
     for k in range(k_max):
-        _jacobi_step(hits, rho, source, offset, history, k)
+        _jacobi_step(hits, weight, rho, source, offset, history, k)
         d, m = _change(history, k)
         if d <= tol * m:
             return k + 1
@@ -210,7 +250,7 @@ def solve_jacobi(hits, rho, emit, source, offset, tol, history):
 
 
 @kernel
-def solve_gauss_seidel(hits, rho, source, offset, tol, max_sweeps, b):
+def solve_gauss_seidel(hits, weight, rho, source, offset, tol, max_sweeps, b):
     """Gauss-Seidel: b_i = source_i + rho_i (F (b - offset))_i in place, patch
     order, until a sweep changes nothing by more than tol max|b|. `b` holds
     the start value; returns the sweeps done."""
@@ -222,8 +262,8 @@ def solve_gauss_seidel(hits, rho, source, offset, tol, max_sweeps, b):
                 for s in range(hits.shape[1]):
                     j = hits[i, s]
                     if j >= 0:
-                        acc += b[j, c] - offset[j, c]
-                v = source[i, c] + rho[i, c] * acc / hits.shape[1]
+                        acc += weight[s] * (b[j, c] - offset[j, c])
+                v = source[i, c] + rho[i, c] * acc
                 d = max(d, abs(v - b[i, c]))
                 m = max(m, abs(v))
                 b[i, c] = v
@@ -233,17 +273,17 @@ def solve_gauss_seidel(hits, rho, source, offset, tol, max_sweeps, b):
 
 
 @kernel
-def solve_progressive(col_start, col_src, n_rays, rho, area, tol, max_shots, y, unshot):
+def solve_progressive(col_start, col_src, col_weight, rho, area, tol, max_shots, y, unshot):
     """Progressive refinement (Cohen et al. 1988, Southwell shooting) of
     Y = S + rho F Y (Y = B - offset, S = source - offset): `y` and `unshot`
     both start at S. The patch j with the most unshot power (sum over
     channels of unshot_j A_j) shoots: every patch i gains rho_i F_ij unshot_j,
     with F_ij from i's own rays (the transposed hit lists: col_src[col_start[j]
     : col_start[j + 1]] are the patches one of whose rays reached j, once per
-    ray), so all three solvers solve the same system. Stops when the largest
+    ray, with the ray's weight in col_weight), so all three solvers solve the
+    same system. Stops when the largest
     unshot power is <= tol times the first one; returns the shots done."""
     first = -1.0
-    inv_n = 1.0 / n_rays
     for shot in range(max_shots):
         best, best_p = -1, -1.0
         for j in range(y.shape[0]):
@@ -255,11 +295,12 @@ def solve_progressive(col_start, col_src, n_rays, rho, area, tol, max_shots, y, 
         if best_p <= tol * first or best_p == 0.0:
             return shot
         j = best
-        ur, ug, ub = unshot[j, 0] * inv_n, unshot[j, 1] * inv_n, unshot[j, 2] * inv_n
+        ur, ug, ub = unshot[j, 0], unshot[j, 1], unshot[j, 2]
         unshot[j, 0], unshot[j, 1], unshot[j, 2] = 0.0, 0.0, 0.0
         for e in range(col_start[j], col_start[j + 1]):
             i = col_src[e]
-            dr, dg, db = rho[i, 0] * ur, rho[i, 1] * ug, rho[i, 2] * ub
+            w = col_weight[e]
+            dr, dg, db = rho[i, 0] * ur * w, rho[i, 1] * ug * w, rho[i, 2] * ub * w
             y[i, 0] += dr
             y[i, 1] += dg
             y[i, 2] += db
