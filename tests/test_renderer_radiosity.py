@@ -103,29 +103,32 @@ def test02_closed_box_rows_of_form_factors_sum_to_one(estimator):
 
 def test03_form_factors_are_reciprocal_within_their_error():
     """A_I F_IJ = A_J F_JI between the faces of a box whose faces have three
-    different areas (a cube would be reciprocal by symmetry alone)."""
+    different areas (a cube would be reciprocal by symmetry alone). Monte
+    Carlo form factors are reciprocal only in expectation (we do not
+    symmetrise). The variance of A_I F_IJ - A_J F_JI is measured from 16
+    independent replicas (seeds): a t-test per face pair, Sidak-corrected
+    over the 15 pairs at family-wise alpha = 0.01 (|t| < 4.27 with 15 degrees
+    of freedom). The binomial variance p (1 - p) / n, an upper bound for our
+    stratified rays, is 5-10x too wide to be a sharp test."""
     scene = box_scene()
     patches = R.mesh_patches(scene, 0.25)
-    n_rays = 256
-    hits, _, _, _ = R.form_factor_hits(scene, patches, ff_options(rays=n_rays), seed=4)
+    n_rays, replicas = 64, 16
     # faces by their normal: +-x, +-y, +-z
     face = np.argmax(np.abs(patches.normal), axis=1) * 2 + (patches.normal.sum(axis=1) > 0)
-    to_face = np.zeros((len(hits), 6))
-    for f in range(6):
-        to_face[:, f] = np.isin(hits, np.nonzero(face == f)[0]).mean(axis=1)
-    a = patches.area
     pairs = [(i, j) for i in range(6) for j in range(i + 1, 6)]
-    z_crit = 3.29  # two-sided alpha = 0.01 / 15 pairs (Sidak) ~ 3.4; 3.29 is stricter
-    worst = 0.0
-    for fi, fj in pairs:
-        si, sj = face == fi, face == fj
-        ai_fij = (a[si] * to_face[si, fj]).sum()
-        aj_fji = (a[sj] * to_face[sj, fi]).sum()
-        p_i, p_j = to_face[si, fj], to_face[sj, fi]
-        var = (a[si] ** 2 * p_i * (1 - p_i)).sum() / n_rays + (a[sj] ** 2 * p_j * (1 - p_j)).sum() / n_rays
-        z = (ai_fij - aj_fji) / math.sqrt(var)
-        worst = max(worst, abs(z))
-    assert worst < z_crit + 0.15, worst
+    a = patches.area
+    diffs = np.zeros((replicas, len(pairs)))
+    for r in range(replicas):
+        hits, _, _, _ = R.form_factor_hits(scene, patches, ff_options(rays=n_rays), seed=100 + r)
+        hit_face = np.where(hits >= 0, face[np.maximum(hits, 0)], -1)
+        for k, (fi, fj) in enumerate(pairs):
+            si, sj = face == fi, face == fj
+            diffs[r, k] = ((a[si] * (hit_face[si] == fj).mean(axis=1)).sum()
+                           - (a[sj] * (hit_face[sj] == fi).mean(axis=1)).sum())
+    t = diffs.mean(axis=0) / (diffs.std(axis=0, ddof=1) / math.sqrt(replicas))
+    t_crit = 4.27  # two-sided t(15) at alpha = 1 - 0.99^(1/15) = 6.7e-4
+    print(f"largest |t| {np.abs(t).max():.2f} of {len(pairs)} face pairs, critical {t_crit}")
+    assert np.abs(t).max() < t_crit, t
 
 
 def test04_coaxial_unit_disks_one_apart():
