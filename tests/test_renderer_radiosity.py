@@ -275,3 +275,20 @@ def test09_same_bytes_whatever_the_tile_size():
     R.clear_cache()  # solve again: the solution itself is deterministic
     b, _ = render(scene, tile_size=12, **kw)
     assert a.sum.tobytes() == b.sum.tobytes() and a.sum_sq.tobytes() == b.sum_sq.tobytes()
+
+
+def test10_options_are_checked_and_a_lone_tile_finds_its_solution():
+    scene = load_scene("cornell-box")
+    from renderer import SpecError, plan, run_unit
+    for bad in ({"patch_size": 0}, {"ff_rays": 0}, {"hemicube_res": 7}, {"patch_size": 0.001}):
+        spec = RenderSpec(method="radiosity", spp=1, depth=1, width=4, height=4, options=bad)
+        with pytest.raises(SpecError):
+            run_plan(scene, spec)
+    assert R.patch_count(scene, 0.1) == len(R.mesh_patches(scene, 0.1).kind)
+    # the plain tile plan (no solve unit): the tile solves (or finds) the solution itself
+    spec = RenderSpec(method="radiosity", spp=2, depth=2, width=8, height=8, tile_size=8,
+                      options={"patch_size": 0.5, "ff_rays": 16})
+    lone = merge(8, 8, [run_unit(scene, spec, u) for u in plan(spec)])
+    dag, _ = render(scene, spp=2, depth=2, width=8, height=8, tile_size=8,
+                    options={"patch_size": 0.5, "ff_rays": 16})
+    assert lone.sum.tobytes() == dag.sum.tobytes()

@@ -111,6 +111,8 @@ from .path import DIMS_PER_BOUNCE, camera_ray, shadow_ray, u1d, u2d, unit_blocks
 __all__ = ["Patches", "mesh_patches", "solve", "form_factor_hits", "clear_cache"]
 
 MAX_DEPTH = 64  # BOUNDS["depth"][1]: the Jacobi history never needs more
+MAX_PATCHES = 250_000  # the mesh is built in Python: ~15 s at this size
+MAX_HITS = 1 << 28  # patches x rays per patch: 1 GiB of int32 hits
 SOLVERS = ("jacobi", "gauss-seidel", "progressive")
 
 Patches = namedtuple("Patches", [
@@ -129,9 +131,41 @@ Patches = namedtuple("Patches", [
 ])
 
 
+def _tri_k(p: np.ndarray, patch_size: float) -> int:
+    edges = sorted(np.linalg.norm(p[[1, 2, 2]] - p[[0, 0, 1]], axis=1))
+    return max(1, math.ceil(edges[1] / patch_size - 1e-9))
+
+
+def _sphere_grid(r: float, patch_size: float) -> tuple[int, int]:
+    return (max(1, math.ceil(2 * r / patch_size - 1e-9)),
+            max(3, math.ceil(2 * math.pi * r / patch_size - 1e-9)))
+
+
+def _meshed(sc, mat, light) -> bool:
+    return sc.mat_type[mat] == MAT_DIFFUSE or light >= 0
+
+
+def patch_count(scene, patch_size: float) -> int:
+    """How many patches `mesh_patches` would make (cheap: no patch is built)."""
+    sc = scene.arrays
+    n = 0
+    for t in range(len(sc.tri_mat)):
+        if _meshed(sc, sc.tri_mat[t], sc.tri_light[t]) and np.any(sc.tri_n[t]):
+            n += _tri_k(sc.tri_p[t], patch_size) ** 2
+    for s in range(len(sc.sph)):
+        if _meshed(sc, sc.sph_mat[s], sc.sph_light[s]):
+            nz, nphi = _sphere_grid(sc.sph[s, 3], patch_size)
+            n += nz * nphi
+    return n
+
+
 def mesh_patches(scene, patch_size: float) -> Patches:
     """Split the diffuse and emitting primitives of `scene` into patches."""
     sc = scene.arrays
+    expected = patch_count(scene, patch_size)
+    if expected > MAX_PATCHES:
+        raise SpecError("options.patch_size", f"patch_size {patch_size} makes {expected} patches "
+                                              f"(at most {MAX_PATCHES}): choose a larger one")
     kind, geo, normal, area, rho, emit = [], [], [], [], [], []
     n_tri, n_sph = len(sc.tri_mat), len(sc.sph)
     tri_start = np.full(n_tri, -1, np.int32)
@@ -145,15 +179,12 @@ def mesh_patches(scene, patch_size: float) -> Patches:
 
     for t in range(n_tri):
         mat, light = sc.tri_mat[t], sc.tri_light[t]
-        if sc.mat_type[mat] != MAT_DIFFUSE and light < 0:
-            continue
+        if not _meshed(sc, mat, light) or not np.any(sc.tri_n[t]):
+            continue  # a specular surface, or a degenerate triangle
         v0, v1, v2 = sc.tri_p[t]
         e1, e2 = v1 - v0, v2 - v0
         cross = np.cross(e1, e2)
-        if np.linalg.norm(cross) == 0.0:
-            continue
-        edges = sorted([np.linalg.norm(e1), np.linalg.norm(e2), np.linalg.norm(v2 - v1)])
-        k = max(1, math.ceil(edges[1] / patch_size - 1e-9))
+        k = _tri_k(sc.tri_p[t], patch_size)
         albedo, le = material(mat, light)
         tri_start[t], tri_k[t] = len(cells), k
         table = np.full(2 * k * k, -1, np.int32)
@@ -182,11 +213,10 @@ def mesh_patches(scene, patch_size: float) -> Patches:
     sph_nphi = np.ones(n_sph, np.int32)
     for s in range(n_sph):
         mat, light = sc.sph_mat[s], sc.sph_light[s]
-        if sc.mat_type[mat] != MAT_DIFFUSE and light < 0:
+        if not _meshed(sc, mat, light):
             continue
         cx, cy, cz, r = sc.sph[s]
-        nz = max(1, math.ceil(2 * r / patch_size - 1e-9))
-        nphi = max(3, math.ceil(2 * math.pi * r / patch_size - 1e-9))
+        nz, nphi = _sphere_grid(r, patch_size)
         side = -1.0 if sc.sph_flip[s] else 1.0
         albedo, le = material(mat, light)
         sph_start[s], sph_nz[s], sph_nphi[s] = len(kind), nz, nphi
@@ -275,6 +305,11 @@ def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
     stats). Not cached (see `solution`)."""
     t0 = time.perf_counter()
     patches = _mesh(scene, options["patch_size"])
+    n_rays = (3 * int(options["hemicube_res"]) ** 2 if options["form_factors"] == "hemicube"
+              else int(options["ff_rays"]))
+    if len(patches.kind) * n_rays > MAX_HITS:
+        raise SpecError("options", f"{len(patches.kind)} patches x {n_rays} rays per patch "
+                                   f"exceeds {MAX_HITS} stored hits: fewer rays or larger patches")
     t1 = time.perf_counter()
     hits, weight, irradiance, rays = form_factor_hits(scene, patches, options, seed)
     t2 = time.perf_counter()
@@ -601,7 +636,11 @@ def run_radiosity(scene, spec, unit, inputs=None) -> PartialFilm:
         film.stats.update(stats)
         film.stats["samples"] = 0
         return film
-    history = np.ascontiguousarray(inputs[unit.needs[0]].artefact["radiosity"])
+    if unit.needs:
+        history = inputs[unit.needs[0]].artefact["radiosity"]
+    else:  # a tile from the plain tile plan: fetch (or solve) the solution here
+        history = solution(scene, options, spec.seed)[0]
+    history = np.ascontiguousarray(history)
     patches = _mesh(scene, options["patch_size"])
     if history.shape[1] != len(patches.kind):
         raise ValueError(f"radiosity solution has {history.shape[1]} patches, the mesh "
