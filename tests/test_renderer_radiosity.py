@@ -280,11 +280,13 @@ def test09_same_bytes_whatever_the_tile_size():
 def test10_options_are_checked_and_a_lone_tile_finds_its_solution():
     scene = load_scene("cornell-box")
     from renderer import SpecError, plan, run_unit
-    for bad in ({"patch_size": 0}, {"ff_rays": 0}, {"hemicube_res": 7}, {"patch_size": 0.001}):
+    for bad in ({"patch_size": -1}, {"ff_rays": 0}, {"hemicube_res": 7}, {"patch_size": 0.001}):
         spec = RenderSpec(method="radiosity", spp=1, depth=1, width=4, height=4, options=bad)
         with pytest.raises(SpecError):
             run_plan(scene, spec)
     assert R.patch_count(scene, 0.1) == len(R.mesh_patches(scene, 0.1).kind)
+    assert R.check_options(RenderSpec(method="radiosity"), scene)["patch_size"] == \
+        pytest.approx(0.1, rel=0.01)  # auto on a scene of side 2
     # the plain tile plan (no solve unit): the tile solves (or finds) the solution itself
     spec = RenderSpec(method="radiosity", spp=2, depth=2, width=8, height=8, tile_size=8,
                       options={"patch_size": 0.5, "ff_rays": 16})

@@ -2,7 +2,7 @@
 
 | option | type | default | meaning |
 |---|---|---|---|
-| `patch_size` | float | 0.1 | patch edge length in world units (triangles split into k x k, k = ceil(second-longest edge / patch_size); sphere zones about patch_size on a side) |
+| `patch_size` | float | 0 (auto) | patch edge length in world units (triangles split into k x k, k = ceil(second-longest edge / patch_size); sphere zones about patch_size on a side); 0 = the scene's bounding-box diagonal / (20 sqrt 3): 0.1 on cornell-box (a box of side 2), 1.6 on veach-mis |
 | `form_factors` | str | `montecarlo` | how F is estimated, both with visibility: `montecarlo` (area-to-area ray casting) or `hemicube` (point-to-area from each patch's centre, rays through the pixels of a hemicube) |
 | `ff_rays` | int | 512 | Monte Carlo form-factor rays per patch, and light samples per patch (both estimators) |
 | `hemicube_res` | int | 32 | hemicube resolution: res x res top face, 4 res x res/2 sides, so 3 res^2 rays per patch |
@@ -71,7 +71,7 @@ measured bias on cornell-box is in docs/radiosity.md.
 
 Farm plan: unit 0 (kind "solve", a 0x0 region, 0 samples) meshes, casts the
 form-factor rays and solves; its film carries the solution as the artefact
-`radiosity` (B(k), k = 0..K, (K+1, P, 3)). Solutions are cached by (scene
+`radiosity` (B(k), k = 0..min(K, depth), shape (k + 1, P, 3) float64). Solutions are cached by (scene
 hash, solution options, seed, code version) in-process (LRU) and on disk
 under $RAYFARM_CACHE_DIR/radiosity (default ~/.cache/rayfarm/radiosity),
 written atomically, so a second job on the same scene reuses it. Then the
@@ -304,7 +304,7 @@ def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
     """Mesh, cast the form-factor rays and solve: (B(k) history (K+1, P, 3),
     stats). Not cached (see `solution`)."""
     t0 = time.perf_counter()
-    patches = _mesh(scene, options["patch_size"])
+    patches = _mesh(scene, float(options["patch_size"]) or auto_patch_size(scene))
     n_rays = (3 * int(options["hemicube_res"]) ** 2 if options["form_factors"] == "hemicube"
               else int(options["ff_rays"]))
     if len(patches.kind) * n_rays > MAX_HITS:
@@ -612,11 +612,22 @@ def plan_radiosity(spec, progressive: bool = False) -> list[Unit]:
     return units
 
 
-def check_options(spec) -> dict:
-    """The method's options with defaults, numbers checked (SpecError)."""
+def auto_patch_size(scene) -> float:
+    """The default patch size: the bounding-box diagonal / (20 sqrt 3), so a
+    scene as large as a cube of side 2 (cornell-box) gets 0.1."""
+    bounds = scene.arrays.bvh_nodes[0]
+    return float(np.linalg.norm(bounds[3:] - bounds[:3])) / (20.0 * math.sqrt(3.0))
+
+
+def check_options(spec, scene=None) -> dict:
+    """The method's options with defaults, numbers checked (SpecError), and
+    with a scene the automatic patch size resolved."""
     options = METHODS[spec.method].check_options(spec.options)
-    if not float(options["patch_size"]) > 0.0:
-        raise SpecError("options.patch_size", f"must be > 0, got {options['patch_size']!r}")
+    if not float(options["patch_size"]) >= 0.0:
+        raise SpecError("options.patch_size", f"must be > 0 (or 0: auto), got "
+                                              f"{options['patch_size']!r}")
+    if scene is not None and float(options["patch_size"]) == 0.0:
+        options["patch_size"] = auto_patch_size(scene)
     if int(options["ff_rays"]) < 1:
         raise SpecError("options.ff_rays", f"must be >= 1, got {options['ff_rays']!r}")
     res = int(options["hemicube_res"])
@@ -628,11 +639,12 @@ def check_options(spec) -> dict:
 
 
 def run_radiosity(scene, spec, unit, inputs=None) -> PartialFilm:
-    options = check_options(spec)
+    options = check_options(spec, scene)
     if unit.kind == "solve":
         history, stats = solution(scene, options, spec.seed)
         film = PartialFilm.zeros(0, 0, 0, 0)
-        film.artefact = {"radiosity": history}
+        # the tiles read B(k) for k <= depth only: ship no more (the cache keeps all)
+        film.artefact = {"radiosity": np.ascontiguousarray(history[:spec.depth + 1])}
         film.stats.update(stats)
         film.stats["samples"] = 0
         return film
@@ -666,7 +678,8 @@ register_method(Method(
                 "(optionally with a final gather).",
     run=run_radiosity,
     options=(
-        Option("patch_size", float, 0.1, "patch edge length in world units"),
+        Option("patch_size", float, 0.0, "patch edge length in world units; 0 = auto: the "
+               "scene's bounding-box diagonal / (20 sqrt 3), 0.1 for cornell-box"),
         Option("form_factors", str, "montecarlo", "form factor estimator: Monte Carlo ray "
                "casting or a ray-cast hemicube, both with visibility", ("montecarlo", "hemicube")),
         Option("ff_rays", int, 512, "Monte Carlo form-factor rays and light samples per patch"),
