@@ -294,3 +294,22 @@ def test10_options_are_checked_and_a_lone_tile_finds_its_solution():
     dag, _ = render(scene, spp=2, depth=2, width=8, height=8, tile_size=8,
                     options={"patch_size": 0.5, "ff_rays": 16})
     assert lone.sum.tobytes() == dag.sum.tobytes()
+
+
+@pytest.mark.parametrize("display", ["flat", "smooth"])
+def test11_uniform_box_shows_its_radiosity_flat_or_smooth(display):
+    """Inside a closed emitting box (Le = 1, albedo 0.5) every patch and so
+    every welded vertex has B(k) = pi (1 - 0.5^(k+1)) / 0.5: the image is
+    exactly (1 - 0.5^(d+1)) / 0.5 with either display (Gouraud weights sum
+    to 1 and the welding leaves no vertex without its patches)."""
+    scene = box_scene(emit=1.0, albedo=0.5)
+    film, _ = render(scene, spp=2, depth=3, width=8, height=8, tile_size=8,
+                     options={"patch_size": 0.3, "ff_rays": 16, "direct": "formfactor",
+                              "display": display})
+    assert np.allclose(film.mean(), (1 - 0.5 ** 4) / 0.5, rtol=0, atol=1e-9)
+    patches = R.mesh_patches(scene, 0.3)
+    patch_vert, n_vert = R.weld_vertices(patches, 1e-7)
+    # each face's two triangles are split k x k (k = 7, 7, 4 for the 2 x 1,
+    # 2 x 0.5 and 1 x 0.5 faces) into one (k + 1)^2 grid of vertices; none is
+    # shared across a crease
+    assert n_vert == 2 * (8 * 8 + 8 * 8 + 5 * 5)

@@ -9,6 +9,7 @@
 | `solver` | str | `jacobi` | `jacobi` (one bounce per iteration: honours `depth`), `gauss-seidel`, `progressive` (Southwell shooting) |
 | `tolerance` | float | 1e-4 | stop when an iteration changes B by at most tolerance x the largest reflected radiosity max(B - E) (progressive: when the largest unshot power is tolerance x the first) |
 | `direct` | str | `sampled` | first bounce: `sampled` = light sampling with shadow rays from every patch (area and point lights), `formfactor` = emitting patches shine through F like any patch (the textbook; point lights still sampled) |
+| `display` | str | `flat` | `flat`: each pixel shows B / pi of its patch; `smooth`: Gouraud, B interpolated over the triangle patch from its vertices, each the area-weighted mean of the patches around it that share its normal, albedo and emission (sphere zones stay flat) |
 | `final_gather` | str | `off` | `on`: at the visible diffuse point, emission + light sampling + one cosine-sampled ray into the patch solution's reflected part |
 
 The method. Diffuse surfaces and every emitter are meshed into patches
@@ -94,7 +95,7 @@ from numba import prange
 
 from ..errors import SpecError
 from ..film import PartialFilm
-from ..kernels import kernel_inline, kernel_parallel
+from ..kernels import kernel, kernel_inline, kernel_parallel
 from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
     dielectric_sample, diffuse_sample, reflect
 from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
@@ -239,7 +240,52 @@ def mesh_patches(scene, patch_size: float) -> Patches:
                    sph_nphi=sph_nphi)
 
 
+def weld_vertices(patches: Patches, tolerance: float) -> tuple[np.ndarray, int]:
+    """Shared vertices of the triangle patches, for smooth display: corners
+    within `tolerance` of each other, on patches with the same normal (to
+    1e-3), albedo and emission, are one vertex (a crease, a change of
+    material or a light's edge stays sharp). Returns ((P, 3) vertex ids,
+    -1 for sphere zones; the vertex count)."""
+    tri = patches.kind == PATCH_TRI
+    g = patches.geo[tri]
+    corners = np.stack([g[:, 0:3], g[:, 0:3] + g[:, 3:6], g[:, 0:3] + g[:, 6:9]], axis=1)
+    attrs = np.concatenate([np.round(patches.normal[tri] * 1e3), np.round(patches.rho[tri] * 1e6),
+                            np.round(patches.emit[tri] * 1e6)], axis=1)
+    keys = np.concatenate([np.round(corners / tolerance).reshape(-1, 3),
+                           np.repeat(attrs, 3, axis=0)], axis=1)
+    _, ids = np.unique(keys, axis=0, return_inverse=True)
+    patch_vert = np.full((len(patches.kind), 3), -1, np.int32)
+    patch_vert[tri] = ids.reshape(-1, 3)
+    return patch_vert, int(ids.max()) + 1 if len(ids) else 0
+
+
+def vertex_radiosity(history: np.ndarray, area: np.ndarray, patch_vert: np.ndarray,
+                     n_vert: int) -> np.ndarray:
+    """B at the welded vertices: the area-weighted mean of the patches
+    around each, for every B(k): (K+1, V, 3)."""
+    tri = patch_vert[:, 0] >= 0
+    verts = patch_vert[tri].ravel()
+    weight = np.repeat(area[tri], 3)
+    total = np.bincount(verts, weights=weight, minlength=n_vert)
+    out = np.empty((history.shape[0], n_vert, 3))
+    for k in range(history.shape[0]):
+        for c in range(3):
+            b = np.repeat(history[k, tri, c], 3)
+            out[k, :, c] = np.bincount(verts, weights=weight * b, minlength=n_vert)
+    return np.ascontiguousarray(out / np.maximum(total, 1e-300)[None, :, None])
+
+
 _MESHES: OrderedDict = OrderedDict()
+_WELDS: OrderedDict = OrderedDict()
+
+
+def _welded_vertices(scene, patch_size: float) -> tuple[np.ndarray, int]:
+    key = (scene.hash, float(patch_size))
+    if key not in _WELDS:
+        _WELDS[key] = weld_vertices(_mesh(scene, patch_size), 1e-6 * patch_size)
+        while len(_WELDS) > 4:
+            _WELDS.popitem(last=False)
+    return _WELDS[key]
 
 
 def _mesh(scene, patch_size: float) -> Patches:
@@ -421,9 +467,24 @@ def _patch_at(sc, pt, prim, hx, hy, hz):
                     pt.sph_nz, pt.sph_nphi, prim, hx, hy, hz)
 
 
+@kernel
+def _patch_uv(geo, p, hx, hy, hz):
+    """Barycentrics (u, v) of point h in triangle patch p (v0, e1, e2), clamped."""
+    dx, dy, dz = hx - geo[p, 0], hy - geo[p, 1], hz - geo[p, 2]
+    d11 = geo[p, 3] * geo[p, 3] + geo[p, 4] * geo[p, 4] + geo[p, 5] * geo[p, 5]
+    d12 = geo[p, 3] * geo[p, 6] + geo[p, 4] * geo[p, 7] + geo[p, 5] * geo[p, 8]
+    d22 = geo[p, 6] * geo[p, 6] + geo[p, 7] * geo[p, 7] + geo[p, 8] * geo[p, 8]
+    d1 = dx * geo[p, 3] + dy * geo[p, 4] + dz * geo[p, 5]
+    d2 = dx * geo[p, 6] + dy * geo[p, 7] + dz * geo[p, 8]
+    den = d11 * d22 - d12 * d12
+    u = min(max((d22 * d1 - d12 * d2) / den, 0.0), 1.0)
+    v = min(max((d11 * d2 - d12 * d1) / den, 0.0), 1.0 - u)
+    return u, v
+
+
 @kernel_inline
-def li_radiosity(sc, pt, hist, stack, ox, oy, oz, dx, dy, dz, key, depth, gather,
-                 smp, seed, pixel, index, spp):
+def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key, depth,
+                 gather, smp, seed, pixel, index, spp):
     """Radiance arriving at o from -d through the patch solution: (r, g, b, rays)."""
     k_last = hist.shape[0] - 1
     br, bg, bb = 1.0, 1.0, 1.0
@@ -451,9 +512,17 @@ def li_radiosity(sc, pt, hist, stack, ox, oy, oz, dx, dy, dz, key, depth, gather
                 break  # one-sided: the back of a patch is black
             if gather == 0 or left == 0:
                 k = min(left, k_last)
-                lr += br * hist[k, p, 0] * inv_pi
-                lg += bg * hist[k, p, 1] * inv_pi
-                lb += bb * hist[k, p, 2] * inv_pi
+                if vert_b.shape[1] > 0 and patch_vert[p, 0] >= 0:  # smooth: Gouraud
+                    u, v = _patch_uv(pt.geo, p, hx, hy, hz)
+                    w0 = 1.0 - u - v
+                    a, b, c = patch_vert[p, 0], patch_vert[p, 1], patch_vert[p, 2]
+                    lr += br * (w0 * vert_b[k, a, 0] + u * vert_b[k, b, 0] + v * vert_b[k, c, 0]) * inv_pi
+                    lg += bg * (w0 * vert_b[k, a, 1] + u * vert_b[k, b, 1] + v * vert_b[k, c, 1]) * inv_pi
+                    lb += bb * (w0 * vert_b[k, a, 2] + u * vert_b[k, b, 2] + v * vert_b[k, c, 2]) * inv_pi
+                else:
+                    lr += br * hist[k, p, 0] * inv_pi
+                    lg += bg * hist[k, p, 1] * inv_pi
+                    lb += bb * hist[k, p, 2] * inv_pi
                 break
             # final gather at x: emission, light sampling, one ray into the solution
             lr += br * pt.emit[p, 0] * inv_pi
@@ -557,8 +626,8 @@ def li_radiosity(sc, pt, hist, stack, ox, oy, oz, dx, dy, dz, key, depth, gather
 
 
 @kernel_parallel
-def _display_tile(sc, pt, hist, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp,
-                  spp, gather, out_sum, out_sq, out_w, row_rays, stacks):
+def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, height, blocks,
+                  seed, depth, smp, spp, gather, out_sum, out_sq, out_w, row_rays, stacks):
     """The tile loop of integrators/path.py over `li_radiosity`."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     for row in prange(y1 - y0):
@@ -575,8 +644,9 @@ def _display_tile(sc, pt, hist, cam, x0, y0, x1, y1, width, height, blocks, seed
                     key = sample_key(seed, pixel, s)
                     fu, fv = u2d(smp, key, seed, pixel, s, spp, 0)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-                    r, g, b, nr = li_radiosity(sc, pt, hist, stack, ox, oy, oz, dx, dy, dz, key,
-                                               depth, gather, smp, seed, pixel, s, spp)
+                    r, g, b, nr = li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz,
+                                               dx, dy, dz, key, depth, gather, smp, seed, pixel,
+                                               s, spp)
                     rays += nr
                     sr += r
                     sg += g
@@ -662,7 +732,13 @@ def run_radiosity(scene, spec, unit, inputs=None) -> PartialFilm:
     row_rays = np.zeros(h, np.int64)
     stacks = np.empty((h, STACK_SIZE), np.int64)
     cam = camera_array(scene.camera, spec.width, spec.height)
-    _display_tile(scene.arrays, patches, history, cam, unit.x0, unit.y0, unit.x1, unit.y1,
+    if options["display"] == "smooth":
+        patch_vert, n_vert = _welded_vertices(scene, options["patch_size"])
+        vert_b = vertex_radiosity(history, patches.area, patch_vert, n_vert)
+    else:
+        patch_vert, vert_b = np.zeros((0, 3), np.int32), np.zeros((history.shape[0], 0, 3))
+    _display_tile(scene.arrays, patches, history, vert_b, patch_vert, cam, unit.x0, unit.y0,
+                  unit.x1, unit.y1,
                   spec.width, spec.height, unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
                   spec.seed, spec.depth, SAMPLERS[spec.sampler].id, spec.spp,
                   1 if options["final_gather"] == "on" else 0,
@@ -689,6 +765,9 @@ register_method(Method(
         Option("tolerance", float, 1e-4, "relative change at which the solver stops"),
         Option("direct", str, "sampled", "first bounce by light sampling from the patches "
                "(sampled) or through the form factors (formfactor)", ("sampled", "formfactor")),
+        Option("display", str, "flat", "flat: B/pi of the patch; smooth: Gouraud "
+               "interpolation of vertex radiosities (area-weighted means of the patches "
+               "around each vertex)", ("flat", "smooth")),
         Option("final_gather", str, "off", "on: light sampling and one gather ray into the "
                "solution at the visible point", ("off", "on")),
     ),
