@@ -134,12 +134,12 @@ Patches = namedtuple("Patches", [
 
 def _tri_k(p: np.ndarray, patch_size: float) -> int:
     edges = sorted(np.linalg.norm(p[[1, 2, 2]] - p[[0, 0, 1]], axis=1))
-    return max(1, math.ceil(edges[1] / patch_size - 1e-9))
+    return max(1, math.ceil(edges[1] / patch_size - 1e-6))
 
 
 def _sphere_grid(r: float, patch_size: float) -> tuple[int, int]:
-    return (max(1, math.ceil(2 * r / patch_size - 1e-9)),
-            max(3, math.ceil(2 * math.pi * r / patch_size - 1e-9)))
+    return (max(1, math.ceil(2 * r / patch_size - 1e-6)),
+            max(3, math.ceil(2 * math.pi * r / patch_size - 1e-6)))
 
 
 def _meshed(sc, mat, light) -> bool:
