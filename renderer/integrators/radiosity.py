@@ -54,7 +54,11 @@ NEE) and rho_x times the reflected radiance (B - E) / pi of the patch a
 cosine-sampled ray from x reaches (full B / pi if that ray went through
 mirrors or glass first, since light sampling cannot see through them). That
 removes the patches' blockiness from direct light and hides the mesh in
-indirect light. Samples per pixel average the film position (anti-aliasing)
+indirect light; gather rays that pass through mirrors or glass to a light
+also bring caustics onto the visible surfaces (noisily, as path tracing
+does). `display=smooth` (without final gather) interpolates B over each
+triangle patch from welded vertex values (Gouraud): no visible patches, the
+same bias. Samples per pixel average the film position (anti-aliasing)
 and, with final gather, the gather; var.R/G/B come from them as in tile
 methods.
 
@@ -62,7 +66,8 @@ Specular surfaces (mirror, glass, glossy) are no patches: form-factor rays
 that hit them count as lost, shadow rays are blocked by them (as in the path
 tracers). So the solution has no caustics and no specular interreflection
 (a diffuse wall sees no light through a mirror), and light passing through
-glass does not reach patches behind it. They appear in the image only by
+glass does not reach patches behind it. Emitters are always patches (with
+albedo 0 if their material is not diffuse). They appear in the image only by
 what the camera sees through them.
 
 Bias. Constant radiosity per patch (meshing) and a fixed set of form-factor
