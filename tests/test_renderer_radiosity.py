@@ -136,8 +136,8 @@ def test04_coaxial_unit_disks_one_apart():
     F = (X - sqrt(X^2 - 4)) / 2, X = 1 + (1 + R2^2) / R1^2 = 3 -> 0.381966."""
     exact = (3.0 - math.sqrt(5.0)) / 2.0
     scene = build_scene(resolve_document({
-        "camera": {"origin": [0, -3, 0.5], "target": [0, 0, 0.5], "up": [0, 0, 1], "fov": 40, "width": 8,
-                   "height": 8},
+        "camera": {"origin": [0, -3, 0.5], "target": [0, 0, 0.5], "up": [0, 0, 1], "fov": 40,
+                   "width": 8, "height": 8},
         "materials": {"grey": {"type": "diffuse", "albedo": 0.5}},
         "shapes": [{"type": "disk", "material": "grey"},
                    {"type": "disk", "material": "grey", "flip_normals": True,

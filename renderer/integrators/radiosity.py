@@ -77,8 +77,8 @@ measured bias on cornell-box is in docs/radiosity.md.
 
 Farm plan: unit 0 (kind "solve", a 0x0 region, 0 samples) meshes, casts the
 form-factor rays and solves; its film carries the solution as the artefact
-`radiosity` (B(k), k = 0..min(K, depth), shape (k + 1, P, 3) float64). Solutions are cached by (scene
-hash, solution options, seed, code version) in-process (LRU) and on disk
+`radiosity` (B(k), k = 0..min(K, depth), shape (k + 1, P, 3) float64).
+Solutions are cached by (scene hash, solution options, seed, code version) in-process (LRU) and on disk
 under $RAYFARM_CACHE_DIR/radiosity (default ~/.cache/rayfarm/radiosity),
 written atomically, so a second job on the same scene reuses it. Then the
 ordinary tile plan, every unit needing unit 0.
@@ -111,7 +111,7 @@ from ..kernels.radiosity import DIRECT_ALL, DIRECT_POINT, PATCH_SPHERE, PATCH_TR
 from ..kernels.rng import sample_key
 from ..plan import Unit, plan as tile_plan
 from ..registry import METHODS, SAMPLERS, Method, Option, register_method
-from ..scene import LIGHT_POINT, camera_array
+from ..scene import camera_array
 from .path import DIMS_PER_BOUNCE, camera_ray, shadow_ray, u1d, u2d, unit_blocks
 
 __all__ = ["Patches", "mesh_patches", "solve", "form_factor_hits", "clear_cache"]
@@ -237,7 +237,9 @@ def mesh_patches(scene, patch_size: float) -> Patches:
                 rho.append(albedo)
                 emit.append(le)
 
-    f64 = lambda a, shape: np.ascontiguousarray(np.asarray(a, np.float64).reshape(shape))  # noqa: E731
+    def f64(a, shape):
+        return np.ascontiguousarray(np.asarray(a, np.float64).reshape(shape))
+
     return Patches(kind=np.asarray(kind, np.int32), geo=f64(geo, (-1, 9)),
                    normal=f64(normal, (-1, 3)), area=f64(area, (-1,)), rho=f64(rho, (-1, 3)),
                    emit=f64(emit, (-1, 3)), tri_start=tri_start, tri_k=tri_k,
@@ -419,7 +421,8 @@ _VERSION = _code_version()
 
 
 def cache_dir() -> Path:
-    return Path(os.environ.get("RAYFARM_CACHE_DIR") or "~/.cache/rayfarm").expanduser() / "radiosity"
+    root = os.environ.get("RAYFARM_CACHE_DIR") or "~/.cache/rayfarm"
+    return Path(root).expanduser() / "radiosity"
 
 
 def solution_key(scene, options: dict, seed: int) -> str:
@@ -519,11 +522,12 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                 k = min(left, k_last)
                 if vert_b.shape[1] > 0 and patch_vert[p, 0] >= 0:  # smooth: Gouraud
                     u, v = _patch_uv(pt.geo, p, hx, hy, hz)
-                    w0 = 1.0 - u - v
+                    w0 = (1.0 - u - v) * inv_pi
+                    u, v = u * inv_pi, v * inv_pi
                     a, b, c = patch_vert[p, 0], patch_vert[p, 1], patch_vert[p, 2]
-                    lr += br * (w0 * vert_b[k, a, 0] + u * vert_b[k, b, 0] + v * vert_b[k, c, 0]) * inv_pi
-                    lg += bg * (w0 * vert_b[k, a, 1] + u * vert_b[k, b, 1] + v * vert_b[k, c, 1]) * inv_pi
-                    lb += bb * (w0 * vert_b[k, a, 2] + u * vert_b[k, b, 2] + v * vert_b[k, c, 2]) * inv_pi
+                    lr += br * (w0 * vert_b[k, a, 0] + u * vert_b[k, b, 0] + v * vert_b[k, c, 0])
+                    lg += bg * (w0 * vert_b[k, a, 1] + u * vert_b[k, b, 1] + v * vert_b[k, c, 1])
+                    lb += bb * (w0 * vert_b[k, a, 2] + u * vert_b[k, b, 2] + v * vert_b[k, c, 2])
                 else:
                     lr += br * hist[k, p, 0] * inv_pi
                     lg += bg * hist[k, p, 1] * inv_pi
@@ -744,7 +748,8 @@ def run_radiosity(scene, spec, unit, inputs=None) -> PartialFilm:
         patch_vert, vert_b = np.zeros((0, 3), np.int32), np.zeros((history.shape[0], 0, 3))
     _display_tile(scene.arrays, patches, history, vert_b, patch_vert, cam, unit.x0, unit.y0,
                   unit.x1, unit.y1,
-                  spec.width, spec.height, unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
+                  spec.width, spec.height,
+                  unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
                   spec.seed, spec.depth, SAMPLERS[spec.sampler].id, spec.spp,
                   1 if options["final_gather"] == "on" else 0,
                   film.sum, film.sum_sq, film.weight, row_rays, stacks)
