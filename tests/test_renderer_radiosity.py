@@ -223,8 +223,8 @@ def test07_cornell_box_agrees_with_path_mis_up_to_the_meshing_bias():
     """Frame means per channel (pixels showing the light itself left out: their
     coverage noise would swamp everything) against path-mis at the same depth
     and seed. Radiosity is biased: at patch_size 0.2, 256 rays per patch we
-    measured -0.5 % (gather off) and -0.1 % (gather on), 3.7 and 0.5 standard
-    errors (docs/radiosity.md). Bounds: BIAS = 1 % (off) and 0.5 % (on: the
+    measured -0.54 % (gather off, 3.4 standard errors) and -0.06 % (gather on,
+    0.2 standard errors) in R (docs/radiosity.md). Bounds: BIAS = 1 % (off) and 0.5 % (on: the
     biased solution only feeds indirect light) plus Z combined standard
     errors. Dropping or adding one bounce moves the mean by > 5 %."""
     scene = load_scene("cornell-box")
