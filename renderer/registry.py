@@ -112,6 +112,7 @@ def _register_builtins() -> None:
     from .integrators import bdpt  # noqa: F401
     from .integrators import light  # noqa: F401
     from .integrators import photon  # noqa: F401
+    from .integrators import radiosity  # noqa: F401
     from . import samplers  # noqa: F401
 
 
