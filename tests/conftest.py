@@ -27,6 +27,15 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+# The renderer's on-disk caches (radiosity solutions) go to a directory of this
+# run, not the user's ~/.cache; child processes (pools, workers) inherit it.
+if "RAYFARM_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    import atexit
+
+    os.environ["RAYFARM_CACHE_DIR"] = tempfile.mkdtemp(prefix="rayfarm-test-cache-")
+    atexit.register(shutil.rmtree, os.environ["RAYFARM_CACHE_DIR"], ignore_errors=True)
 # Farm tests flush this Redis database; two suites running at once on one
 # machine need different ones (RAYFARM_TEST_REDIS_DB), or they eat each other's tasks.
 FARM_REDIS_DB = int(os.environ.get("RAYFARM_TEST_REDIS_DB", "15"))
