@@ -109,6 +109,7 @@ def register_sampler(sampler: Sampler) -> Sampler:
 def _register_builtins() -> None:
     # Importing an integrator module registers it.
     from .integrators import path, raster  # noqa: F401
+    from .integrators import mlt  # noqa: F401
     from . import samplers  # noqa: F401
 
 

@@ -1,0 +1,421 @@
+"""`mlt`: primary-sample-space Metropolis light transport (Kelemen et al. 2002)
+over bidirectional path tracing, the way pbrt-v3's MLTIntegrator does it.
+
+| option | type | default | meaning |
+|---|---|---|---|
+| `large_step` | float | 0.3 | probability of a large step (every primary sample drawn anew) |
+| `sigma` | float | 0.01 | standard deviation of a small step's normal perturbation |
+| `perturbation` | str | `normal` | small steps: pbrt-v3's wrapped normal, or Kelemen's exponential (s1 = 1/1024, s2 = 1/64) |
+| `bootstrap` | int | 0 | bootstrap paths per depth; 0 = auto: W H spp / (4 (depth + 1)), clamped to [16384, 100000] (about a quarter of the mutations' work, at most pbrt-v3's default) |
+| `chains` | int | 64 | independent Markov chains (grouped into at most 8 chain units) |
+
+The spec's spp is the number of mutations per pixel: the chains make
+W x H x spp mutations in all. When to use it: on scenes where light arrives
+through narrow paths (a door ajar, caustics) that chains, once they find
+them, explore locally; on easy scenes BDPT or path-mis at equal time is less
+noisy and has no start-up or normalisation error.
+
+The state of a chain is a depth d (fixed for the chain, as in pbrt-v3) and a
+vector u of primary samples in [0, 1)^D(d); `contribution` maps it to the
+contribution of one (s, t) strategy of paths with d bounces, times the
+number of strategies, and the film position it lands on. The target
+density is its luminance y.
+
+The plan (a two-stage DAG):
+- stage 0, one `bootstrap` unit (0 x 0 region, no samples): n bootstrap
+  vectors per depth, vector i = uniform(stream_key(seed, STREAM_BOOTSTRAP, i),
+  dim), depth i mod (depth + 1). b = (depth + 1) mean(y_i) is the image's
+  mean luminance (pbrt-v3: b = bootstrap.funcInt * (maxDepth + 1)). Its
+  artefact holds b, the per-depth means and, for every chain, its starting
+  bootstrap index drawn from the discrete distribution proportional to y_i
+  with dimension 0 of the chain's own stream (so a chain's start depends on
+  the seed and its index only). The distribution itself is not shipped: it
+  would be 8 bytes per bootstrap path to every chain unit.
+- stage 1, `chains` units (full frame, `needs` the bootstrap): chain c owns
+  the mutations [c M / C, (c + 1) M / C) of the M = W H spp in all and draws
+  its random numbers from stream_key(seed, STREAM_CHAINS, c), dimensions 1,
+  2, ... in order. Its first state is bootstrap vector start[c], regenerated.
+  Every mutation splats both the proposal (weight a) and the current state
+  (weight 1 - a), each as L / y(L) (pbrt-v3's expected-value splatting). The
+  unit's splat batch holds those sums times b W H, with the unit's mutation
+  count as its `paths`: the merged frame mean sum(splat) / M is pbrt-v3's
+  film scaled by b / mutationsPerPixel.
+
+Mutations are pbrt-v3's MLTSampler: per dimension a value, the iteration of
+its last change and a backup; a large step redraws, a small step adds a
+normal (sigma sqrt(n) for n missed iterations, the lazy catch-up) and wraps
+into [0, 1); a rejection restores the backups and rewinds the iteration
+counter; dimensions untouched since an accepted large step are redrawn
+before use. The strategy kernel reads u as a flat array, so before each
+evaluation every dimension a path of the chain's depth can read is brought
+up to date (D(d) of them); dimensions beyond D(d) are never used.
+
+Variance (the EXR's var channels): every chain unit is one splat batch, and
+the units hold disjoint sets of independent chains, so the batch-means
+variance of film.py applies with K = number of chain units (up to 8). It
+leaves out the error of b and the correlation through the shared bootstrap
+(the same factor b for all batches, and the starts). With K this small the
+variance estimate is itself noisy (K - 1 degrees of freedom).
+
+Determinism: a chain's path depends on (seed, chain index) only, so the
+image is a fixed function of the spec; the grouping of chains into units is
+a function of `chains` only (not of tile size or workers), which makes the
+EXR bit-identical across executors. Regrouping the same chains (another
+unit count) changes the floating-point summation order of the splats and
+therefore the low bits, not the statistics.
+
+Progressive jobs render in one pass (a chain's state would have to travel
+between passes).
+
+`toy_chains` runs the same Metropolis steps on analytic integrands for the
+tests of the mutation kernel.
+
+TEMPORARY: until BDPT's one-strategy kernel lands (branch m5-bdpt),
+`contribution` is `mlt_standin.standin_contribution`, a unidirectional
+path tracer with next event estimation reading its numbers from u.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import prange
+
+from ..errors import SpecError
+from ..film import PartialFilm
+from ..kernels import kernel, kernel_inline, kernel_parallel
+from ..kernels.geometry import STACK_SIZE
+from ..kernels.rng import STREAM_BOOTSTRAP, STREAM_CHAINS, stream_key, uniform
+from ..plan import Unit
+from ..registry import METHODS, Method, Option, register_method
+from ..scene import camera_array
+from .mlt_standin import standin_contribution, standin_dims
+
+CHAIN_UNITS = 8  # at most this many chain units: the variance's batches
+BOOTSTRAP_CHUNKS = 64  # prange work items of the bootstrap (each with its buffers)
+NORMAL, EXPONENTIAL = 0, 1
+ONE_MINUS_EPS = 1.0 - 2.0 ** -53  # the largest float64 below 1
+
+
+@kernel
+def luminance(r, g, b):
+    """pbrt-v3's RGBSpectrum::y()."""
+    return 0.212671 * r + 0.715160 * g + 0.072169 * b
+
+
+@kernel
+def path_dims(depth):
+    """Primary samples a path of `depth` bounces can read."""
+    return standin_dims(depth)
+
+
+@kernel_inline
+def contribution(sc, cam, width, height, depth, u, stack):
+    """(r, g, b, film x, film y) of the primary-sample vector u for paths of
+    exactly `depth` bounces (one strategy, times the number of strategies)."""
+    return standin_contribution(sc, cam, width, height, depth, u, stack)
+
+
+@kernel_parallel
+def _bootstrap(sc, cam, width, height, max_depth, seed, n, weights, us, stacks):
+    """weights[i] = y(contribution(bootstrap vector i)), i < n, in parallel chunks."""
+    chunks = us.shape[0]
+    for c in prange(chunks):
+        u, stack = us[c], stacks[c]
+        for i in range(c * n // chunks, (c + 1) * n // chunks):
+            depth = i % (max_depth + 1)
+            key = stream_key(seed, STREAM_BOOTSTRAP, i)
+            for k in range(path_dims(depth)):
+                u[k] = uniform(key, k)
+            r, g, b, _, _ = contribution(sc, cam, width, height, depth, u, stack)
+            weights[i] = luminance(r, g, b)
+
+
+@kernel
+def _small_step(x, n_small, sigma, perturbation, key, ctr):
+    """x after n_small small steps, wrapped into [0, 1): (x, next counter)."""
+    if perturbation == NORMAL:
+        # n normal steps of sigma sum to one of sigma sqrt(n) (pbrt-v3's lazy catch-up)
+        u1, u2 = uniform(key, ctr), uniform(key, ctr + 1)
+        z = math.sqrt(-2.0 * math.log(1.0 - u1)) * math.cos(2.0 * math.pi * u2)
+        x += z * sigma * math.sqrt(n_small)
+        ctr += 2
+    else:
+        # Kelemen's exponential: |dx| = s2 exp(-ln(s2/s1) v), sign by the other number
+        s1, s2 = 1.0 / 1024.0, 1.0 / 64.0
+        for _ in range(n_small):
+            dv = s2 * math.exp(-math.log(s2 / s1) * uniform(key, ctr + 1))
+            x += dv if uniform(key, ctr) < 0.5 else -dv
+            ctr += 2
+    x -= math.floor(x)
+    return min(x, ONE_MINUS_EPS), ctr
+
+
+@kernel
+def _mutate(x, last_mod, x_backup, mod_backup, dims, iteration, last_large, large,
+            sigma, perturbation, key, ctr):
+    """pbrt-v3 MLTSampler::EnsureReady on dimensions [0, dims); returns ctr."""
+    for i in range(dims):
+        if last_mod[i] < last_large:  # untouched since an accepted large step: redraw
+            x[i] = uniform(key, ctr)
+            ctr += 1
+            last_mod[i] = last_large
+        x_backup[i] = x[i]
+        mod_backup[i] = last_mod[i]
+        if large:
+            x[i] = uniform(key, ctr)
+            ctr += 1
+        else:
+            v, ctr = _small_step(x[i], iteration - last_mod[i], sigma, perturbation, key, ctr)
+            x[i] = v
+        last_mod[i] = iteration
+    return ctr
+
+
+@kernel
+def _splat(splat, fx, fy, r, g, b, scale):
+    width, height = splat.shape[1], splat.shape[0]
+    px, py = int(fx), int(fy)
+    if 0 <= px < width and 0 <= py < height:
+        splat[py, px, 0] += r * scale
+        splat[py, px, 1] += g * scale
+        splat[py, px, 2] += b * scale
+
+
+@kernel
+def _restore(x, last_mod, x_backup, mod_backup, dims, iteration):
+    """pbrt-v3 MLTSampler::Reject: undo this iteration's changes; returns the
+    rewound iteration counter."""
+    for i in range(dims):
+        if last_mod[i] == iteration:
+            x[i] = x_backup[i]
+            last_mod[i] = mod_backup[i]
+    return iteration - 1
+
+
+@kernel
+def _acceptance(y_proposed, y_current):
+    if y_current > 0.0:
+        return min(1.0, y_proposed / y_current)
+    return 1.0  # a zero current state (a toy chain's start): take any proposal
+
+
+@kernel
+def run_chain(sc, cam, width, height, max_depth, seed, chain, start, mutations, scale,
+              large_step, sigma, perturbation, x, last_mod, x_backup, mod_backup, stack, splat):
+    """Run `mutations` mutations of chain `chain` from bootstrap vector
+    `start`, splatting into `splat` with the factor `scale` (b W H).
+    Returns the number of accepted mutations."""
+    depth = start % (max_depth + 1)
+    dims = path_dims(depth)
+    bkey = stream_key(seed, STREAM_BOOTSTRAP, start)
+    for k in range(dims):
+        x[k] = uniform(bkey, k)
+        last_mod[k] = 0
+    key = stream_key(seed, STREAM_CHAINS, chain)
+    ctr = 1  # dimension 0 chose the start (in the bootstrap unit)
+    cr, cg, cb, cx, cy = contribution(sc, cam, width, height, depth, x, stack)
+    cy_l = luminance(cr, cg, cb)
+    iteration, last_large = 0, 0
+    accepted = 0
+    for _ in range(mutations):
+        iteration += 1
+        large = uniform(key, ctr) < large_step
+        ctr = _mutate(x, last_mod, x_backup, mod_backup, dims, iteration, last_large, large,
+                      sigma, perturbation, key, ctr + 1)
+        pr, pg, pb, px, py = contribution(sc, cam, width, height, depth, x, stack)
+        py_l = luminance(pr, pg, pb)
+        a = _acceptance(py_l, cy_l)
+        # expected-value splatting: both states, weighted by the acceptance
+        if a > 0.0 and py_l > 0.0:
+            _splat(splat, px, py, pr, pg, pb, scale * a / py_l)
+        if a < 1.0 and cy_l > 0.0:
+            _splat(splat, cx, cy, cr, cg, cb, scale * (1.0 - a) / cy_l)
+        if uniform(key, ctr) < a:
+            cr, cg, cb, cx, cy, cy_l = pr, pg, pb, px, py, py_l
+            if large:
+                last_large = iteration
+            accepted += 1
+        else:
+            iteration = _restore(x, last_mod, x_backup, mod_backup, dims, iteration)
+        ctr += 1
+    return accepted
+
+
+TOY_CONSTANT, TOY_RAMP = 0, 1
+
+
+@kernel
+def _toy_integrand(kind, x):
+    """Test integrands on [0, 1)^3 (x[2] is read by none: it must stay uniform):
+    constant 1, or (0.2 + x0) (0.2 + x1^2) with x0 < 0.8 (zero beyond)."""
+    if kind == TOY_CONSTANT:
+        return 1.0
+    if x[0] >= 0.8:
+        return 0.0
+    return (0.2 + x[0]) * (0.2 + x[1] * x[1])
+
+
+@kernel
+def toy_chains(seed, n_chains, mutations, large_step, sigma, perturbation, kind, x0,
+               x, last_mod, x_backup, mod_backup, out):
+    """For tests of the mutation kernel: run `n_chains` independent chains
+    of `mutations` Metropolis steps (run_chain's exact steps) on a toy
+    integrand over [0, 1)^3, chain c from the state x0[c], and write each
+    chain's final state to out[c]. x, x_backup (float) and last_mod, mod_backup
+    (int64) are buffers of 3."""
+    dims = 3
+    for c in range(n_chains):
+        key = stream_key(seed, STREAM_CHAINS, c)
+        for k in range(dims):
+            x[k] = x0[c, k]
+            last_mod[k] = 0
+        cy = _toy_integrand(kind, x)
+        iteration, last_large, ctr = 0, 0, 1
+        for _ in range(mutations):
+            iteration += 1
+            large = uniform(key, ctr) < large_step
+            ctr = _mutate(x, last_mod, x_backup, mod_backup, dims, iteration, last_large, large,
+                          sigma, perturbation, key, ctr + 1)
+            py = _toy_integrand(kind, x)
+            if uniform(key, ctr) < _acceptance(py, cy):
+                cy = py
+                if large:
+                    last_large = iteration
+            else:
+                iteration = _restore(x, last_mod, x_backup, mod_backup, dims, iteration)
+            ctr += 1
+        for k in range(dims):
+            out[c, k] = x[k]
+
+
+@kernel
+def _run_chains(sc, cam, width, height, max_depth, seed, c0, c1, chains, total, starts, scale,
+                large_step, sigma, perturbation, x, last_mod, x_backup, mod_backup, stack, splat):
+    """Chains [c0, c1) of `chains`, sharing `total` mutations; returns accepted count."""
+    accepted = 0
+    for c in range(c0, c1):
+        m = (c + 1) * total // chains - c * total // chains
+        if m > 0 and starts[c] >= 0:
+            accepted += run_chain(sc, cam, width, height, max_depth, seed, c, starts[c], m,
+                                  scale, large_step, sigma, perturbation, x, last_mod, x_backup,
+                                  mod_backup, stack, splat)
+    return accepted
+
+
+@kernel
+def _start_numbers(seed, out):
+    """Dimension 0 of every chain's stream: the number that picks its start."""
+    for c in range(out.shape[0]):
+        out[c] = uniform(stream_key(seed, STREAM_CHAINS, c), 0)
+
+
+def _options(spec) -> dict:
+    opts = METHODS[spec.method].check_options(spec.options)
+    if not 0.0 <= float(opts["large_step"]) <= 1.0:
+        raise SpecError("options.large_step", f"must lie in [0, 1], got {opts['large_step']!r}")
+    if not float(opts["sigma"]) > 0.0:
+        raise SpecError("options.sigma", f"must be positive, got {opts['sigma']!r}")
+    if int(opts["chains"]) < 1:
+        raise SpecError("options.chains", f"must be at least 1, got {opts['chains']!r}")
+    if int(opts["bootstrap"]) < 0:
+        raise SpecError("options.bootstrap", f"must be 0 (auto) or more, got {opts['bootstrap']!r}")
+    return opts
+
+
+def bootstrap_per_depth(spec, opts: dict) -> int:
+    n = int(opts["bootstrap"])
+    if n > 0:
+        return n
+    return int(min(100_000, max(16384, spec.width * spec.height * spec.spp // (4 * (spec.depth + 1)))))
+
+
+def plan_mlt(spec, progressive: bool = False) -> list[Unit]:
+    """One bootstrap unit, then up to CHAIN_UNITS chain units (one pass even
+    when `progressive`: see the module doc)."""
+    opts = _options(spec)
+    n_boot = bootstrap_per_depth(spec, opts) * (spec.depth + 1)
+    chains = int(opts["chains"])
+    units = [Unit(0, 0, 0, 0, 0, 0, n_boot, stage=0, kind="bootstrap")]
+    groups = min(chains, CHAIN_UNITS)
+    for g in range(groups):
+        units.append(Unit(1 + g, 0, 0, spec.width, spec.height, g * chains // groups,
+                          (g + 1) * chains // groups, stage=1, kind="chains", needs=(0,)))
+    return units
+
+
+def _chain_start_indices(seed: int, chains: int, weights: np.ndarray) -> np.ndarray:
+    """Each chain's starting bootstrap index, drawn proportionally to the
+    weights with dimension 0 of the chain's stream; -1 when all are zero."""
+    cdf = np.cumsum(weights)
+    if cdf.size == 0 or not cdf[-1] > 0.0:
+        return np.full(chains, -1, np.int64)
+    r = np.zeros(chains)
+    _start_numbers(seed, r)
+    idx = np.searchsorted(cdf, r * cdf[-1], side="right")
+    return np.minimum(idx, weights.size - 1).astype(np.int64)
+
+
+def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
+    opts = _options(spec)
+    cam = camera_array(scene.camera, spec.width, spec.height)
+    dims = int(path_dims(spec.depth))
+    chains = int(opts["chains"])
+    if unit.kind == "bootstrap":
+        n = unit.sample_end - unit.sample_start
+        weights = np.zeros(n)
+        _bootstrap(scene.arrays, cam, spec.width, spec.height, spec.depth, spec.seed, n, weights,
+                   np.zeros((BOOTSTRAP_CHUNKS, dims)), np.zeros((BOOTSTRAP_CHUNKS, STACK_SIZE),
+                                                                np.int64))
+        by_depth = weights.reshape(-1, spec.depth + 1)
+        per_depth = by_depth.mean(axis=0)
+        # b's standard error: the depths' sample means are independent
+        b_stderr = math.sqrt(float((by_depth.var(axis=0, ddof=1) / by_depth.shape[0]).sum()))
+        film = PartialFilm.zeros(0, 0, 0, 0)
+        film.artefact = {"b": np.array([float(per_depth.sum())]),
+                         "b_stderr": np.array([b_stderr]), "depth_means": per_depth,
+                         "starts": _chain_start_indices(spec.seed, chains, weights)}
+        film.stats.update(samples=0, rays=0, paths=n)
+        return film
+    boot = inputs[unit.needs[0]].artefact
+    b = float(boot["b"][0])
+    total = spec.width * spec.height * spec.spp
+    splat = np.zeros((spec.height, spec.width, 3))
+    x, x_backup = np.zeros(dims), np.zeros(dims)
+    last_mod, mod_backup = np.zeros(dims, np.int64), np.zeros(dims, np.int64)
+    accepted = _run_chains(scene.arrays, cam, spec.width, spec.height, spec.depth, spec.seed,
+                           unit.sample_start, unit.sample_end, chains, total, boot["starts"],
+                           b * spec.width * spec.height, float(opts["large_step"]),
+                           float(opts["sigma"]),
+                           EXPONENTIAL if opts["perturbation"] == "exponential" else NORMAL,
+                           x, last_mod, x_backup, mod_backup, np.zeros(STACK_SIZE, np.int64),
+                           splat)
+    mutations = sum((c + 1) * total // chains - c * total // chains
+                    for c in range(unit.sample_start, unit.sample_end))
+    film = PartialFilm.splat_batch(splat, mutations)
+    film.stats.update(samples=mutations, rays=0, paths=mutations, accepted=int(accepted))
+    return film
+
+
+register_method(Method(
+    name="mlt",
+    description="Primary-sample-space Metropolis light transport (Kelemen) over BDPT: a "
+                "bootstrap estimates the normalisation, independent chains splat; spp = "
+                "mutations per pixel.",
+    run=run_mlt,
+    options=(
+        Option("large_step", float, 0.3, "probability of a large step (all primary samples "
+               "redrawn)"),
+        Option("sigma", float, 0.01, "standard deviation of the small steps' normal "
+               "perturbation"),
+        Option("perturbation", str, "normal", "small steps: pbrt-v3's wrapped normal or "
+               "Kelemen's exponential", ("normal", "exponential")),
+        Option("bootstrap", int, 0, "bootstrap paths per depth (0 = auto from the image "
+               "size and spp)"),
+        Option("chains", int, 64, "independent Markov chains (grouped into at most 8 units)"),
+    ),
+    family="chains",
+    plan=plan_mlt,
+    phases=("bootstrap", "chains"),
+))
