@@ -7,7 +7,7 @@ over bidirectional path tracing, the way pbrt-v3's MLTIntegrator does it.
 | `sigma` | float | 0.01 | standard deviation of a small step's normal perturbation |
 | `perturbation` | str | `normal` | small steps: pbrt-v3's wrapped normal, or Kelemen's exponential (s1 = 1/1024, s2 = 1/64) |
 | `bootstrap` | int | 0 | bootstrap paths per depth; 0 = auto: W H spp / (4 (depth + 1)), clamped to [16384, 100000] (about a quarter of the mutations' work, at most pbrt-v3's default) |
-| `chains` | int | 64 | independent Markov chains (grouped into at most 8 chain units) |
+| `chains` | int | 1024 | Markov chains, grouped into at most 8 chain units (pbrt-v3: 1000) |
 
 The spec's spp is the number of mutations per pixel: the chains make
 W x H x spp mutations in all. When to use it: on scenes where light arrives
@@ -23,14 +23,18 @@ density is its luminance y.
 
 The plan (a two-stage DAG):
 - stage 0, one `bootstrap` unit (0 x 0 region, no samples): n bootstrap
-  vectors per depth, vector i = uniform(stream_key(seed, STREAM_BOOTSTRAP, i),
-  dim), depth i mod (depth + 1). b = (depth + 1) mean(y_i) is the image's
+  vectors per depth (`bootstrap_vector`: depth i mod (depth + 1), uniform
+  numbers from stream_key(seed, STREAM_BOOTSTRAP, i), the film position
+  jittered over the n vectors of a depth, which pbrt-v3 does not do: an
+  unbiased, much less noisy b; its standard error `b_stderr` collapses
+  neighbouring strata in pairs). b = (depth + 1) mean(y_i) is the image's
   mean luminance (pbrt-v3: b = bootstrap.funcInt * (maxDepth + 1)). Its
-  artefact holds b, the per-depth means and, for every chain, its starting
-  bootstrap index drawn from the discrete distribution proportional to y_i
-  with dimension 0 of the chain's own stream (so a chain's start depends on
-  the seed and its index only). The distribution itself is not shipped: it
-  would be 8 bytes per bootstrap path to every chain unit.
+  artefact holds b, its standard error, the per-depth means and, for every
+  chain, its starting bootstrap index drawn from the discrete distribution
+  proportional to y_i (`chain_starts`: systematic resampling within each
+  chain unit, with dimension 0 of the chain's own stream). The distribution
+  itself is not shipped: it would be 8 bytes per bootstrap path to every
+  chain unit.
 - stage 1, `chains` units (full frame, `needs` the bootstrap): chain c owns
   the mutations [c M / C, (c + 1) M / C) of the M = W H spp in all and draws
   its random numbers from stream_key(seed, STREAM_CHAINS, c), dimensions 1,
@@ -50,19 +54,22 @@ before use. The strategy kernel reads u as a flat array, so before each
 evaluation every dimension a path of the chain's depth can read is brought
 up to date (D(d) of them); dimensions beyond D(d) are never used.
 
-Variance (the EXR's var channels): every chain unit is one splat batch, and
-the units hold disjoint sets of independent chains, so the batch-means
-variance of film.py applies with K = number of chain units (up to 8). It
-leaves out the error of b and the correlation through the shared bootstrap
-(the same factor b for all batches, and the starts). With K this small the
-variance estimate is itself noisy (K - 1 degrees of freedom).
+Variance (the EXR's var channels): every chain unit is one splat batch.
+The units hold disjoint sets of chains whose random numbers are independent
+and each unit's chains start from their own systematic resample of the
+bootstrap, so the batches are independent and the batch-means variance of
+film.py applies with K = number of chain units (up to 8). It leaves out the
+error of b and the correlation through the shared bootstrap (the same factor
+b for all batches). With K this small the variance estimate is itself noisy
+(K - 1 degrees of freedom).
 
-Determinism: a chain's path depends on (seed, chain index) only, so the
-image is a fixed function of the spec; the grouping of chains into units is
-a function of `chains` only (not of tile size or workers), which makes the
-EXR bit-identical across executors. Regrouping the same chains (another
-unit count) changes the floating-point summation order of the splats and
-therefore the low bits, not the statistics.
+Determinism: a chain's path depends on (seed, chain index, its unit's chain
+range) only, and the grouping of chains into units is a function of
+`chains` only (not of tile size or workers), so the image is a fixed
+function of the spec and the EXR bit-identical across executors. Another
+grouping (a different CHAIN_UNITS) resamples the starts per unit: a
+different, equally valid image, with the same b and the same total
+luminance.
 
 Progressive jobs render in one pass (a chain's state would have to travel
 between passes).
@@ -82,7 +89,6 @@ import math
 import numpy as np
 from numba import prange
 
-from ..errors import SpecError
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_inline, kernel_parallel
 from ..kernels.geometry import STACK_SIZE
@@ -117,6 +123,31 @@ def contribution(sc, cam, width, height, depth, u, stack):
     return standin_contribution(sc, cam, width, height, depth, u, stack)
 
 
+@kernel
+def bootstrap_vector(seed, i, n, max_depth, width, height, u):
+    """Fill u with bootstrap vector i of n (all depths); returns its depth.
+
+    Vector i has depth i mod (max_depth + 1) and is number j = i div
+    (max_depth + 1) of the m = n / (max_depth + 1) of its depth. Its film
+    position is jittered on a gx x gy grid over the frame (gx gy <= m, cells
+    about square; the j >= gx gy left over are uniform), which pbrt-v3 does
+    not do: b stays unbiased (each part's mean is) and loses most of its
+    variance, since a light seen directly is otherwise a rare event. Every
+    dimension is drawn from uniform(stream_key(seed, STREAM_BOOTSTRAP, i), dim)."""
+    depth = i % (max_depth + 1)
+    m = n // (max_depth + 1)
+    j = i // (max_depth + 1)
+    key = stream_key(seed, STREAM_BOOTSTRAP, i)
+    for k in range(path_dims(depth)):
+        u[k] = uniform(key, k)
+    gx = max(1, min(m, int(math.sqrt(m * width / height))))
+    gy = max(1, m // gx)
+    if j < gx * gy:
+        u[0] = min(((j % gx) + u[0]) / gx, ONE_MINUS_EPS)
+        u[1] = min(((j // gx) + u[1]) / gy, ONE_MINUS_EPS)
+    return depth
+
+
 @kernel_parallel
 def _bootstrap(sc, cam, width, height, max_depth, seed, n, weights, us, stacks):
     """weights[i] = y(contribution(bootstrap vector i)), i < n, in parallel chunks."""
@@ -124,10 +155,7 @@ def _bootstrap(sc, cam, width, height, max_depth, seed, n, weights, us, stacks):
     for c in prange(chunks):
         u, stack = us[c], stacks[c]
         for i in range(c * n // chunks, (c + 1) * n // chunks):
-            depth = i % (max_depth + 1)
-            key = stream_key(seed, STREAM_BOOTSTRAP, i)
-            for k in range(path_dims(depth)):
-                u[k] = uniform(key, k)
+            depth = bootstrap_vector(seed, i, n, max_depth, width, height, u)
             r, g, b, _, _ = contribution(sc, cam, width, height, depth, u, stack)
             weights[i] = luminance(r, g, b)
 
@@ -202,16 +230,14 @@ def _acceptance(y_proposed, y_current):
 
 
 @kernel
-def run_chain(sc, cam, width, height, max_depth, seed, chain, start, mutations, scale,
+def run_chain(sc, cam, width, height, max_depth, seed, chain, start, n_boot, mutations, scale,
               large_step, sigma, perturbation, x, last_mod, x_backup, mod_backup, stack, splat):
     """Run `mutations` mutations of chain `chain` from bootstrap vector
     `start`, splatting into `splat` with the factor `scale` (b W H).
     Returns the number of accepted mutations."""
-    depth = start % (max_depth + 1)
+    depth = bootstrap_vector(seed, start, n_boot, max_depth, width, height, x)
     dims = path_dims(depth)
-    bkey = stream_key(seed, STREAM_BOOTSTRAP, start)
     for k in range(dims):
-        x[k] = uniform(bkey, k)
         last_mod[k] = 0
     key = stream_key(seed, STREAM_CHAINS, chain)
     ctr = 1  # dimension 0 chose the start (in the bootstrap unit)
@@ -291,14 +317,15 @@ def toy_chains(seed, n_chains, mutations, large_step, sigma, perturbation, kind,
 
 
 @kernel
-def _run_chains(sc, cam, width, height, max_depth, seed, c0, c1, chains, total, starts, scale,
+def _run_chains(sc, cam, width, height, max_depth, seed, c0, c1, chains, total, starts, n_boot,
+                scale,
                 large_step, sigma, perturbation, x, last_mod, x_backup, mod_backup, stack, splat):
     """Chains [c0, c1) of `chains`, sharing `total` mutations; returns accepted count."""
     accepted = 0
     for c in range(c0, c1):
         m = (c + 1) * total // chains - c * total // chains
         if m > 0 and starts[c] >= 0:
-            accepted += run_chain(sc, cam, width, height, max_depth, seed, c, starts[c], m,
+            accepted += run_chain(sc, cam, width, height, max_depth, seed, c, starts[c], n_boot, m,
                                   scale, large_step, sigma, perturbation, x, last_mod, x_backup,
                                   mod_backup, stack, splat)
     return accepted
@@ -312,16 +339,7 @@ def _start_numbers(seed, out):
 
 
 def _options(spec) -> dict:
-    opts = METHODS[spec.method].check_options(spec.options)
-    if not 0.0 <= float(opts["large_step"]) <= 1.0:
-        raise SpecError("options.large_step", f"must lie in [0, 1], got {opts['large_step']!r}")
-    if not float(opts["sigma"]) > 0.0:
-        raise SpecError("options.sigma", f"must be positive, got {opts['sigma']!r}")
-    if int(opts["chains"]) < 1:
-        raise SpecError("options.chains", f"must be at least 1, got {opts['chains']!r}")
-    if int(opts["bootstrap"]) < 0:
-        raise SpecError("options.bootstrap", f"must be 0 (auto) or more, got {opts['bootstrap']!r}")
-    return opts
+    return METHODS[spec.method].check_options(spec.options)
 
 
 def bootstrap_per_depth(spec, opts: dict) -> int:
@@ -331,30 +349,47 @@ def bootstrap_per_depth(spec, opts: dict) -> int:
     return int(min(100_000, max(16384, spec.width * spec.height * spec.spp // (4 * (spec.depth + 1)))))
 
 
+def chain_groups(chains: int) -> list[tuple[int, int]]:
+    """The chain ranges of the chain units: min(chains, CHAIN_UNITS) near-equal
+    contiguous ranges."""
+    groups = min(chains, CHAIN_UNITS)
+    return [(g * chains // groups, (g + 1) * chains // groups) for g in range(groups)]
+
+
 def plan_mlt(spec, progressive: bool = False) -> list[Unit]:
     """One bootstrap unit, then up to CHAIN_UNITS chain units (one pass even
     when `progressive`: see the module doc)."""
     opts = _options(spec)
     n_boot = bootstrap_per_depth(spec, opts) * (spec.depth + 1)
-    chains = int(opts["chains"])
     units = [Unit(0, 0, 0, 0, 0, 0, n_boot, stage=0, kind="bootstrap")]
-    groups = min(chains, CHAIN_UNITS)
-    for g in range(groups):
-        units.append(Unit(1 + g, 0, 0, spec.width, spec.height, g * chains // groups,
-                          (g + 1) * chains // groups, stage=1, kind="chains", needs=(0,)))
+    for g, (c0, c1) in enumerate(chain_groups(int(opts["chains"]))):
+        units.append(Unit(1 + g, 0, 0, spec.width, spec.height, c0, c1, stage=1, kind="chains",
+                          needs=(0,)))
     return units
 
 
-def _chain_start_indices(seed: int, chains: int, weights: np.ndarray) -> np.ndarray:
-    """Each chain's starting bootstrap index, drawn proportionally to the
-    weights with dimension 0 of the chain's stream; -1 when all are zero."""
-    cdf = np.cumsum(weights)
+def chain_starts(seed: int, chains: int, weights: np.ndarray, max_depth: int) -> np.ndarray:
+    """Each chain's starting bootstrap index (-1 for all when every weight is 0).
+
+    Systematic resampling per chain unit: the bootstrap paths are ordered
+    by depth (then by index), and the l-th of a unit's n chains takes the
+    path at (l + xi) / n of their cumulative weight, xi from dimension 0 of
+    the chain's own stream. So every unit's chains cover the depths in
+    proportion to their weight (a chain never changes depth: with
+    independent draws the number of chains per depth dominated the image's
+    colour error), the chains of all units together still start from the
+    bootstrap distribution, and the units stay independent batches."""
+    order = np.arange(weights.size).reshape(-1, max_depth + 1).T.ravel()
+    cdf = np.cumsum(weights[order])
     if cdf.size == 0 or not cdf[-1] > 0.0:
         return np.full(chains, -1, np.int64)
-    r = np.zeros(chains)
-    _start_numbers(seed, r)
-    idx = np.searchsorted(cdf, r * cdf[-1], side="right")
-    return np.minimum(idx, weights.size - 1).astype(np.int64)
+    xi = np.zeros(chains)
+    _start_numbers(seed, xi)
+    r = np.empty(chains)
+    for c0, c1 in chain_groups(chains):
+        r[c0:c1] = (np.arange(c1 - c0) + xi[c0:c1]) / (c1 - c0)
+    pos = np.minimum(np.searchsorted(cdf, r * cdf[-1], side="right"), weights.size - 1)
+    return order[pos].astype(np.int64)
 
 
 def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
@@ -370,12 +405,16 @@ def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
                                                                 np.int64))
         by_depth = weights.reshape(-1, spec.depth + 1)
         per_depth = by_depth.mean(axis=0)
-        # b's standard error: the depths' sample means are independent
-        b_stderr = math.sqrt(float((by_depth.var(axis=0, ddof=1) / by_depth.shape[0]).sum()))
+        # b's standard error, from neighbouring strata collapsed in pairs (each
+        # pair's squared difference estimates the sum of their variances, or
+        # more): the depths' means are independent
+        pairs = by_depth.shape[0] // 2
+        diff = by_depth[0:2 * pairs:2] - by_depth[1:2 * pairs:2]
+        b_stderr = math.sqrt(float((diff * diff).sum())) / by_depth.shape[0]
         film = PartialFilm.zeros(0, 0, 0, 0)
-        film.artefact = {"b": np.array([float(per_depth.sum())]),
+        film.artefact = {"b": np.array([float(per_depth.sum())]), "n": np.array([n]),
                          "b_stderr": np.array([b_stderr]), "depth_means": per_depth,
-                         "starts": _chain_start_indices(spec.seed, chains, weights)}
+                         "starts": chain_starts(spec.seed, chains, weights, spec.depth)}
         film.stats.update(samples=0, rays=0, paths=n)
         return film
     boot = inputs[unit.needs[0]].artefact
@@ -386,6 +425,7 @@ def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
     last_mod, mod_backup = np.zeros(dims, np.int64), np.zeros(dims, np.int64)
     accepted = _run_chains(scene.arrays, cam, spec.width, spec.height, spec.depth, spec.seed,
                            unit.sample_start, unit.sample_end, chains, total, boot["starts"],
+                           int(boot["n"][0]),
                            b * spec.width * spec.height, float(opts["large_step"]),
                            float(opts["sigma"]),
                            EXPONENTIAL if opts["perturbation"] == "exponential" else NORMAL,
@@ -406,14 +446,15 @@ register_method(Method(
     run=run_mlt,
     options=(
         Option("large_step", float, 0.3, "probability of a large step (all primary samples "
-               "redrawn)"),
+               "redrawn)", bounds=(0.0, 1.0)),
         Option("sigma", float, 0.01, "standard deviation of the small steps' normal "
-               "perturbation"),
+               "perturbation", bounds=(1e-6, 1.0)),
         Option("perturbation", str, "normal", "small steps: pbrt-v3's wrapped normal or "
                "Kelemen's exponential", ("normal", "exponential")),
         Option("bootstrap", int, 0, "bootstrap paths per depth (0 = auto from the image "
-               "size and spp)"),
-        Option("chains", int, 64, "independent Markov chains (grouped into at most 8 units)"),
+               "size and spp)", bounds=(0, 10_000_000)),
+        Option("chains", int, 1024, "Markov chains (grouped into at most 8 units)",
+               bounds=(1, 1 << 20)),
     ),
     family="chains",
     plan=plan_mlt,
