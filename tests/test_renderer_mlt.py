@@ -193,15 +193,17 @@ def test06_small_steps_keep_the_uniform_distribution():
         out = _toy(n, 50, 0.0, 0.01, mlt.TOY_CONSTANT, rng.random((n, 3)), perturbation)
         for k in range(3):
             assert _uniform_pvalue(out[:, k]) > alpha, (perturbation, k)
+    # from 0.98, the steps cross 1 and must wrap: the wrapped displacement
+    # has the spread of the unwrapped one (its own wrap at +-0.5 is 5 sigma away)
     steps, sigma = 100, 0.01
-    moved = _toy(n, steps, 0.0, sigma, mlt.TOY_CONSTANT, np.full((n, 3), 0.5)) - 0.5
-    var = steps * sigma ** 2  # wrapping is negligible at 5 sigma from the edges
-    assert np.all(np.abs(moved.var(axis=0) - var) <= Z * var * math.sqrt(2 / n))
     s1, s2 = 1 / 1024, 1 / 64
     L = math.log(s2 / s1)
-    var = steps * s2 ** 2 * (1 - math.exp(-2 * L)) / (2 * L)
-    moved = _toy(n, steps, 0.0, sigma, mlt.TOY_CONSTANT, np.full((n, 3), 0.5), mlt.EXPONENTIAL) - 0.5
-    assert np.all(np.abs(moved.var(axis=0) - var) <= Z * var * math.sqrt(2 / n))
+    for perturbation, var in ((mlt.NORMAL, steps * sigma ** 2),
+                              (mlt.EXPONENTIAL, steps * s2 ** 2 * (1 - math.exp(-2 * L)) / (2 * L))):
+        out = _toy(n, steps, 0.0, sigma, mlt.TOY_CONSTANT, np.full((n, 3), 0.98), perturbation)
+        moved = np.mod(out - 0.98 + 0.5, 1.0) - 0.5
+        assert np.all(np.abs(moved.mean(axis=0)) <= Z * math.sqrt(var / n)), perturbation
+        assert np.all(np.abs(moved.var(axis=0) - var) <= Z * var * math.sqrt(2 / n)), perturbation
 
 
 def test07_lazy_catch_up_is_one_step_of_sigma_sqrt_n():
