@@ -122,6 +122,8 @@ def register_sampler(sampler: Sampler) -> Sampler:
 def _register_builtins() -> None:
     # Importing an integrator module registers it.
     from .integrators import path, raster  # noqa: F401
+    from .integrators import bdpt  # noqa: F401
+    from .integrators import light  # noqa: F401
     from .integrators import mlt  # noqa: F401
     from . import samplers  # noqa: F401
 
