@@ -598,7 +598,11 @@ def mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack):
     r, g, b, sx, sy, rays = connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u,
                                     conn0(depth) + 4 * t, heuristic, True)
     if t == 1:
+        # connect's t = 1 value is a splat of a W H spp-path batch (We per
+        # pixel, camera.py); as a pixel value like the other strategies: / W H
         fx, fy = sx, sy
+        k = 1.0 / (width * height)
+        r, g, b = r * k, g * k, b * k
     return r * n_strategies, g * n_strategies, b * n_strategies, fx, fy
 
 

@@ -3,6 +3,7 @@ over bidirectional path tracing, the way pbrt-v3's MLTIntegrator does it.
 
 | option | type | default | meaning |
 |---|---|---|---|
+| `heuristic` | str | `balance` | BDPT's MIS weights of the strategies: balance or power |
 | `large_step` | float | 0.3 | probability of a large step (every primary sample drawn anew) |
 | `sigma` | float | 0.01 | standard deviation of a small step's normal perturbation |
 | `perturbation` | str | `normal` | small steps: pbrt-v3's wrapped normal, or Kelemen's exponential (s1 = 1/1024, s2 = 1/64) |
@@ -16,10 +17,12 @@ them, explore locally; on easy scenes BDPT or path-mis at equal time is less
 noisy and has no start-up or normalisation error.
 
 The state of a chain is a depth d (fixed for the chain, as in pbrt-v3) and a
-vector u of primary samples in [0, 1)^D(d); `contribution` maps it to the
-contribution of one (s, t) strategy of paths with d bounces, times the
-number of strategies, and the film position it lands on. The target
-density is its luminance y.
+vector u of primary samples in [0, 1)^D(d); BDPT's `mlt_L` (bdpt.py: the
+layout of u is there) maps it to the MIS-weighted contribution of one
+(s, t) strategy of paths with d bounces (the strategy drawn from u[2]),
+times the number of strategies, and the film position it lands on (the
+light subpath's projection for t = 1). The target density is its
+luminance y.
 
 The plan (a two-stage DAG):
 - stage 0, one `bootstrap` unit (0 x 0 region, no samples): n bootstrap
@@ -76,10 +79,6 @@ between passes).
 
 `toy_chains` runs the same Metropolis steps on analytic integrands for the
 tests of the mutation kernel.
-
-TEMPORARY: until BDPT's one-strategy kernel lands (branch m5-bdpt),
-`contribution` is `mlt_standin.standin_contribution`, a unidirectional
-path tracer with next event estimation reading its numbers from u.
 """
 
 from __future__ import annotations
@@ -90,13 +89,14 @@ import numpy as np
 from numba import prange
 
 from ..film import PartialFilm
-from ..kernels import kernel, kernel_inline, kernel_parallel
+from ..kernels import kernel, kernel_parallel
 from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import STREAM_BOOTSTRAP, STREAM_CHAINS, stream_key, uniform
 from ..plan import Unit
 from ..registry import METHODS, Method, Option, register_method
 from ..scene import camera_array
-from .mlt_standin import standin_contribution, standin_dims
+from .bdpt import NV, dims as bdpt_dims, mlt_L
+from .path import BALANCE, POWER
 
 CHAIN_UNITS = 8  # at most this many chain units: the variance's batches
 BOOTSTRAP_CHUNKS = 64  # prange work items of the bootstrap (each with its buffers)
@@ -112,15 +112,13 @@ def luminance(r, g, b):
 
 @kernel
 def path_dims(depth):
-    """Primary samples a path of `depth` bounces can read."""
-    return standin_dims(depth)
+    """Primary samples a path of `depth` bounces can read (bdpt.dims)."""
+    return bdpt_dims(depth)
 
 
-@kernel_inline
-def contribution(sc, cam, width, height, depth, u, stack):
-    """(r, g, b, film x, film y) of the primary-sample vector u for paths of
-    exactly `depth` bounces (one strategy, times the number of strategies)."""
-    return standin_contribution(sc, cam, width, height, depth, u, stack)
+def workspace_rows(max_depth: int) -> int:
+    """Vertex rows of bdpt.mlt_L's scratch for any depth up to max_depth."""
+    return 2 * (max_depth + 2) + 1
 
 
 @kernel
@@ -149,14 +147,14 @@ def bootstrap_vector(seed, i, n, max_depth, width, height, u):
 
 
 @kernel_parallel
-def _bootstrap(sc, cam, width, height, max_depth, seed, n, weights, us, stacks):
-    """weights[i] = y(contribution(bootstrap vector i)), i < n, in parallel chunks."""
+def _bootstrap(sc, cam, width, height, max_depth, heuristic, seed, n, weights, us, vs, stacks):
+    """weights[i] = y(mlt_L(bootstrap vector i)), i < n, in parallel chunks."""
     chunks = us.shape[0]
     for c in prange(chunks):
-        u, stack = us[c], stacks[c]
+        u, V, stack = us[c], vs[c], stacks[c]
         for i in range(c * n // chunks, (c + 1) * n // chunks):
             depth = bootstrap_vector(seed, i, n, max_depth, width, height, u)
-            r, g, b, _, _ = contribution(sc, cam, width, height, depth, u, stack)
+            r, g, b, _, _ = mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack)
             weights[i] = luminance(r, g, b)
 
 
@@ -230,8 +228,9 @@ def _acceptance(y_proposed, y_current):
 
 
 @kernel
-def run_chain(sc, cam, width, height, max_depth, seed, chain, start, n_boot, mutations, scale,
-              large_step, sigma, perturbation, x, last_mod, x_backup, mod_backup, stack, splat):
+def run_chain(sc, cam, width, height, max_depth, heuristic, seed, chain, start, n_boot,
+              mutations, scale, large_step, sigma, perturbation, x, last_mod, x_backup,
+              mod_backup, V, stack, splat):
     """Run `mutations` mutations of chain `chain` from bootstrap vector
     `start`, splatting into `splat` with the factor `scale` (b W H).
     Returns the number of accepted mutations."""
@@ -241,7 +240,7 @@ def run_chain(sc, cam, width, height, max_depth, seed, chain, start, n_boot, mut
         last_mod[k] = 0
     key = stream_key(seed, STREAM_CHAINS, chain)
     ctr = 1  # dimension 0 chose the start (in the bootstrap unit)
-    cr, cg, cb, cx, cy = contribution(sc, cam, width, height, depth, x, stack)
+    cr, cg, cb, cx, cy = mlt_L(sc, cam, width, height, depth, heuristic, x, V, stack)
     cy_l = luminance(cr, cg, cb)
     iteration, last_large = 0, 0
     accepted = 0
@@ -250,7 +249,7 @@ def run_chain(sc, cam, width, height, max_depth, seed, chain, start, n_boot, mut
         large = uniform(key, ctr) < large_step
         ctr = _mutate(x, last_mod, x_backup, mod_backup, dims, iteration, last_large, large,
                       sigma, perturbation, key, ctr + 1)
-        pr, pg, pb, px, py = contribution(sc, cam, width, height, depth, x, stack)
+        pr, pg, pb, px, py = mlt_L(sc, cam, width, height, depth, heuristic, x, V, stack)
         py_l = luminance(pr, pg, pb)
         a = _acceptance(py_l, cy_l)
         # expected-value splatting: both states, weighted by the acceptance
@@ -317,17 +316,17 @@ def toy_chains(seed, n_chains, mutations, large_step, sigma, perturbation, kind,
 
 
 @kernel
-def _run_chains(sc, cam, width, height, max_depth, seed, c0, c1, chains, total, starts, n_boot,
-                scale,
-                large_step, sigma, perturbation, x, last_mod, x_backup, mod_backup, stack, splat):
+def _run_chains(sc, cam, width, height, max_depth, heuristic, seed, c0, c1, chains, total,
+                starts, n_boot, scale, large_step, sigma, perturbation, x, last_mod, x_backup,
+                mod_backup, V, stack, splat):
     """Chains [c0, c1) of `chains`, sharing `total` mutations; returns accepted count."""
     accepted = 0
     for c in range(c0, c1):
         m = (c + 1) * total // chains - c * total // chains
         if m > 0 and starts[c] >= 0:
-            accepted += run_chain(sc, cam, width, height, max_depth, seed, c, starts[c], n_boot, m,
-                                  scale, large_step, sigma, perturbation, x, last_mod, x_backup,
-                                  mod_backup, stack, splat)
+            accepted += run_chain(sc, cam, width, height, max_depth, heuristic, seed, c,
+                                  starts[c], n_boot, m, scale, large_step, sigma, perturbation,
+                                  x, last_mod, x_backup, mod_backup, V, stack, splat)
     return accepted
 
 
@@ -395,14 +394,17 @@ def chain_starts(seed: int, chains: int, weights: np.ndarray, max_depth: int) ->
 def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
     opts = _options(spec)
     cam = camera_array(scene.camera, spec.width, spec.height)
+    heuristic = POWER if opts["heuristic"] == "power" else BALANCE
     dims = int(path_dims(spec.depth))
+    rows = workspace_rows(spec.depth)
     chains = int(opts["chains"])
     if unit.kind == "bootstrap":
         n = unit.sample_end - unit.sample_start
         weights = np.zeros(n)
-        _bootstrap(scene.arrays, cam, spec.width, spec.height, spec.depth, spec.seed, n, weights,
-                   np.zeros((BOOTSTRAP_CHUNKS, dims)), np.zeros((BOOTSTRAP_CHUNKS, STACK_SIZE),
-                                                                np.int64))
+        _bootstrap(scene.arrays, cam, spec.width, spec.height, spec.depth, heuristic, spec.seed,
+                   n, weights, np.zeros((BOOTSTRAP_CHUNKS, dims)),
+                   np.zeros((BOOTSTRAP_CHUNKS, rows, NV)),
+                   np.zeros((BOOTSTRAP_CHUNKS, STACK_SIZE), np.int64))
         by_depth = weights.reshape(-1, spec.depth + 1)
         per_depth = by_depth.mean(axis=0)
         # b's standard error, from neighbouring strata collapsed in pairs (each
@@ -423,14 +425,13 @@ def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
     splat = np.zeros((spec.height, spec.width, 3))
     x, x_backup = np.zeros(dims), np.zeros(dims)
     last_mod, mod_backup = np.zeros(dims, np.int64), np.zeros(dims, np.int64)
-    accepted = _run_chains(scene.arrays, cam, spec.width, spec.height, spec.depth, spec.seed,
-                           unit.sample_start, unit.sample_end, chains, total, boot["starts"],
-                           int(boot["n"][0]),
-                           b * spec.width * spec.height, float(opts["large_step"]),
-                           float(opts["sigma"]),
+    accepted = _run_chains(scene.arrays, cam, spec.width, spec.height, spec.depth, heuristic,
+                           spec.seed, unit.sample_start, unit.sample_end, chains, total,
+                           boot["starts"], int(boot["n"][0]), b * spec.width * spec.height,
+                           float(opts["large_step"]), float(opts["sigma"]),
                            EXPONENTIAL if opts["perturbation"] == "exponential" else NORMAL,
-                           x, last_mod, x_backup, mod_backup, np.zeros(STACK_SIZE, np.int64),
-                           splat)
+                           x, last_mod, x_backup, mod_backup, np.zeros((rows, NV)),
+                           np.zeros(STACK_SIZE, np.int64), splat)
     mutations = sum((c + 1) * total // chains - c * total // chains
                     for c in range(unit.sample_start, unit.sample_end))
     film = PartialFilm.splat_batch(splat, mutations)
@@ -445,6 +446,8 @@ register_method(Method(
                 "mutations per pixel.",
     run=run_mlt,
     options=(
+        Option("heuristic", str, "balance", "BDPT's MIS weights: balance or power (beta = 2) "
+               "heuristic", ("balance", "power")),
         Option("large_step", float, 0.3, "probability of a large step (all primary samples "
                "redrawn)", bounds=(0.0, 1.0)),
         Option("sigma", float, 0.01, "standard deviation of the small steps' normal "
