@@ -569,8 +569,13 @@ def mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack):
     except for t = 1 strategies, where it is the projection of the light
     subpath's last vertex. The contribution is MIS-weighted (balance, or
     power with heuristic = POWER = 0; BALANCE = 1) and multiplied by the
-    number of strategies of that depth, so its expectation over u is the
-    image's depth-`depth` part. Zero when a subpath ends early.
+    number of strategies of that depth. Units (pbrt's): the value f(u) is
+    the image contribution per unit of primary sample space, with the film
+    position uniform over the whole film, so the depth-`depth` part of pixel
+    j's radiance is width * height * E_u[f(u) 1(film position in j)]: splat
+    f * width * height / N for N uniform u (t = 1 strategies, whose
+    importance We is per pixel, are divided by width * height here to share
+    these units). Zero when a subpath ends early.
 
     Arguments: sc = scene.arrays, cam = camera_array(...), u = float64 array
     of dims(depth) numbers in [0, 1) laid out as in the module doc (film,
@@ -597,13 +602,11 @@ def mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack):
             return 0.0, 0.0, 0.0, fx, fy
     r, g, b, sx, sy, rays = connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u,
                                     conn0(depth) + 4 * t, heuristic, True)
+    k = n_strategies
     if t == 1:
-        # connect's t = 1 value is a splat of a W H spp-path batch (We per
-        # pixel, camera.py); as a pixel value like the other strategies: / W H
         fx, fy = sx, sy
-        k = 1.0 / (width * height)
-        r, g, b = r * k, g * k, b * k
-    return r * n_strategies, g * n_strategies, b * n_strategies, fx, fy
+        k /= width * height  # per-pixel We (kernels/camera.py) -> per film, as pbrt's
+    return r * k, g * k, b * k, fx, fy
 
 
 @kernel
@@ -702,6 +705,22 @@ def _options(spec):
     return heuristic, only_s
 
 
+MIN_BATCHES = 8
+
+
+def plan_bdpt(spec, progressive: bool = False) -> list:
+    """The tile plan (tiles x sample passes). Each unit's t = 1 splats are one
+    batch, and a pixel's splat variance needs several batches: a job of fewer
+    than MIN_BATCHES tiles is also cut into its sample blocks (1, 1, 2, 4, ...
+    samples: the progressive passes), when spp allows."""
+    from ..plan import plan
+
+    units = plan(spec, progressive=progressive)
+    if len(units) < MIN_BATCHES and not progressive:
+        units = plan(spec, progressive=True)
+    return units
+
+
 def render_bdpt(scene, spec, unit, inputs=None) -> PartialFilm:
     """One tile unit of `bdpt`: its tile film plus its t = 1 splats as one batch
     (one light subpath per camera sample)."""
@@ -732,6 +751,7 @@ register_method(Method(
              Option("strategy", str, "all", "'all' (MIS) or debug 's=K': each path length "
                     "by the single strategy s = min(K, length + 1), unweighted")),
     family="splat",
+    plan=plan_bdpt,
     phases=("tile",),
 ))
 
