@@ -14,7 +14,9 @@ The spec's spp is the number of mutations per pixel: the chains make
 W x H x spp mutations in all. When to use it: on scenes where light arrives
 through narrow paths (a door ajar, caustics) that chains, once they find
 them, explore locally; on easy scenes BDPT or path-mis at equal time is less
-noisy and has no start-up or normalisation error.
+noisy and has no start-up or normalisation error (cornell-box 128 x 128,
+depth 5, about 2 s each on 2 processes: RMSE 0.083 for mlt at 16 mutations
+per pixel, 0.030 for path-mis at 64 spp, against path-mis at 1024 spp).
 
 The state of a chain is a depth d (fixed for the chain, as in pbrt-v3) and a
 vector u of primary samples in [0, 1)^D(d); BDPT's `mlt_L` (bdpt.py: the
@@ -73,6 +75,9 @@ function of the spec and the EXR bit-identical across executors. Another
 grouping (a different CHAIN_UNITS) resamples the starts per unit: a
 different, equally valid image, with the same b and the same total
 luminance.
+
+The job's pixel sampler and tile size play no part: every primary sample
+comes from the streams above, and the plan is not tiled.
 
 Progressive jobs render in one pass (a chain's state would have to travel
 between passes).
