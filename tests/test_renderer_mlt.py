@@ -237,3 +237,33 @@ def test08_chains_sample_the_integrand():
     stat = ((counts[keep] - expected[keep]) ** 2 / expected[keep]).sum()
     assert chi2.sf(stat, keep.sum() - 1) > 0.005, stat
     assert _uniform_pvalue(out[:, 2]) > 0.005
+
+
+@pytest.mark.parametrize("depth", [0, 1, 3])
+def test09_lazy_mutation_readies_every_dimension_mlt_L_reads(cornell, depth):
+    """The lazy mutation brings up to date only the dimensions of the
+    strategy u[2] selects: mlt_L must not read any other, so redrawing all
+    the others never changes its result (checked on random paths)."""
+    from renderer.integrators import bdpt
+    from renderer.kernels.geometry import STACK_SIZE
+    from renderer.scene import camera_array
+
+    rng = np.random.default_rng(depth)
+    w = h = 16
+    cam = camera_array(cornell.camera, w, h)
+    dims = bdpt.dims(depth)
+    V, stack = bdpt.workspace(depth), np.zeros(STACK_SIZE, np.int64)
+    key = np.uint64(12345)
+    nonzero = 0
+    for i in range(3000):
+        x = rng.random(dims)
+        last_mod, x_backup, mod_backup = np.zeros(dims, np.int64), np.zeros(dims), np.zeros(dims, np.int64)
+        mlt._ready_strategy(x, last_mod, x_backup, mod_backup, depth, 1, 0, True, 0.01, mlt.NORMAL,
+                            key, 4 * i * dims)
+        ready = last_mod == 1
+        a = bdpt.mlt_L(cornell.arrays, cam, w, h, depth, 1, x, V, stack)
+        y = x.copy()
+        y[~ready] = rng.random((~ready).sum())
+        assert bdpt.mlt_L(cornell.arrays, cam, w, h, depth, 1, y, V, stack) == a, (i, depth)
+        nonzero += a[0] > 0
+    assert nonzero >= 10  # not all black (depth 0: only the light seen directly)

@@ -55,9 +55,11 @@ its last change and a backup; a large step redraws, a small step adds a
 normal (sigma sqrt(n) for n missed iterations, the lazy catch-up) and wraps
 into [0, 1); a rejection restores the backups and rewinds the iteration
 counter; dimensions untouched since an accepted large step are redrawn
-before use. The strategy kernel reads u as a flat array, so before each
-evaluation every dimension a path of the chain's depth can read is brought
-up to date (D(d) of them); dimensions beyond D(d) are never used.
+before use. mlt_L reads u as a flat array, so before each evaluation
+`_ready_strategy` brings up to date the dimensions it will read: film and
+strategy first, then those of the strategy u[2] selects (a superset of
+them, from bdpt.py's layout); the others wait, as in pbrt-v3, and catch up
+when next used.
 
 Variance (the EXR's var channels): every chain unit is one splat batch.
 The units hold disjoint sets of chains whose random numbers are independent
@@ -100,7 +102,7 @@ from ..kernels.rng import STREAM_BOOTSTRAP, STREAM_CHAINS, stream_key, uniform
 from ..plan import Unit
 from ..registry import METHODS, Method, Option, register_method
 from ..scene import camera_array
-from .bdpt import NV, dims as bdpt_dims, mlt_L
+from .bdpt import NV, conn0, dims as bdpt_dims, light0, mlt_L
 from .path import BALANCE, POWER
 
 CHAIN_UNITS = 8  # at most this many chain units: the variance's batches
@@ -184,10 +186,10 @@ def _small_step(x, n_small, sigma, perturbation, key, ctr):
 
 
 @kernel
-def _mutate(x, last_mod, x_backup, mod_backup, dims, iteration, last_large, large,
+def _mutate(x, last_mod, x_backup, mod_backup, lo, hi, iteration, last_large, large,
             sigma, perturbation, key, ctr):
-    """pbrt-v3 MLTSampler::EnsureReady on dimensions [0, dims); returns ctr."""
-    for i in range(dims):
+    """pbrt-v3 MLTSampler::EnsureReady on dimensions [lo, hi); returns ctr."""
+    for i in range(lo, hi):
         if last_mod[i] < last_large:  # untouched since an accepted large step: redraw
             x[i] = uniform(key, ctr)
             ctr += 1
@@ -201,6 +203,36 @@ def _mutate(x, last_mod, x_backup, mod_backup, dims, iteration, last_large, larg
             v, ctr = _small_step(x[i], iteration - last_mod[i], sigma, perturbation, key, ctr)
             x[i] = v
         last_mod[i] = iteration
+    return ctr
+
+
+@kernel
+def _ready_strategy(x, last_mod, x_backup, mod_backup, depth, iteration, last_large, large,
+                    sigma, perturbation, key, ctr):
+    """Bring up to date the dimensions mlt_L will read (the lazy part of
+    pbrt-v3's MLTSampler): film and strategy first, then, for the strategy
+    (s, t) u[2] now selects (mlt_L's rule), the t camera vertices' bounces,
+    the light subpath when s >= 2 and the connection (bdpt.py's layout; test09
+    checks mlt_L reads nothing else). Returns ctr."""
+    ctr = _mutate(x, last_mod, x_backup, mod_backup, 0, 4, iteration, last_large, large,
+                  sigma, perturbation, key, ctr)
+    if depth == 0:
+        s, t = 0, 2
+    else:
+        n = depth + 2
+        s = min(int(x[2] * n), n - 1)
+        t = n - s
+    # t camera vertices: the camera, the camera ray's hit, then t - 2 bounces
+    ctr = _mutate(x, last_mod, x_backup, mod_backup, 4, 4 + 4 * max(t - 2, 0), iteration,
+                  last_large, large, sigma, perturbation, key, ctr)
+    if s >= 2:  # the light point and its emitted ray (6), then s - 2 bounces
+        l0 = light0(depth)
+        ctr = _mutate(x, last_mod, x_backup, mod_backup, l0, l0 + 6 + 4 * (s - 2), iteration,
+                      last_large, large, sigma, perturbation, key, ctr)
+    if s == 1:  # the light point the connection samples
+        c0 = conn0(depth) + 4 * t
+        ctr = _mutate(x, last_mod, x_backup, mod_backup, c0, c0 + 3, iteration, last_large,
+                      large, sigma, perturbation, key, ctr)
     return ctr
 
 
@@ -252,8 +284,8 @@ def run_chain(sc, cam, width, height, max_depth, heuristic, seed, chain, start, 
     for _ in range(mutations):
         iteration += 1
         large = uniform(key, ctr) < large_step
-        ctr = _mutate(x, last_mod, x_backup, mod_backup, dims, iteration, last_large, large,
-                      sigma, perturbation, key, ctr + 1)
+        ctr = _ready_strategy(x, last_mod, x_backup, mod_backup, depth, iteration, last_large,
+                              large, sigma, perturbation, key, ctr + 1)
         pr, pg, pb, px, py = mlt_L(sc, cam, width, height, depth, heuristic, x, V, stack)
         py_l = luminance(pr, pg, pb)
         a = _acceptance(py_l, cy_l)
@@ -306,8 +338,8 @@ def toy_chains(seed, n_chains, mutations, large_step, sigma, perturbation, kind,
         for _ in range(mutations):
             iteration += 1
             large = uniform(key, ctr) < large_step
-            ctr = _mutate(x, last_mod, x_backup, mod_backup, dims, iteration, last_large, large,
-                          sigma, perturbation, key, ctr + 1)
+            ctr = _mutate(x, last_mod, x_backup, mod_backup, 0, dims, iteration, last_large,
+                          large, sigma, perturbation, key, ctr + 1)
             py = _toy_integrand(kind, x)
             if uniform(key, ctr) < _acceptance(py, cy):
                 cy = py
