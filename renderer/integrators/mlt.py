@@ -457,6 +457,8 @@ def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
                          "starts": chain_starts(spec.seed, chains, weights, spec.depth)}
         film.stats.update(samples=0, rays=0, paths=n)
         return film
+    if unit.kind != "chains" or not unit.needs:
+        raise ValueError(f"mlt runs its own plan (Method.make_plan), got a {unit.kind!r} unit")
     boot = inputs[unit.needs[0]].artefact
     b = float(boot["b"][0])
     total = spec.width * spec.height * spec.spp
