@@ -59,7 +59,7 @@ import math
 import numpy as np
 
 from ..film import PartialFilm
-from ..kernels import kernel
+from ..kernels import kernel, kernel_inline
 from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
     dielectric_sample, diffuse_eval, diffuse_sample, reflect
 from ..kernels.camera import camera_connect, camera_pdf_dir
@@ -223,7 +223,7 @@ def vertex_pdf(mat_type, mat_rgb, mat_param, light_type, light_area, cam, width,
     return _convert(V, i, pdf, j)
 
 
-@kernel
+@kernel_inline
 def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf_fwd,
                 importance, u, ubase):
     """Extend a subpath whose last vertex is row n0 - 1: the ray (s, d) leaves
@@ -308,7 +308,7 @@ def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf
     return n, rays
 
 
-@kernel
+@kernel_inline
 def camera_subpath(sc, cam, width, height, stack, V, fx, fy, n_max, u, ubase):
     """The camera subpath through film position (fx, fy): rows 0 .. n - 1 of
     V, at most n_max vertices (camera included). Returns (n, rays)."""
@@ -328,7 +328,7 @@ def camera_subpath(sc, cam, width, height, stack, V, fx, fy, n_max, u, ubase):
                        False, u, ubase)
 
 
-@kernel
+@kernel_inline
 def light_subpath(sc, stack, V, row0, n_max, u, ubase):
     """The light subpath: rows row0 .. row0 + n - 1 of V, at most n_max
     vertices (the light point first); u[ubase ..] as in the module doc.
@@ -363,7 +363,7 @@ def light_subpath(sc, stack, V, row0, n_max, u, ubase):
 
 
 @kernel
-def visible(sc, stack, V, i, j):
+def visible(nodes, info, prims, tri, sph, stack, V, i, j):
     """True if nothing blocks the segment between vertices i and j (both ends
     moved off their surfaces towards each other)."""
     wx, wy, wz, d2 = _dir(V, i, j)
@@ -380,9 +380,8 @@ def visible(sc, stack, V, i, j):
     dx, dy, dz = bx - ax, by - ay, bz - az
     d = math.sqrt(dx * dx + dy * dy + dz * dz)
     inv = 1.0 / d
-    return intersect_arrays(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph, stack,
-                            ax, ay, az, dx * inv, dy * inv, dz * inv, d * (1.0 - 1e-9),
-                            True)[1] < 0
+    return intersect_arrays(nodes, info, prims, tri, sph, stack, ax, ay, az, dx * inv, dy * inv,
+                            dz * inv, d * (1.0 - 1e-9), True)[1] < 0
 
 
 @kernel
@@ -392,6 +391,15 @@ def _remap0(x):
 
 @kernel
 def mis_weight(sc, cam, width, height, V, lrow, srow, s, t, heuristic):
+    """`mis_weight_arrays` with the scene's arrays (for Python callers)."""
+    return mis_weight_arrays(sc.mat_type, sc.mat_rgb, sc.mat_param, sc.light_type, sc.light_area,
+                             cam, width, height, V, lrow, srow, s, t, heuristic)
+
+
+# Hot calls take the arrays they read, not the SceneArrays tuple: passing the
+# tuple into a non-inlined call copies every array's struct (geometry.py).
+@kernel
+def mis_weight_arrays(mt, mr, mp, lt, la, cam, width, height, V, lrow, srow, s, t, heuristic):
     """pbrt-v3's MISWeight for strategy (s, t): camera vertex i is row i,
     light vertex i row lrow + i, except that with s = 1 the light vertex is
     the sampled one in row srow. The reverse pdfs of the connection vertices
@@ -399,8 +407,6 @@ def mis_weight(sc, cam, width, height, V, lrow, srow, s, t, heuristic):
     without writing them). Balance heuristic, or power with heuristic POWER."""
     if s + t == 2:
         return 1.0
-    mt, mr, mp = sc.mat_type, sc.mat_rgb, sc.mat_param
-    lt, la = sc.light_type, sc.light_area
     pt = t - 1
     ptm = t - 2  # -1: none
     qs = -1
@@ -450,7 +456,7 @@ def mis_weight(sc, cam, width, height, V, lrow, srow, s, t, heuristic):
     return 1.0 / (1.0 + total)
 
 
-@kernel
+@kernel_inline
 def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuristic, weighted):
     """Strategy (s, t) of the subpaths in V (pbrt-v3's ConnectBDPT): (r, g, b,
     fx, fy, rays), the (MIS-weighted if `weighted`) contribution and, for
@@ -493,7 +499,8 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
         r, g, b = V[qs, 6] * fr * k, V[qs, 7] * fg * k, V[qs, 8] * fb * k
         if r > 0.0 or g > 0.0 or b > 0.0:
             rays += 1
-            if not visible(sc, stack, V, qs, 0):
+            if not visible(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph, stack,
+                           V, qs, 0):
                 return 0.0, 0.0, 0.0, fx, fy, rays
     elif s == 1:
         if not _connectible(sc.mat_type, V, pt) or sc.light_type.shape[0] == 0:
@@ -528,7 +535,8 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
         b = V[pt, 8] * fb * eb * c
         if r > 0.0 or g > 0.0 or b > 0.0:
             rays += 1
-            if not visible(sc, stack, V, pt, srow):
+            if not visible(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph, stack,
+                           V, pt, srow):
                 return 0.0, 0.0, 0.0, fx, fy, rays
     else:
         qs = lrow + s - 1
@@ -549,10 +557,12 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
         b = V[qs, 8] * ab * cb * V[pt, 8] * gterm
         if r > 0.0 or g > 0.0 or b > 0.0:
             rays += 1
-            if not visible(sc, stack, V, qs, pt):
+            if not visible(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph, stack,
+                           V, qs, pt):
                 return 0.0, 0.0, 0.0, fx, fy, rays
     if weighted and (r > 0.0 or g > 0.0 or b > 0.0):
-        w = mis_weight(sc, cam, width, height, V, 0 + lrow, srow, s, t, heuristic)
+        w = mis_weight_arrays(sc.mat_type, sc.mat_rgb, sc.mat_param, sc.light_type,
+                              sc.light_area, cam, width, height, V, lrow, srow, s, t, heuristic)
         r, g, b = r * w, g * w, b * w
     return r, g, b, fx, fy, rays
 
