@@ -16,8 +16,8 @@ through narrow paths (a door ajar, caustics) that chains, once they find
 them, explore locally; on easy scenes BDPT or path-mis at equal time is less
 noisy and has no start-up or normalisation error (cornell-box 128 x 128,
 depth 5, on 2 processes of a shared machine: mlt at 32 mutations per pixel
-in 1.2-1.6 s has an RMSE of 0.066 against path-mis at 1024 spp, path-mis at
-64 spp in 1.0-1.1 s 0.030, bdpt at 10 spp in 1.1-1.2 s 0.119).
+in 0.9 s has an RMSE of 0.066 against path-mis at 1024 spp, path-mis at 64
+spp in 0.7 s 0.030, bdpt at 16 spp in 1.0 s 0.086).
 
 The state of a chain is a depth d (fixed for the chain, as in pbrt-v3) and a
 vector u of primary samples in [0, 1)^D(d); BDPT's `mlt_L` (bdpt.py: the
