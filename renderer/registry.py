@@ -24,6 +24,17 @@ class Option:
     default: Any
     description: str
     choices: tuple | None = None
+    bounds: tuple | None = None  # (lowest, highest) allowed number, either may be None
+
+
+def _check_bounds(name: str, opt: Option, value: Any) -> None:
+    lo, hi = opt.bounds
+    kinds = int if opt.type is int else (int, float)
+    if isinstance(value, bool) or not isinstance(value, kinds):
+        what = "an integer" if opt.type is int else "a number"
+        raise SpecError(f"options.{name}", f"must be {what}, got {value!r}")
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise SpecError(f"options.{name}", f"must be between {lo} and {hi}, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -66,6 +77,8 @@ class Method:
             if opt.choices is not None and value not in opt.choices:
                 raise SpecError(f"options.{name}", f"must be one of {', '.join(map(str, opt.choices))}, "
                                                    f"got {value!r}")
+            if opt.bounds is not None:
+                _check_bounds(name, opt, value)
             out[name] = value
         return out
 
@@ -113,6 +126,7 @@ def _register_builtins() -> None:
     from .integrators import light  # noqa: F401
     from .integrators import photon  # noqa: F401
     from .integrators import radiosity  # noqa: F401
+    from .integrators import mlt  # noqa: F401
     from . import samplers  # noqa: F401
 
 

@@ -12,15 +12,16 @@ import math
 import numpy as np
 import pytest
 
-from renderer import METHODS, SAMPLERS, RenderSpec, build_scene, load_scene, merge, plan, \
-    render_serial, resolve_document, run_unit
+from renderer import METHODS, SAMPLERS, RenderSpec, build_scene, load_scene, merge, \
+    render_serial, resolve_document, run_plan
 
 Z = 4.5
 PATH_METHODS = ["path-nee", "path-onesample", "path-mis"]
 
 
 def render_inline(scene, spec):
-    return merge(spec.width, spec.height, [run_unit(scene, spec, u) for u in plan(spec)])
+    """The method's own plan (a tile plan or a DAG), run in unit order."""
+    return merge(spec.width, spec.height, run_plan(scene, spec))
 
 
 @pytest.fixture(scope="module")
