@@ -222,3 +222,30 @@ def test07_upload_a_scene_with_its_mesh_through_the_form_and_render_it(page, tmp
     page.wait_for_url("**/#/jobs/*")
     page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=120_000)
     assert "browser-room" in page.inner_text("#view .page-head")
+
+
+def test08_a_dag_job_shows_its_phases(page):
+    """A photon-mapping job plans photon passes then gather tiles: the job page
+    lists both phases with their units done, and each unit's phase."""
+    body = {"scene": "cornell-caustic", "method": "photon", "spp": 4, "depth": 5, "width": 96,
+            "height": 96, "tile_size": 48, "seed": 2, "progressive": False,
+            "options": {"iterations_per_unit": 1}}
+    with api(page.base) as client:
+        job = client.post("/jobs", json=body).json()
+    page.goto(f"{page.base}/#/jobs/{job['id']}")
+    page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=180_000)
+    page.wait_for_selector("#phases .phase[data-phase='gather']")
+    phases = page.eval_on_selector_all("#phases .phase", "els => els.map(e => [e.dataset.phase, "
+                                       "e.querySelector('.label').textContent])")
+    with api(page.base) as client:
+        units = client.get(f"/jobs/{job['id']}/units").json()
+    counts = {kind: sum(u["kind"] == kind for u in units) for kind in ("photons", "gather")}
+    assert [p[0] for p in phases] == ["photons", "gather"]
+    for kind, label in phases:
+        assert label.startswith(f"{counts[kind]} / {counts[kind]}"), (kind, label)
+    cells = page.eval_on_selector_all("#units-table tbody tr td:nth-child(2)",
+                                      "els => els.map(e => e.textContent)")
+    assert any(c.startswith("photons (stage") for c in cells) and \
+        any(c.startswith("gather (stage") for c in cells)
+    page.wait_for_selector("#stage img#preview[data-loaded]")
+    shot(page, "12-dag-job-phases")
