@@ -45,10 +45,29 @@ def build_parser(prog: str = "rayfarm render") -> argparse.ArgumentParser:
     return p
 
 
+def _typed_options(method: str, options: dict[str, str]) -> dict:
+    """`--option` values typed by the method's option table (int, float);
+    unknown methods and options stay strings, for validate() to name."""
+    from .errors import SpecError
+    from .registry import METHODS
+
+    if method not in METHODS:
+        return options
+    types = {o.name: o.type for o in METHODS[method].options}
+    out = {}
+    for key, value in options.items():
+        kind = types.get(key, str)
+        try:
+            out[key] = kind(value) if kind in (int, float) else value
+        except ValueError:
+            raise SpecError(f"options.{key}", f"expects {kind.__name__}, got {value!r}") from None
+    return out
+
+
 def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
     args = build_parser(prog).parse_args(argv)
     from .local import render
-    from .plan import plan
+    from .registry import METHODS
 
     options = {}
     for item in args.option:
@@ -58,6 +77,7 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
             return 2
         options[key] = value
     try:
+        options = _typed_options(args.method, options)
         doc = resolve_document(args.scene)
         cam = doc["camera"]
         spec = RenderSpec(method=args.method, spp=args.spp, depth=args.depth,
@@ -75,7 +95,7 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
 
     from tqdm import tqdm
 
-    units = plan(spec)
+    units = METHODS[spec.method].make_plan(spec, False)
     bar = tqdm(total=len(units), unit="unit", disable=args.quiet, desc=f"{args.scene} {spec.method}")
     t0 = time.perf_counter()
     film = render(doc, spec, workers=args.workers, progress=lambda unit, part: bar.update(1))

@@ -35,6 +35,19 @@ def test03_render_runs_a_tiny_job(tmp_path):
     assert code == 0 and out.is_file()
 
 
+def test03b_render_types_method_options_and_names_a_bad_one(tmp_path, capsys):
+    """`--option` values arrive as text: numbers are typed by the method's option
+    table (MLT's bounded `chains`, `large_step`), and a bad one is named."""
+    out = tmp_path / "mlt.exr"
+    code = main(["render", "cornell-box", "--method", "mlt", "--spp", "2", "--depth", "2",
+                 "--width", "8", "--height", "8", "--workers", "1", "--quiet",
+                 "--option", "chains=16", "--option", "large_step=0.5", "--out", str(out)])
+    assert code == 0 and out.is_file()
+    code = main(["render", "cornell-box", "--method", "mlt", "--option", "chains=many",
+                 "--out", str(tmp_path / "bad.exr")])
+    assert code == 2 and "options.chains" in capsys.readouterr().err
+
+
 def test04_worker_without_broker_refuses_with_a_hint(monkeypatch, capsys):
     monkeypatch.delenv("RAYFARM_BROKER_URL", raising=False)
     assert main(["worker"]) == 2
