@@ -249,7 +249,7 @@ def _mlt_splats(sc, cam, width, height, depth, heuristic, n_paths, seed, splat, 
     for _ in range(n_paths):
         for d in range(u.shape[0]):
             u[d] = np.random.random()
-        r, g, b, fx, fy = bdpt.mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack)
+        r, g, b, fx, fy, _rays = bdpt.mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack)
         if r != 0.0 or g != 0.0 or b != 0.0:
             splat[int(fy), int(fx), 0] += r
             splat[int(fy), int(fx), 1] += g

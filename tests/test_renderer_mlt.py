@@ -267,3 +267,16 @@ def test09_lazy_mutation_readies_every_dimension_mlt_L_reads(cornell, depth):
         assert bdpt.mlt_L(cornell.arrays, cam, w, h, depth, 1, y, V, stack) == a, (i, depth)
         nonzero += a[0] > 0
     assert nonzero >= 10  # not all black (depth 0: only the light seen directly)
+
+
+def test15_mlt_counts_the_rays_it_traces():
+    """Every unit reports its rays (the dashboard's rays/s): the bootstrap and
+    each chain unit trace at least one ray per path or mutation."""
+    from renderer import load_scene, run_plan
+    from renderer import RenderSpec as Spec
+
+    spec = Spec(method="mlt", spp=2, depth=3, width=8, height=8, seed=3,
+                options={"chains": 16, "bootstrap": 256})
+    films = run_plan(load_scene("cornell-box"), spec)
+    for film in films:
+        assert film.stats["rays"] >= film.stats["paths"] > 0, film.stats

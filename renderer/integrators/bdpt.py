@@ -570,14 +570,14 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
 @kernel
 def mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack):
     """One BDPT strategy of one path from primary samples, as pbrt-v3's
-    MLTIntegrator::L: (r, g, b, film_x, film_y).
+    MLTIntegrator::L: (r, g, b, film_x, film_y, rays).
 
     `depth` is the path's exact number of bounces (segments - 1); the
     strategy is drawn from u[2]: depth 0 uses (s, t) = (0, 2) alone; otherwise
     s = min(int(u[2] (depth + 2)), depth + 1), t = depth + 2 - s. The film
     position (pixels, x right, row 0 at top) is (u[0] width, u[1] height)
     except for t = 1 strategies, where it is the projection of the light
-    subpath's last vertex. The contribution is MIS-weighted (balance, or
+    subpath's last vertex; then the rays it traced. The contribution is MIS-weighted (balance, or
     power with heuristic = POWER = 0; BALANCE = 1) and multiplied by the
     number of strategies of that depth. Units (pbrt's): the value f(u) is
     the image contribution per unit of primary sample space, with the film
@@ -603,20 +603,22 @@ def mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack):
     fx, fy = u[0] * width, u[1] * height
     nc, rays = camera_subpath(sc, cam, width, height, stack, V, fx, fy, t, u, 4)
     if nc != t:
-        return 0.0, 0.0, 0.0, fx, fy
+        return 0.0, 0.0, 0.0, fx, fy, rays
     lrow = depth + 2
     srow = 2 * (depth + 2)
     if s >= 2:
-        nl, rays = light_subpath(sc, stack, V, lrow, s, u, light0(depth))
+        nl, light_rays = light_subpath(sc, stack, V, lrow, s, u, light0(depth))
+        rays += light_rays
         if nl != s:
-            return 0.0, 0.0, 0.0, fx, fy
-    r, g, b, sx, sy, rays = connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u,
-                                    conn0(depth) + 4 * t, heuristic, True)
+            return 0.0, 0.0, 0.0, fx, fy, rays
+    r, g, b, sx, sy, connect_rays = connect(sc, cam, width, height, stack, V, lrow, srow, s, t,
+                                            u, conn0(depth) + 4 * t, heuristic, True)
+    rays += connect_rays
     k = n_strategies
     if t == 1:
         fx, fy = sx, sy
         k /= width * height  # per-pixel We (kernels/camera.py) -> per film, as pbrt's
-    return r * k, g * k, b * k, fx, fy
+    return r * k, g * k, b * k, fx, fy, rays
 
 
 @kernel

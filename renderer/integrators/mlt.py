@@ -155,15 +155,20 @@ def bootstrap_vector(seed, i, n, max_depth, width, height, u):
 
 
 @kernel_parallel
-def _bootstrap(sc, cam, width, height, max_depth, heuristic, seed, n, weights, us, vs, stacks):
-    """weights[i] = y(mlt_L(bootstrap vector i)), i < n, in parallel chunks."""
+def _bootstrap(sc, cam, width, height, max_depth, heuristic, seed, n, weights, us, vs, stacks,
+               rays):
+    """weights[i] = y(mlt_L(bootstrap vector i)), i < n, in parallel chunks;
+    rays[c] = the rays chunk c traced."""
     chunks = us.shape[0]
     for c in prange(chunks):
         u, V, stack = us[c], vs[c], stacks[c]
+        traced = 0
         for i in range(c * n // chunks, (c + 1) * n // chunks):
             depth = bootstrap_vector(seed, i, n, max_depth, width, height, u)
-            r, g, b, _, _ = mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack)
+            r, g, b, _, _, nr = mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack)
             weights[i] = luminance(r, g, b)
+            traced += nr
+        rays[c] = traced
 
 
 @kernel
@@ -271,14 +276,14 @@ def run_chain(sc, cam, width, height, max_depth, heuristic, seed, chain, start, 
               mod_backup, V, stack, splat):
     """Run `mutations` mutations of chain `chain` from bootstrap vector
     `start`, splatting into `splat` with the factor `scale` (b W H).
-    Returns the number of accepted mutations."""
+    Returns (accepted mutations, rays traced)."""
     depth = bootstrap_vector(seed, start, n_boot, max_depth, width, height, x)
     dims = path_dims(depth)
     for k in range(dims):
         last_mod[k] = 0
     key = stream_key(seed, STREAM_CHAINS, chain)
     ctr = 1  # dimension 0 chose the start (in the bootstrap unit)
-    cr, cg, cb, cx, cy = mlt_L(sc, cam, width, height, depth, heuristic, x, V, stack)
+    cr, cg, cb, cx, cy, rays = mlt_L(sc, cam, width, height, depth, heuristic, x, V, stack)
     cy_l = luminance(cr, cg, cb)
     iteration, last_large = 0, 0
     accepted = 0
@@ -287,7 +292,8 @@ def run_chain(sc, cam, width, height, max_depth, heuristic, seed, chain, start, 
         large = uniform(key, ctr) < large_step
         ctr = _ready_strategy(x, last_mod, x_backup, mod_backup, depth, iteration, last_large,
                               large, sigma, perturbation, key, ctr + 1)
-        pr, pg, pb, px, py = mlt_L(sc, cam, width, height, depth, heuristic, x, V, stack)
+        pr, pg, pb, px, py, nr = mlt_L(sc, cam, width, height, depth, heuristic, x, V, stack)
+        rays += nr
         py_l = luminance(pr, pg, pb)
         a = _acceptance(py_l, cy_l)
         # expected-value splatting: both states, weighted by the acceptance
@@ -303,7 +309,7 @@ def run_chain(sc, cam, width, height, max_depth, heuristic, seed, chain, start, 
         else:
             iteration = _restore(x, last_mod, x_backup, mod_backup, dims, iteration)
         ctr += 1
-    return accepted
+    return accepted, rays
 
 
 TOY_CONSTANT, TOY_RAMP = 0, 1
@@ -357,15 +363,18 @@ def toy_chains(seed, n_chains, mutations, large_step, sigma, perturbation, kind,
 def _run_chains(sc, cam, width, height, max_depth, heuristic, seed, c0, c1, chains, total,
                 starts, n_boot, scale, large_step, sigma, perturbation, x, last_mod, x_backup,
                 mod_backup, V, stack, splat):
-    """Chains [c0, c1) of `chains`, sharing `total` mutations; returns accepted count."""
-    accepted = 0
+    """Chains [c0, c1) of `chains`, sharing `total` mutations; returns
+    (accepted mutations, rays traced)."""
+    accepted, rays = 0, 0
     for c in range(c0, c1):
         m = (c + 1) * total // chains - c * total // chains
         if m > 0 and starts[c] >= 0:
-            accepted += run_chain(sc, cam, width, height, max_depth, heuristic, seed, c,
-                                  starts[c], n_boot, m, scale, large_step, sigma, perturbation,
-                                  x, last_mod, x_backup, mod_backup, V, stack, splat)
-    return accepted
+            a, nr = run_chain(sc, cam, width, height, max_depth, heuristic, seed, c,
+                              starts[c], n_boot, m, scale, large_step, sigma, perturbation,
+                              x, last_mod, x_backup, mod_backup, V, stack, splat)
+            accepted += a
+            rays += nr
+    return accepted, rays
 
 
 @kernel
@@ -439,10 +448,11 @@ def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
     if unit.kind == "bootstrap":
         n = unit.sample_end - unit.sample_start
         weights = np.zeros(n)
+        rays = np.zeros(BOOTSTRAP_CHUNKS, np.int64)
         _bootstrap(scene.arrays, cam, spec.width, spec.height, spec.depth, heuristic, spec.seed,
                    n, weights, np.zeros((BOOTSTRAP_CHUNKS, dims)),
                    np.zeros((BOOTSTRAP_CHUNKS, rows, NV)),
-                   np.zeros((BOOTSTRAP_CHUNKS, STACK_SIZE), np.int64))
+                   np.zeros((BOOTSTRAP_CHUNKS, STACK_SIZE), np.int64), rays)
         by_depth = weights.reshape(-1, spec.depth + 1)
         per_depth = by_depth.mean(axis=0)
         # b's standard error, from neighbouring strata collapsed in pairs (each
@@ -455,7 +465,7 @@ def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
         film.artefact = {"b": np.array([float(per_depth.sum())]), "n": np.array([n]),
                          "b_stderr": np.array([b_stderr]), "depth_means": per_depth,
                          "starts": chain_starts(spec.seed, chains, weights, spec.depth)}
-        film.stats.update(samples=0, rays=0, paths=n)
+        film.stats.update(samples=0, rays=int(rays.sum()), paths=n)
         return film
     if unit.kind != "chains" or not unit.needs:
         raise ValueError(f"mlt runs its own plan (Method.make_plan), got a {unit.kind!r} unit")
@@ -465,17 +475,17 @@ def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
     splat = np.zeros((spec.height, spec.width, 3))
     x, x_backup = np.zeros(dims), np.zeros(dims)
     last_mod, mod_backup = np.zeros(dims, np.int64), np.zeros(dims, np.int64)
-    accepted = _run_chains(scene.arrays, cam, spec.width, spec.height, spec.depth, heuristic,
-                           spec.seed, unit.sample_start, unit.sample_end, chains, total,
-                           boot["starts"], int(boot["n"][0]), b * spec.width * spec.height,
-                           float(opts["large_step"]), float(opts["sigma"]),
-                           EXPONENTIAL if opts["perturbation"] == "exponential" else NORMAL,
-                           x, last_mod, x_backup, mod_backup, np.zeros((rows, NV)),
-                           np.zeros(STACK_SIZE, np.int64), splat)
+    accepted, rays = _run_chains(
+        scene.arrays, cam, spec.width, spec.height, spec.depth, heuristic, spec.seed,
+        unit.sample_start, unit.sample_end, chains, total, boot["starts"], int(boot["n"][0]),
+        b * spec.width * spec.height, float(opts["large_step"]), float(opts["sigma"]),
+        EXPONENTIAL if opts["perturbation"] == "exponential" else NORMAL,
+        x, last_mod, x_backup, mod_backup, np.zeros((rows, NV)), np.zeros(STACK_SIZE, np.int64),
+        splat)
     mutations = sum((c + 1) * total // chains - c * total // chains
                     for c in range(unit.sample_start, unit.sample_end))
     film = PartialFilm.splat_batch(splat, mutations)
-    film.stats.update(samples=mutations, rays=0, paths=mutations, accepted=int(accepted))
+    film.stats.update(samples=mutations, rays=int(rays), paths=mutations, accepted=int(accepted))
     return film
 
 
