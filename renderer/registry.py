@@ -25,6 +25,9 @@ class Option:
     description: str
     choices: tuple | None = None
     bounds: tuple | None = None  # (lowest, highest) allowed number, either may be None
+    # A last check of the value: returns an error message, or None if it is fine
+    # (for what choices and bounds cannot say, like BDPT's 's=K').
+    check: Callable[[Any], str | None] | None = None
 
 
 def _check_bounds(name: str, opt: Option, value: Any) -> None:
@@ -79,6 +82,10 @@ class Method:
                                                    f"got {value!r}")
             if opt.bounds is not None:
                 _check_bounds(name, opt, value)
+            if opt.check is not None and name in options:
+                problem = opt.check(value)
+                if problem:
+                    raise SpecError(f"options.{name}", problem)
             out[name] = value
         return out
 
@@ -87,6 +94,7 @@ class Method:
                 "family": self.family, "phases": list(self.phases),
                 "options": [{"name": o.name, "type": o.type.__name__, "default": o.default,
                              "choices": list(o.choices) if o.choices else None,
+                             "bounds": list(o.bounds) if o.bounds else None,
                              "description": o.description} for o in self.options]}
 
 

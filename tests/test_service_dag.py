@@ -52,3 +52,21 @@ def test01_dag_units_wait_for_their_needs_and_the_image_matches_the_renderer(
     for c, name in enumerate("RGB"):
         assert got[name].tobytes() == np.ascontiguousarray(mean[..., c]).tobytes(), name
         assert got[f"var.{name}"].tobytes() == np.ascontiguousarray(var[..., c]).tobytes(), name
+
+
+@pytest.mark.parametrize("method, options, field", [
+    ("mlt", {"chains": 0}, "chains"),
+    ("mlt", {"sigma": "wide"}, "sigma"),
+    ("photon", {"radius": -1}, "radius"),
+    ("photon", {"mode": "kd"}, "mode"),
+    ("radiosity", {"ff_rays": 0}, "ff_rays"),
+    ("radiosity", {"hemicube_res": 7}, "hemicube_res"),
+    ("bdpt", {"strategy": "s=two"}, "strategy"),
+])
+def test02_bad_method_options_are_refused_at_submission(method, options, field, local_client):
+    """Rule 5: a job whose options its method cannot run is a 422 naming the
+    option, not a job that fails on a worker."""
+    response = local_client.post("/jobs", json=dict(TINY, method=method, options=options))
+    assert response.status_code == 422, response.text
+    detail = response.json()["detail"][0]
+    assert detail["loc"][-1] == field and f"options.{field}" in detail["msg"], detail

@@ -702,6 +702,13 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     return rays
 
 
+def _check_strategy(value) -> str | None:
+    name, _, k = str(value).partition("=")
+    if value == "all" or (name == "s" and k.isdigit()):
+        return None
+    return f"must be 'all' or 's=K' with K a whole number, got {value!r}"
+
+
 def _options(spec):
     options = METHODS[spec.method].check_options(spec.options)
     heuristic = POWER if options.get("heuristic") == "power" else BALANCE
@@ -761,7 +768,8 @@ register_method(Method(
     options=(Option("heuristic", str, "balance", "MIS weights: balance or power (beta = 2) "
                     "heuristic", ("balance", "power")),
              Option("strategy", str, "all", "'all' (MIS) or debug 's=K': each path length "
-                    "by the single strategy s = min(K, length + 1), unweighted")),
+                    "by the single strategy s = min(K, length + 1), unweighted",
+                    check=_check_strategy)),
     family="splat",
     plan=plan_bdpt,
     phases=("tile",),

@@ -828,13 +828,14 @@ register_method(Method(
                "hit (direct visualisation, no final gather)", (SPPM, PHOTONMAP)),
         Option("photons", int, 0, "photons per iteration (sppm) or in the map (photonmap); "
                "0 = auto: one per pixel, at least 16384 (sppm); 4 per pixel, at least 65536 "
-               "(photonmap)"),
+               "(photonmap)", bounds=(0, 1 << 26)),
         Option("radius", float, 0.0, "initial gather radius (sppm) or maximum k-NN search "
                "radius (photonmap) in scene units; 0 = auto: 1/100 (sppm) or 1/40 "
-               "(photonmap) of the scene's bounding box diagonal"),
-        Option("k", int, 64, "photonmap: photons of the k-nearest-neighbour estimate"),
+               "(photonmap) of the scene's bounding box diagonal", bounds=(0.0, None)),
+        Option("k", int, 64, "photonmap: photons of the k-nearest-neighbour estimate",
+               bounds=(1, 4096)),
         Option("iterations_per_unit", int, 0, "sppm: iterations per gather unit; 0 = auto "
-               "(at most 16 gather rounds)"),
+               "(at most 16 gather rounds)", bounds=(0, 1 << 20)),
     ),
     family="photons",
     plan=plan_photon,

@@ -699,21 +699,12 @@ def auto_patch_size(scene) -> float:
 
 
 def check_options(spec, scene=None) -> dict:
-    """The method's options with defaults, numbers checked (SpecError), and
-    with a scene the automatic patch size resolved."""
+    """The method's options with defaults, checked by the option table
+    (bounds, the hemicube's even resolution: SpecError, so a job is refused
+    at submission), and with a scene the automatic patch size resolved."""
     options = METHODS[spec.method].check_options(spec.options)
-    if not float(options["patch_size"]) >= 0.0:
-        raise SpecError("options.patch_size", f"must be > 0 (or 0: auto), got "
-                                              f"{options['patch_size']!r}")
     if scene is not None and float(options["patch_size"]) == 0.0:
         options["patch_size"] = auto_patch_size(scene)
-    if int(options["ff_rays"]) < 1:
-        raise SpecError("options.ff_rays", f"must be >= 1, got {options['ff_rays']!r}")
-    res = int(options["hemicube_res"])
-    if res < 2 or res % 2:
-        raise SpecError("options.hemicube_res", f"must be an even integer >= 2, got {res}")
-    if not float(options["tolerance"]) >= 0.0:
-        raise SpecError("options.tolerance", f"must be >= 0, got {options['tolerance']!r}")
     return options
 
 
@@ -765,14 +756,18 @@ register_method(Method(
     run=run_radiosity,
     options=(
         Option("patch_size", float, 0.0, "patch edge length in world units; 0 = auto: the "
-               "scene's bounding-box diagonal / (20 sqrt 3), 0.1 for cornell-box"),
+               "scene's bounding-box diagonal / (20 sqrt 3), 0.1 for cornell-box",
+               bounds=(0.0, None)),
         Option("form_factors", str, "montecarlo", "form factor estimator: Monte Carlo ray "
                "casting or a ray-cast hemicube, both with visibility", ("montecarlo", "hemicube")),
-        Option("ff_rays", int, 512, "Monte Carlo form-factor rays and light samples per patch"),
-        Option("hemicube_res", int, 32, "hemicube top-face resolution (3 res^2 rays per patch)"),
+        Option("ff_rays", int, 512, "Monte Carlo form-factor rays and light samples per patch",
+               bounds=(1, 1 << 16)),
+        Option("hemicube_res", int, 32, "hemicube top-face resolution (3 res^2 rays per patch)",
+               bounds=(2, 1024), check=lambda v: None if v % 2 == 0 else f"must be even, got {v}"),
         Option("solver", str, "jacobi", "jacobi (one bounce per iteration, honours depth), "
                "gauss-seidel or progressive (Southwell shooting)", SOLVERS),
-        Option("tolerance", float, 1e-4, "relative change at which the solver stops"),
+        Option("tolerance", float, 1e-4, "relative change at which the solver stops",
+               bounds=(1e-12, 1.0)),
         Option("direct", str, "sampled", "first bounce by light sampling from the patches "
                "(sampled) or through the form factors (formfactor)", ("sampled", "formfactor")),
         Option("display", str, "flat", "flat: B/pi of the patch; smooth: Gouraud "
