@@ -116,7 +116,8 @@ export function submitView(root) {
         control = h(`input#f-opt-${o.name}`, { type: "checkbox", checked: !!o.default, "data-option": o.name });
       } else {
         control = h(`input#f-opt-${o.name}`, { type: o.type === "str" ? "text" : "number",
-          step: o.type === "float" ? "any" : 1, value: o.default, "data-option": o.name,
+          step: o.type === "float" ? "any" : 1, min: o.bounds?.[0], max: o.bounds?.[1],
+          value: o.default, "data-option": o.name,
           "data-type": o.type });
       }
       return field(`options.${o.name}`, `${o.name}`, control, o.description);
