@@ -170,26 +170,39 @@ def render(scene_source, spec: RenderSpec, *, pool: LocalPool | None = None,
     units = METHODS[spec.method].make_plan(spec, progressive)
     own_pool = pool is None
     pool = pool or LocalPool(workers)
+    # Each unit waits for the count of its needs still missing; a finished
+    # unit releases its dependents. Bytes are kept only for units others need.
+    needed = {i for u in units for i in u.needs}
+    missing = {u.index: len(set(u.needs)) for u in units}
+    dependents: dict[int, list[Unit]] = {}
+    for u in units:
+        for i in set(u.needs):
+            dependents.setdefault(i, []).append(u)
     try:
         results: dict[int, bytes] = {}
         parts: dict[int, PartialFilm] = {}
-        waiting = list(units)
+        ready = deque(u for u in units if not u.needs)
         futures: dict[Future, Unit] = {}
-        while waiting or futures:
-            ready = [u for u in waiting if all(i in results for i in u.needs)]
-            waiting = [u for u in waiting if u not in ready]
-            for u in ready:
+        while ready or futures:
+            while ready:
+                u = ready.popleft()
                 futures[pool.submit(key, text, spec.to_dict(), u.to_dict(),
                                     inputs={i: results[i] for i in u.needs})] = u
-            if not futures:
-                raise RuntimeError("plan has units whose needs never complete")
             done, _ = wait(futures, return_when=FIRST_COMPLETED)
             for fut in done:
                 unit = futures.pop(fut)
-                results[unit.index] = fut.result()
-                parts[unit.index] = PartialFilm.from_bytes(results[unit.index])
+                data = fut.result()
+                if unit.index in needed:
+                    results[unit.index] = data
+                parts[unit.index] = PartialFilm.from_bytes(data)
                 if progress is not None:
                     progress(unit, parts[unit.index])
+                for dependent in dependents.get(unit.index, ()):
+                    missing[dependent.index] -= 1
+                    if missing[dependent.index] == 0:
+                        ready.append(dependent)
+        if len(parts) != len(units):
+            raise RuntimeError("plan has units whose needs never complete")
     finally:
         if own_pool:
             pool.shutdown()

@@ -125,6 +125,10 @@ class Scheduler:
         self._wake = threading.Event()
         executor.on_progress(self._wake.set)
         self._thread: threading.Thread | None = None
+        # Stored films read as inputs during one tick, by (job, unit): every
+        # gather tile of a photon round needs the same photon maps, so they are
+        # read once and the tickets share one bytes object each.
+        self._inputs: dict[tuple[str, int], bytes] = {}
         self.ticks = 0
         self.last_error: str | None = None
 
@@ -169,6 +173,7 @@ class Scheduler:
         for job_id in [j for j in self._previews if j not in job_ids]:
             del self._previews[job_id]
         may_enqueue = True
+        self._inputs = {}
         for job_id in job_ids:
             if self._stop.is_set():
                 break
@@ -181,6 +186,7 @@ class Scheduler:
             except StaleDataError:
                 log.info("job %s changed meanwhile (canceled?); next tick", job_id)
                 self._forget_if_deleted(job_id)
+        self._inputs = {}
         self.ticks += 1
 
     def _cancel_departed(self) -> None:
@@ -286,8 +292,12 @@ class Scheduler:
         session.flush()
 
     def _enqueue(self, job: Job, unit: WorkUnit, now: datetime) -> None:
-        inputs = {int(i): self.store.unit_film(job.id, int(i))
-                  for i in unit.unit.get("needs") or ()}
+        inputs = {}
+        for i in unit.unit.get("needs") or ():
+            key = (job.id, int(i))
+            if key not in self._inputs:
+                self._inputs[key] = self.store.unit_film(job.id, int(i))
+            inputs[int(i)] = self._inputs[key]
         task_id = self.executor.submit(Ticket(job.id, unit.index, job.scene_hash, job.spec,
                                               unit.unit, priority=job.priority or 0,
                                               inputs=inputs))
