@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
         spec = RenderSpec(method=args.method, spp=args.spp, depth=args.depth,
                           width=args.width or cam["width"], height=args.height or cam["height"],
                           tile_size=args.tile_size, seed=args.seed, sampler=args.sampler,
-                          options=options).validate()
+                          options=options).validate(scene=doc)
     except RenderError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -21,6 +21,7 @@ from collections import deque
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from typing import Callable
 
+from .cache import cache_root
 from .film import Film, PartialFilm, merge
 from .plan import Unit
 from .registry import METHODS
@@ -35,11 +36,16 @@ _slot: int | None = None  # this child's index into the shared `rendering` array
 _rendering = None
 
 
-def _init_child(claimed, rendering) -> None:
+def _init_child(claimed, rendering, cache=None) -> None:
     global _slot, _rendering
     import signal
 
     import numba
+
+    from . import cache as disk_caches
+
+    if cache is not None:  # the parent's cache directory (or None) and cap, whatever our env
+        disk_caches.configure(*cache)
 
     # Ctrl-C in a terminal reaches the whole process group: let the parent
     # shut the pool down in order instead of every child dying mid-unit.
@@ -83,7 +89,7 @@ class LocalPool:
         self._rendering = context.Array("q", self.workers, lock=False)
         self._executor = ProcessPoolExecutor(
             max_workers=self.workers, mp_context=context, initializer=_init_child,
-            initargs=(context.Value("i", 0), self._rendering))
+            initargs=(context.Value("i", 0), self._rendering, cache_root()))
         self._waiting: deque[tuple[Future, tuple]] = deque()
         self._handed = 0  # units in the process pool (rendering or next in line)
         self._closed = False
@@ -165,7 +171,7 @@ def render(scene_source, spec: RenderSpec, *, pool: LocalPool | None = None,
     """Render a scene locally through plan -> units -> merge, like the farm: a
     unit is submitted as soon as every unit it needs is done (plan.py)."""
     doc = resolve_document(scene_source)
-    spec.validate()
+    spec.validate(scene=doc)
     key, text = scene_text(doc)
     units = METHODS[spec.method].make_plan(spec, progressive)
     own_pool = pool is None

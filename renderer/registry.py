@@ -8,6 +8,7 @@ Mitsuba's plugins do; unknown options are refused with their names.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -36,6 +37,8 @@ def _check_bounds(name: str, opt: Option, value: Any) -> None:
     if isinstance(value, bool) or not isinstance(value, kinds):
         what = "an integer" if opt.type is int else "a number"
         raise SpecError(f"options.{name}", f"must be {what}, got {value!r}")
+    if not math.isfinite(value):  # NaN passes every comparison below; inf is no size
+        raise SpecError(f"options.{name}", f"must be a finite number, got {value!r}")
     if (lo is not None and value < lo) or (hi is not None and value > hi):
         raise SpecError(f"options.{name}", f"must be between {lo} and {hi}, got {value!r}")
 
@@ -49,6 +52,11 @@ class Method:
     the tile plan (image tiles x sample passes, `renderer.plan.plan`). Methods
     of other families plan a DAG (renderer/plan.py); `phases` names their unit
     kinds in the order they run, for the dashboard.
+
+    `check_scene(spec, doc)`, if given, checks what the options mean on one
+    scene (a resolved document) and raises `SpecError`: `RenderSpec.validate`
+    calls it when it is handed the scene, so a job that could only fail on
+    the farm is refused at submission.
     """
 
     name: str
@@ -59,6 +67,7 @@ class Method:
     aliases: tuple[str, ...] = field(default=())
     plan: Callable | None = None
     phases: tuple[str, ...] = ("tile",)
+    check_scene: Callable | None = None
 
     def make_plan(self, spec, progressive: bool = False) -> list:
         if self.plan is None:

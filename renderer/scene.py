@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bvh import build_bvh
+from .primitives import DISK_SEGMENTS, FIXED, world_mesh  # noqa: F401 (DISK_SEGMENTS: re-exported)
 from .scene_format import resolve_document, scene_hash
 
 __all__ = ["Scene", "SceneArrays", "build_scene", "load_scene", "camera_array", "triangle_count",
@@ -53,47 +54,6 @@ SceneArrays = namedtuple("SceneArrays", [
     "bvh_info",     # (N, 3) int32: leaf: [first, count, -1]; inner: [right child, 0, axis]
     "bvh_prims",    # (P,) int32 primitive ids in leaf order
 ])
-
-# Mitsuba's primitives in local space.
-_RECT_V = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float64)
-_RECT_F = np.array([[0, 1, 2], [0, 2, 3]])
-
-
-def _cube_mesh() -> tuple[np.ndarray, np.ndarray]:
-    """The cube [-1,1]^3 as 12 triangles wound counter-clockwise seen from outside."""
-    verts, faces = [], []
-    for axis in range(3):
-        for sign in (-1.0, 1.0):
-            u, v = (axis + 1) % 3, (axis + 2) % 3
-            quad = []
-            for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
-                p = [0.0, 0.0, 0.0]
-                p[axis], p[u], p[v] = sign, a * sign, b
-                quad.append(p)
-            base = len(verts)
-            verts.extend(quad)
-            faces.extend([[base, base + 1, base + 2], [base, base + 2, base + 3]])
-    v = np.array(verts)
-    f = np.array(faces)
-    # Make every face's winding agree with its outward normal.
-    for i, (a, b, c) in enumerate(f):
-        n = np.cross(v[b] - v[a], v[c] - v[a])
-        if np.dot(n, v[a] + v[b] + v[c]) < 0:
-            f[i] = [a, c, b]
-    return v, f
-
-
-_CUBE_V, _CUBE_F = _cube_mesh()
-
-# The disk: the unit disk in the local z = 0 plane, front normal +z (Mitsuba's),
-# as a fan of DISK_SEGMENTS triangles: an inscribed regular polygon whose area
-# is (N / 2 pi) sin(2 pi / N) = 1 - 1.0e-4 of the circle's for N = 256.
-DISK_SEGMENTS = 256
-_DISK_ANGLES = np.linspace(0.0, 2 * math.pi, DISK_SEGMENTS, endpoint=False)
-_DISK_V = np.concatenate([[[0.0, 0.0, 0.0]],
-                          np.stack([np.cos(_DISK_ANGLES), np.sin(_DISK_ANGLES),
-                                    np.zeros(DISK_SEGMENTS)], axis=1)])
-_DISK_F = np.array([[0, 1 + k, 1 + (k + 1) % DISK_SEGMENTS] for k in range(DISK_SEGMENTS)])
 
 
 @dataclass
@@ -156,19 +116,7 @@ def build_scene(doc: dict) -> Scene:
             sph_mat.append(material)
             sph_light.append(light)
             continue
-        if shape["type"] == "rectangle":
-            v, f = _RECT_V, _RECT_F
-        elif shape["type"] == "disk":
-            v, f = _DISK_V, _DISK_F
-        elif shape["type"] == "cube":
-            v, f = _CUBE_V, _CUBE_F
-        else:
-            v, f = np.asarray(shape["vertices"], dtype=np.float64), np.asarray(shape["faces"])
-        wv = _apply(m, v)
-        if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform flips the winding
-            f = f[:, ::-1]
-        if shape["flip_normals"]:
-            f = f[:, ::-1]
+        wv, f = world_mesh(shape)
         first = len(tris)
         tris.extend(wv[f])
         tri_mat.extend([material] * len(f))
@@ -252,7 +200,7 @@ def build_scene(doc: dict) -> Scene:
 def triangle_count(doc: dict) -> int:
     """Triangles a resolved document becomes (analytic spheres count none),
     without building it: ``triangle_count(resolve_document("cornell-box"))``."""
-    fixed = {"rectangle": len(_RECT_F), "disk": len(_DISK_F), "cube": len(_CUBE_F), "sphere": 0}
+    fixed = {**{name: len(faces) for name, (_, faces) in FIXED.items()}, "sphere": 0}
     return sum(len(s["faces"]) if s["type"] == "mesh" else fixed[s["type"]] for s in doc["shapes"])
 
 

@@ -19,6 +19,17 @@ scene wherever it travels: the farm ships scenes to workers by that hash.
 
 Errors are `SceneError`s whose `location` names the offending field, e.g.
 ``shapes[2].to_world``.
+
+Limits. Every number is finite and of a magnitude the renderer handles:
+coordinates (camera, vertices, centres, radii, point lights, transform
+entries) within +-`MAX_COORDINATE`, in local space and again in world space
+(after `to_world`); radiance and intensity at most `MAX_RADIANCE`, so sums
+of samples and of their squares stay finite in the float32 EXR. An emitting
+triangle must have an area (`MIN_EMITTER_AREA`, and not be a sliver:
+`COLLINEAR`): the renderer samples lights by area, and a light whose
+triangles have none crashes the render process (measured: SIGSEGV in every
+method for a collinear or coincident-vertex mesh light, and for a sliver of
+height 1e-200).
 """
 
 from __future__ import annotations
@@ -34,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from .errors import SceneError
+from .primitives import world_mesh
 
 __all__ = [
     "builtin_scene_names",
@@ -52,6 +64,12 @@ FOV_AXES = ("x", "y", "smaller", "larger")
 MAX_IMAGE_SIDE = 8192
 MAX_TRIANGLES = 5_000_000
 MAX_FILE_BYTES = 256 * 1024 * 1024
+SCENE_FORMAT = "rayfarm-scene/1"  # the one version this renderer reads
+MAX_COORDINATE = 1e6  # |x|, |y|, |z| of any point (local and world), transform entry, radius
+MAX_RADIANCE = 1e6  # area-light radiance and point-light intensity, per component
+MIN_EMITTER_AREA = 1e-12  # world-space area of an emitting triangle (or sphere)
+COLLINEAR = 1e-9  # an emitting triangle's height / its longest edge, at least
+MAX_NESTING = 16  # levels of lists and objects (shapes[i].to_world[j].rotate.axis: 6)
 
 
 # ----------------------------------------------------------------------------
@@ -75,6 +93,18 @@ def _load_builtin(name: str) -> dict:
 # ----------------------------------------------------------------------------
 # Small validators; each raises SceneError naming the location.
 
+def _nesting(value: Any) -> int:
+    """How many lists and objects deep `value` goes (iteratively: it may be deep)."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, (dict, list)):
+            deepest = max(deepest, depth)
+            children = item.values() if isinstance(item, dict) else item
+            stack.extend((child, depth + 1) for child in children)
+    return deepest
+
+
 def _require(obj: dict, key: str, loc: str) -> Any:
     if key not in obj:
         raise SceneError(f"missing required field '{key}'", loc)
@@ -93,12 +123,36 @@ def _number(value: Any, loc: str, *, lo: float | None = None, hi: float | None =
     return v
 
 
-def _vec3(value: Any, loc: str, *, nonneg: bool = False) -> list[float]:
+def _vec3(value: Any, loc: str, *, nonneg: bool = False,
+          limit: float = MAX_COORDINATE) -> list[float]:
+    """Three finite numbers within +-`limit` (0..limit if `nonneg`)."""
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         value = [value, value, value]  # a scalar means grey
     if not isinstance(value, list) or len(value) != 3:
         raise SceneError("expected a list of 3 numbers", loc)
-    return [_number(v, f"{loc}[{i}]", lo=0.0 if nonneg else None) for i, v in enumerate(value)]
+    return [_number(v, f"{loc}[{i}]", lo=0.0 if nonneg else -limit, hi=limit)
+            for i, v in enumerate(value)]
+
+
+def _coordinate(value: Any, loc: str, **bounds) -> float:
+    """A finite number within +-MAX_COORDINATE (and `bounds`, if tighter)."""
+    return _number(value, loc, **{"lo": -MAX_COORDINATE, "hi": MAX_COORDINATE, **bounds})
+
+
+def _bool(value: Any, loc: str) -> bool:
+    if not isinstance(value, bool):
+        raise SceneError(f"expected true or false, got {json.dumps(value)[:60]}", loc)
+    return value
+
+
+def _check_world_points(points: np.ndarray, loc: str, what: str) -> None:
+    """World-space points must be finite and within +-MAX_COORDINATE; `what`
+    names point j in the message (``"vertex {j}"``)."""
+    bad = ~np.all(np.isfinite(points) & (np.abs(points) <= MAX_COORDINATE), axis=1)
+    if np.any(bad):
+        j = int(np.argmax(bad))
+        raise SceneError(f"{what.format(j=j)} lies at {points[j].tolist()} after to_world; every "
+                         f"coordinate must be within +-{MAX_COORDINATE:g}", loc)
 
 
 def _rotation(axis: list[float], angle_deg: float) -> np.ndarray:
@@ -129,7 +183,7 @@ def _transform(value: Any, loc: str) -> list[list[float]]:
         for i, row in enumerate(value):
             if len(row) != 4:
                 raise SceneError("a matrix row needs 4 numbers", f"{loc}[{i}]")
-            rows.append([_number(v, f"{loc}[{i}][{j}]") for j, v in enumerate(row)])
+            rows.append([_coordinate(v, f"{loc}[{i}][{j}]") for j, v in enumerate(row)])
         m = np.asarray(rows)
     elif isinstance(value, list):
         m = np.eye(4)
@@ -150,11 +204,14 @@ def _transform(value: Any, loc: str) -> list[list[float]]:
                 axis = _vec3(_require(arg, "axis", f"{oloc}.rotate"), f"{oloc}.rotate.axis")
                 if np.linalg.norm(axis) == 0:
                     raise SceneError("rotation axis must not be zero", f"{oloc}.rotate.axis")
-                t = _rotation(axis, _number(_require(arg, "angle", f"{oloc}.rotate"), f"{oloc}.rotate.angle"))
+                t = _rotation(axis, _coordinate(_require(arg, "angle", f"{oloc}.rotate"),
+                                                f"{oloc}.rotate.angle"))
             else:
                 raise SceneError(f"unknown transform operation '{kind}' "
                                  "(allowed: translate, scale, rotate)", oloc)
             m = t @ m
+        if not np.all(np.abs(m) <= MAX_COORDINATE):  # products of operations
+            raise SceneError(f"the composed matrix has entries beyond +-{MAX_COORDINATE:g}", loc)
     else:
         raise SceneError("expected a 4x4 matrix or a list of transform operations", loc)
     if abs(np.linalg.det(m[:3, :3])) < 1e-12:
@@ -275,14 +332,16 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
                          f"{loc}.material")
     out: dict[str, Any] = {"type": stype, "material": mat,
                            "to_world": _transform(shape.get("to_world"), f"{loc}.to_world"),
-                           "flip_normals": bool(shape.get("flip_normals", False))}
+                           "flip_normals": _bool(shape.get("flip_normals", False),
+                                                 f"{loc}.flip_normals")}
     if "name" in shape:
         out["name"] = str(shape["name"])
     if stype == "sphere":
         # An analytic sphere: centre and radius in local space (default the unit
         # sphere), then to_world, which must be a similarity (no shear, uniform scale).
         out["center"] = _vec3(shape.get("center", [0, 0, 0]), f"{loc}.center")
-        out["radius"] = _number(shape.get("radius", 1.0), f"{loc}.radius", lo=0.0, lo_open=True)
+        out["radius"] = _coordinate(shape.get("radius", 1.0), f"{loc}.radius", lo=0.0,
+                                    lo_open=True)
         m = np.asarray(out["to_world"])[:3, :3]
         mtm = m.T @ m
         s2 = mtm[0, 0]
@@ -311,6 +370,10 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
         f = f_raw.astype(np.int64)
         if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
             raise SceneError("vertices must be a list of finite [x, y, z]", f"{loc}.vertices")
+        if not np.all(np.abs(v) <= MAX_COORDINATE):
+            j = int(np.argmax(np.any(np.abs(v) > MAX_COORDINATE, axis=1)))
+            raise SceneError(f"vertex {j} is {v[j].tolist()}; every coordinate must be within "
+                             f"+-{MAX_COORDINATE:g}", f"{loc}.vertices")
         if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
             raise SceneError("faces must be a non-empty list of [i, j, k] triangles", f"{loc}.faces")
         if f.min() < 0 or f.max() >= len(v):
@@ -325,8 +388,48 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
         if not isinstance(em, dict) or em.get("type") != "area":
             raise SceneError("a shape's emitter must be {'type': 'area', 'radiance': [r, g, b]}", eloc)
         out["emitter"] = {"type": "area",
-                          "radiance": _vec3(_require(em, "radiance", eloc), f"{eloc}.radiance", nonneg=True)}
+                          "radiance": _vec3(_require(em, "radiance", eloc), f"{eloc}.radiance",
+                                            nonneg=True, limit=MAX_RADIANCE)}
+    _check_world_geometry(out, loc)
     return out
+
+
+def _check_world_geometry(shape: dict, loc: str) -> None:
+    """A resolved shape in world space: its points within bounds, and if it
+    emits, triangles with an area (see the module doc: a light without one
+    crashes the renderer)."""
+    m = np.asarray(shape["to_world"])
+    where = f"{loc}.vertices" if "vertices" in shape else f"{loc}.to_world"
+    if shape["type"] == "sphere":
+        centre = m[:3, :3] @ np.asarray(shape["center"]) + m[:3, 3]
+        radius = shape["radius"] * float(np.linalg.norm(m[:3, 0]))  # a similarity
+        _check_world_points(centre[None], f"{loc}.to_world", "the centre")
+        if not radius <= MAX_COORDINATE:
+            raise SceneError(f"the radius is {radius:.3g} after to_world; at most "
+                             f"{MAX_COORDINATE:g}", f"{loc}.to_world")
+        if "emitter" in shape and 4 * math.pi * radius * radius < MIN_EMITTER_AREA:
+            raise SceneError(f"an emitting sphere needs an area of at least {MIN_EMITTER_AREA:g} "
+                             f"(radius {radius:.3g} after to_world)", f"{loc}.radius")
+        return
+    vertices, faces = world_mesh(shape)
+    _check_world_points(vertices, where, "vertex {j}")
+    if "emitter" not in shape:
+        return  # degenerate triangles that emit nothing are merely never hit
+    tri = vertices[faces]
+    edges = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], tri[:, 2] - tri[:, 1]], axis=1)
+    longest = np.max(np.linalg.norm(edges, axis=2), axis=1)
+    double_area = np.linalg.norm(np.cross(edges[:, 0], edges[:, 1]), axis=1)
+    bad = (0.5 * double_area < MIN_EMITTER_AREA) | (double_area < COLLINEAR * longest * longest)
+    if np.any(bad):
+        j = int(np.argmax(bad))
+        which = f"face {j}" if "faces" in shape else f"its triangle {j}"
+        raise SceneError(f"an area light's triangles need an area: {which} is degenerate "
+                         f"after to_world (area {0.5 * double_area[j]:.3g}, height "
+                         f"{double_area[j] / max(longest[j], 1e-300):.3g} across a longest edge "
+                         f"of {longest[j]:.3g}: collinear or coincident vertices); an emitting "
+                         f"triangle needs an area of at least {MIN_EMITTER_AREA:g} and a height "
+                         f"of at least {COLLINEAR:g} times its longest edge",
+                         f"{loc}.faces[{j}]" if "faces" in shape else f"{loc}.to_world")
 
 
 def _resolve_emitter(i: int, em: Any) -> dict:
@@ -339,7 +442,8 @@ def _resolve_emitter(i: int, em: Any) -> dict:
                          "are attached to shapes)", f"{loc}.type")
     return {"type": "point",
             "position": _vec3(_require(em, "position", loc), f"{loc}.position"),
-            "intensity": _vec3(_require(em, "intensity", loc), f"{loc}.intensity", nonneg=True)}
+            "intensity": _vec3(_require(em, "intensity", loc), f"{loc}.intensity", nonneg=True,
+                               limit=MAX_RADIANCE)}
 
 
 def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
@@ -352,6 +456,9 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
     one, a dict must inline its meshes.
     """
     if isinstance(source, dict):
+        if _nesting(source) > MAX_NESTING:  # copying (or printing) it would exhaust the stack
+            raise SceneError(f"the document nests lists and objects more than {MAX_NESTING} "
+                             "levels deep")
         doc = copy.deepcopy(source)
     elif isinstance(source, (str, Path)) and str(source) in builtin_scene_names():
         doc, base_dir = _load_builtin(str(source)), None
@@ -366,6 +473,11 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
         except json.JSONDecodeError as exc:
             raise SceneError(f"invalid JSON in {path.name} at line {exc.lineno}, "
                              f"column {exc.colno}: {exc.msg}") from None
+        except RecursionError:
+            raise SceneError(f"{path.name} is nested too deeply") from None
+        if _nesting(doc) > MAX_NESTING:
+            raise SceneError(f"{path.name} nests lists and objects more than {MAX_NESTING} "
+                             "levels deep")
         base_dir = path.parent
     else:
         raise SceneError(f"unknown scene '{source}' (built-in scenes: "
@@ -377,6 +489,10 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
     if unknown:
         raise SceneError(f"unknown top-level field(s): {', '.join(unknown)} "
                          f"(allowed: {', '.join(sorted(known))})")
+    version = doc.get("format", SCENE_FORMAT)
+    if version != SCENE_FORMAT:
+        raise SceneError(f"unknown scene format {json.dumps(version)[:60]} (this renderer reads "
+                         f"{SCENE_FORMAT}; or leave the field out)", "format")
     mats_in = doc.get("materials", {})
     if not isinstance(mats_in, dict):
         raise SceneError("expected an object mapping names to materials", "materials")
@@ -388,7 +504,7 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
     if not isinstance(emitters_in, list):
         raise SceneError("expected a list of emitters", "emitters")
     resolved = {
-        "format": "rayfarm-scene/1",
+        "format": SCENE_FORMAT,
         "name": str(doc.get("name", "")),
         "description": str(doc.get("description", "")),
         "camera": _resolve_camera(_require(doc, "camera", "")),

@@ -45,8 +45,10 @@ class RenderSpec:
     sampler: str = "random"
     options: dict[str, Any] = field(default_factory=dict)
 
-    def validate(self, max_work: int = DEFAULT_MAX_WORK) -> "RenderSpec":
-        """Check bounds and registry names; return self or raise `SpecError`."""
+    def validate(self, max_work: int = DEFAULT_MAX_WORK, scene: dict | None = None) -> "RenderSpec":
+        """Check bounds and registry names (and, given the resolved `scene`
+        document, what the method's options make of it); return self or raise
+        `SpecError`."""
         from .registry import METHODS, SAMPLERS  # the registry imports integrators
 
         for name, (lo, hi) in BOUNDS.items():
@@ -66,6 +68,9 @@ class RenderSpec:
         if work > max_work:
             raise SpecError("spp", f"total work width x height x spp = {work} exceeds the "
                                    f"limit {max_work}; lower spp or the resolution")
+        check_scene = METHODS[self.method].check_scene
+        if scene is not None and check_scene is not None:
+            check_scene(self, scene)
         return self
 
     def to_dict(self) -> dict[str, Any]:

@@ -3,6 +3,8 @@
     rayfarm serve --host 0.0.0.0 --port 8000     the HTTP service (+ scheduler)
     rayfarm worker --concurrency 4                a Celery worker (needs RAYFARM_BROKER_URL)
     rayfarm render ...                            render locally (the renderer's own CLI)
+    rayfarm users add|set|list, tokens create|revoke|list   accounts, on the ledger
+    rayfarm cache info|clear                      the renderer's on-disk caches (radiosity)
 
     rayfarm submit SCENE --spp 64 ...             the client commands (service/client_cli.py):
     rayfarm watch|fetch|cancel ID                 they talk to a service over HTTP (--server URL
@@ -17,18 +19,56 @@ import argparse
 import os
 import sys
 
+from .admin_cli import add_admin_commands
 from .client_cli import add_client_commands
 
 __all__ = ["main"]
 
 
+class _RedactTokens:
+    """A logging filter for uvicorn's access log: the login URL's token never
+    reaches a log file (`/?token=rf_...` is logged as `/?token=...`)."""
+
+    def filter(self, record) -> bool:
+        import re
+
+        if isinstance(record.args, tuple) and len(record.args) >= 3:
+            args = list(record.args)
+            args[2] = re.sub(r"(token=)[^&\s]+", r"\1...", str(args[2]))
+            record.args = tuple(args)
+        return True
+
+
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from .auth import admin_token_path, bootstrap_admin
+    from .db import open_ledger
     from .main import create_app
     from .settings import Settings
 
-    uvicorn.run(create_app(Settings()), host=args.host, port=args.port, log_level=args.loglevel)
+    settings = Settings()
+    engine, sessions = open_ledger(settings)
+    try:
+        secret = bootstrap_admin(sessions, settings.data_dir, settings.admin_token)
+    finally:
+        engine.dispose()
+    host = "127.0.0.1" if args.host in ("0.0.0.0", "::", "") else args.host
+    if ":" in host:
+        host = f"[{host}]"
+    if secret:  # as Jupyter does: one URL that logs the browser in
+        print(f"\n    rayfarm is starting; open the dashboard (this URL logs you in as admin):"
+              f"\n\n        http://{host}:{args.port}/?token={secret}\n\n"
+              f"    The CLI on this machine reads the same token from "
+              f"{admin_token_path(settings.data_dir).resolve()}.\n", flush=True)
+    else:
+        print(f"\n    rayfarm is starting. No admin login token on file "
+              f"({admin_token_path(settings.data_dir)}); make one with "
+              "`rayfarm tokens create admin`\n", flush=True)
+    import logging
+
+    logging.getLogger("uvicorn.access").addFilter(_RedactTokens())
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.loglevel)
     return 0
 
 
@@ -71,6 +111,7 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("render", help="render a scene locally (see `rayfarm render --help`)",
                    add_help=False)
     add_client_commands(sub)
+    add_admin_commands(sub)
     return parser
 
 

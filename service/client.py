@@ -1,6 +1,6 @@
 """A Python client of the rayfarm HTTP API (sync, on httpx).
 
-    with RayfarmClient("http://127.0.0.1:8000") as farm:
+    with RayfarmClient("http://127.0.0.1:8000", token="rf_...") as farm:
         job = farm.submit(scene="cornell-box", method="path", spp=64, depth=5)
         for kind, data in farm.events(job["id"]):     # job, units, unit, preview, ..., end
             print(kind)
@@ -8,13 +8,23 @@
 
 It talks HTTP only: it imports neither the service nor the renderer (the
 standard library and httpx are all it needs), so this one file can be
-shipped alone. Every refusal is a `ClientError`:
+shipped alone.
+
+Every request carries `Authorization: Bearer <token>`: the `token` given, else
+`$RAYFARM_TOKEN`, else the first line of the file `$RAYFARM_TOKEN_FILE`, else
+`$RAYFARM_DATA_DIR/admin.token` (default `./rayfarm-data/admin.token`: the
+token the embedded service made for its admin on this machine).
+
+Every refusal is a `ClientError`:
 
     ClientError              anything the client could not do
      ├── ServerUnavailable   no answer: connection refused, unknown host, timed
      │                       out, or an event stream lost and not regained
      ├── ServerError         the service failed (5xx) or did not answer like rayfarm
      ├── NotSupported        this service lacks the endpoint (an older version)
+     ├── Unauthorized        401: no token, or a wrong, expired or revoked one
+     ├── Forbidden           403: the token's role may not do this
+     ├── RateLimited         429: too many requests; `.retry_after` seconds
      ├── NotFound            404: no such job, or its image is not there yet
      ├── Conflict            409: the request contradicts the job's state
      └── Invalid             422, or a local scene file that cannot be sent:
@@ -38,7 +48,8 @@ import httpx
 
 __all__ = ["RayfarmClient", "DEFAULT_SERVER", "ServerSentEvent", "parse_sse", "mesh_files",
            "ClientError", "ServerUnavailable", "ServerError", "NotSupported", "NotFound",
-           "Conflict", "Invalid", "FINAL_STATUSES"]
+           "Conflict", "Invalid", "Unauthorized", "Forbidden", "RateLimited", "FINAL_STATUSES",
+           "find_token"]
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 FINAL_STATUSES = ("done", "failed", "canceled")
@@ -71,6 +82,20 @@ class NotSupported(ClientError):
 
 class NotFound(ClientError):
     pass
+
+
+class Unauthorized(ClientError):
+    pass
+
+
+class Forbidden(ClientError):
+    pass
+
+
+class RateLimited(ClientError):
+    def __init__(self, message: str, status_code: int | None = None, retry_after: float = 1.0):
+        super().__init__(message, status_code)
+        self.retry_after = retry_after
 
 
 class Conflict(ClientError):
@@ -135,6 +160,16 @@ def _raise_for(response: httpx.Response) -> None:
         raise NotFound(text, code)
     if code == 409:
         raise Conflict(text, code)
+    if code == 401:
+        raise Unauthorized(f"{text} (set RAYFARM_TOKEN, or pass --token)", code)
+    if code == 403:
+        raise Forbidden(text, code)
+    if code == 429:
+        try:
+            retry_after = float(response.headers.get("retry-after", "1"))
+        except ValueError:
+            retry_after = 1.0
+        raise RateLimited(f"{text} (retry after {retry_after:g} s)", code, retry_after)
     if code >= 500:
         raise ServerError(f"the service failed on {request} ({code}): {text}", code)
     raise ClientError(f"{request} answered {code}: {text}", code)
@@ -230,6 +265,24 @@ def _read_scene(path: Path) -> tuple[bytes, dict]:
 
 # -- the client ------------------------------------------------------------------------------
 
+def find_token() -> str | None:
+    """The token from the environment (see the module doc), or None."""
+    token = os.environ.get("RAYFARM_TOKEN", "").strip()
+    if token:
+        return token
+    data_dir = Path(os.environ.get("RAYFARM_DATA_DIR") or "rayfarm-data")
+    for path in (os.environ.get("RAYFARM_TOKEN_FILE"), data_dir / "admin.token"):
+        if not path:
+            continue
+        try:
+            lines = Path(path).read_text().split()
+        except OSError:
+            continue
+        if lines:
+            return lines[0]
+    return None
+
+
 def normalize_url(url: str) -> str:
     """`localhost:8000` -> `http://localhost:8000`; no trailing slash."""
     url = url.strip().rstrip("/")
@@ -244,11 +297,15 @@ class RayfarmClient:
             job = farm.wait(job_id)                  # the final job (done, failed or canceled)
     """
 
-    def __init__(self, base_url: str = DEFAULT_SERVER, timeout: float = 30.0):
+    def __init__(self, base_url: str = DEFAULT_SERVER, timeout: float = 30.0,
+                 token: str | None = None):
         self.base_url = normalize_url(base_url)
         self.timeout = timeout
-        self._http = httpx.Client(base_url=self.base_url, timeout=timeout,
-                                  headers={"User-Agent": _USER_AGENT})
+        token = token or find_token()
+        headers = {"User-Agent": _USER_AGENT}
+        if token:
+            headers["Authorization"] = f"Bearer {token}"
+        self._http = httpx.Client(base_url=self.base_url, timeout=timeout, headers=headers)
 
     def close(self) -> None:
         self._http.close()

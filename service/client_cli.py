@@ -8,7 +8,8 @@
     rayfarm workers
 
 Every command takes `--server URL` (default: $RAYFARM_SERVER, else
-http://127.0.0.1:8000). Results go to stdout (only the job id for `submit`),
+http://127.0.0.1:8000) and `--token TOKEN` (default: $RAYFARM_TOKEN, the file
+$RAYFARM_TOKEN_FILE, or the embedded service's ./rayfarm-data/admin.token). Results go to stdout (only the job id for `submit`),
 messages to stderr. Exit codes: 0 done; 1 the job failed, was canceled or
 deleted, or the service refused (no such job, wrong state); 2 an invalid
 request (the field and its message are printed); 3 the service could not be
@@ -45,7 +46,7 @@ def _run(command: str, body: Callable[[argparse.Namespace, RayfarmClient], int])
     """Wrap a command: open the client, turn every ClientError into a message and an exit code."""
     def run(args: argparse.Namespace) -> int:
         try:
-            with RayfarmClient(args.server, timeout=args.timeout) as client:
+            with RayfarmClient(args.server, timeout=args.timeout, token=args.token) as client:
                 return body(args, client)
         except Invalid as exc:
             for field, message in exc.errors:
@@ -325,6 +326,9 @@ def _server_options() -> argparse.ArgumentParser:
     parent.add_argument("--server", default=default, metavar="URL",
                         help=f"the rayfarm service (default: $RAYFARM_SERVER or {DEFAULT_SERVER}; "
                              f"now {default})")
+    parent.add_argument("--token", default=None, metavar="TOKEN",
+                        help="API token (default: $RAYFARM_TOKEN, the file $RAYFARM_TOKEN_FILE, "
+                             "or ./rayfarm-data/admin.token)")
     parent.add_argument("--timeout", type=float, default=30.0, metavar="SECONDS",
                         help="how long to wait for an answer (default: 30)")
     return parent

@@ -1,7 +1,11 @@
 """The service's exceptions, as one small tree.
 
     ServiceError                  anything the service refuses
-     ├── NotFound                 no such job, or its image is not there (yet)
+     ├── Unauthorized             no valid token (missing, unknown, expired, revoked)
+     ├── Forbidden                a valid token whose role may not do this
+     ├── RateLimited              too many requests for now; `retry_after` seconds
+     ├── NotFound                 no such job, or its image is not there (yet), or not
+     │    │                       the caller's to see (no existence leak)
      │    └── ResultNotReady      the job exists but has no finished image
      ├── Conflict                 the request contradicts the job's state
      │    └── IllegalTransition   a status change the state table forbids
@@ -14,12 +18,28 @@ code raises these; `service.api.errors` maps them to HTTP in one place.
 
 from __future__ import annotations
 
-__all__ = ["ServiceError", "NotFound", "ResultNotReady", "Conflict", "IllegalTransition",
+__all__ = ["ServiceError", "Unauthorized", "Forbidden", "RateLimited", "NotFound", "ResultNotReady", "Conflict", "IllegalTransition",
            "InvalidRequest", "TooLarge"]
 
 
 class ServiceError(Exception):
     """Base class of everything the service refuses."""
+
+
+class Unauthorized(ServiceError):
+    pass
+
+
+class Forbidden(ServiceError):
+    pass
+
+
+class RateLimited(ServiceError):
+    """Refused for now; the same request may succeed after `retry_after` seconds."""
+
+    def __init__(self, message: str, retry_after: float):
+        self.retry_after = retry_after
+        super().__init__(message)
 
 
 class NotFound(ServiceError):

@@ -21,7 +21,11 @@ Event kinds (the SSE `event:` names) and their data:
     deleted   {"job_id"}
 
 Streams are in-process: the service that owns the ledger publishes, its HTTP
-handlers subscribe. A subscriber that falls more than `QUEUE_LIMIT` events
+handlers subscribe. Every job and deletion event carries its job's `owner`; a
+subscription made for someone who may see only their own jobs names that
+owner and receives only events that carry it (an event without an owner
+reaches only subscriptions without that filter: those of one job, opened
+after the caller was shown to see it). A subscriber that falls more than `QUEUE_LIMIT` events
 behind is told so (`overflowed`) and resynchronises from a snapshot.
 """
 
@@ -53,6 +57,7 @@ class Event:
     kind: str
     job_id: str
     data: dict
+    owner: str | None = None
 
     def sse(self) -> str:
         """The event in `text/event-stream` framing."""
@@ -69,14 +74,16 @@ class Subscription:
     """One stream's queue, fed from any thread, read in its event loop."""
 
     def __init__(self, hub: "EventHub", job_id: str | None, kinds: frozenset[str] | None,
-                 loop: asyncio.AbstractEventLoop):
+                 loop: asyncio.AbstractEventLoop, owner: str | None = None):
         self.hub, self.job_id, self.kinds, self.loop = hub, job_id, kinds, loop
+        self.owner = owner  # only events of this owner's jobs (None: no such filter)
         self.queue: asyncio.Queue[Event] = asyncio.Queue()
         self.overflowed = False
 
     def wants(self, event: Event) -> bool:
         return ((self.job_id is None or self.job_id == event.job_id)
-                and (self.kinds is None or event.kind in self.kinds))
+                and (self.kinds is None or event.kind in self.kinds)
+                and (self.owner is None or event.owner == self.owner))
 
     def _put(self, event: Event) -> None:  # runs in the subscriber's loop
         if self.queue.qsize() >= QUEUE_LIMIT:
@@ -104,8 +111,8 @@ class EventHub:
         self._ids = itertools.count(1)
 
     def subscribe(self, job_id: str | None, loop: asyncio.AbstractEventLoop,
-                  kinds: frozenset[str] | None = None) -> Subscription:
-        sub = Subscription(self, job_id, kinds, loop)
+                  kinds: frozenset[str] | None = None, owner: str | None = None) -> Subscription:
+        sub = Subscription(self, job_id, kinds, loop, owner)
         with self._lock:
             self._subscriptions.add(sub)
         return sub
@@ -119,9 +126,9 @@ class EventHub:
         with self._lock:
             return len(self._subscriptions)
 
-    def publish(self, kind: str, job_id: str, data: dict) -> Event:
+    def publish(self, kind: str, job_id: str, data: dict, owner: str | None = None) -> Event:
         with self._lock:
-            event = Event(next(self._ids), kind, job_id, data)
+            event = Event(next(self._ids), kind, job_id, data, owner)
             targets = [s for s in self._subscriptions if s.wants(event)]
         for sub in targets:
             try:
@@ -162,7 +169,8 @@ def publish_commits(sessions: sessionmaker[Session], hub: EventHub) -> None:
                             {"job_id": unit.job_id,
                              **UnitPublic.from_unit(unit).model_dump(mode="json")})
             for job in (o for o in objects if not hasattr(o, "index")):
-                hub.publish("job", job.id, JobPublic.from_job(job, now).model_dump(mode="json"))
+                hub.publish("job", job.id, JobPublic.from_job(job, now).model_dump(mode="json"),
+                            owner=job.owner)
         except Exception:  # an event is a courtesy; the commit stands
             log.exception("publishing events failed")
 

@@ -12,9 +12,12 @@ from dataclasses import dataclass
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
 
+from .admission import RateLimiter
+from .auth import bootstrap_admin
 from .db import open_ledger
 from .events import EventHub, publish_commits
 from .executors import Executor, make_executor
+from .metrics import FarmMetrics
 from .scenes import scene_hashes
 from .scheduler import Scheduler
 from .settings import Settings
@@ -34,13 +37,18 @@ class Farm:
     scheduler: Scheduler
     events: EventHub
     thumbnails: Thumbnailer
+    limiter: RateLimiter  # submissions per token, uploads per owner (service.admission)
 
     @classmethod
-    def open(cls, settings: Settings) -> "Farm":
-        """Connect to everything; the scheduler and the thumbnailer are built but not started."""
+    def open(cls, settings: Settings, metrics: FarmMetrics | None = None) -> "Farm":
+        """Connect to everything; the scheduler and the thumbnailer are built but not
+        started. The scheduler reports to `metrics` (by default nowhere)."""
         store = Store(settings.data_dir)
+        settings.configure_renderer()  # before the pool warms up (it may solve radiosity)
         engine, sessions = open_ledger(settings)
         try:
+            # A farm always has an admin (`rayfarm serve` made it already and printed its URL).
+            bootstrap_admin(sessions, settings.data_dir, settings.admin_token)
             executor = make_executor(settings, store.scene_text)
         except BaseException:
             engine.dispose()
@@ -48,8 +56,8 @@ class Farm:
         hub = EventHub()
         publish_commits(sessions, hub)
         return cls(settings, engine, sessions, store, executor,
-                   Scheduler(settings, sessions, store, executor, hub=hub), hub,
-                   Thumbnailer(store, lambda: scene_hashes(sessions, store)))
+                   Scheduler(settings, sessions, store, executor, hub=hub, metrics=metrics), hub,
+                   Thumbnailer(store, lambda: scene_hashes(sessions, store)), RateLimiter())
 
     def close(self) -> None:
         self.thumbnails.stop()

@@ -2,7 +2,11 @@
 reprioritize, delete. Plain Python, no HTTP. Every status change goes through
 `service.states` (an illegal one is a `Conflict`).
 
-    job = create_job(session, store, settings, JobCreate(scene="cornell-box",
+Every use case takes the caller (`actor`, a `service.access.Principal`) and
+looks jobs up only among those it may see (`access.visible_jobs`): someone
+else's job is not found, and a change needs `access.require_change`.
+
+    job = create_job(session, store, settings, actor, JobCreate(scene="cornell-box",
                      method="path", spp=4, depth=3), now=utcnow())
 """
 
@@ -19,14 +23,15 @@ from sqlalchemy.orm.exc import StaleDataError
 
 from renderer import RenderSpec, SceneError, builtin_scene_names, resolve_document, scene_text
 
-from . import events, scenes, states
+from . import admission, events, scenes, states
+from .access import Principal, require_change, require_submit, visible_jobs
 from .errors import Conflict, InvalidRequest, NotFound, ResultNotReady
 from .models import Job, WorkUnit
 from .schemas import JobCreate
 from .settings import Settings
 from .store import Store
 
-__all__ = ["create_job", "get_job", "list_jobs", "list_units", "cancel_job", "cancel_job_retrying",
+__all__ = ["create_job", "get_job", "list_jobs", "visible_job_ids", "list_units", "cancel_job", "cancel_job_retrying",
            "pause_job", "resume_job", "retry_job", "requeue_job", "set_priority", "delete_job",
            "retrying", "result_file", "new_job_id"]
 
@@ -35,13 +40,14 @@ def new_job_id() -> str:
     return uuid.uuid4().hex[:12]
 
 
-def _resolve_scene(session: Session, store: Store, scene: str | dict) -> tuple[dict, str]:
+def _resolve_scene(session: Session, store: Store, actor: Principal,
+                   scene: str | dict) -> tuple[dict, str]:
     """The resolved document and a display name; never reads server files
     other than the store's (uploaded scenes are named by their id)."""
     if isinstance(scene, str):
         if scene in builtin_scene_names():
             return resolve_document(scene, allow_files=False), scene
-        uploaded = scenes.uploaded_document(session, store, scene)
+        uploaded = scenes.uploaded_document(session, store, actor, scene)
         if uploaded is None:
             hint = scenes.unknown_scene_hint()
             raise InvalidRequest("scene", f"unknown scene '{scene}' ({hint}; "
@@ -58,28 +64,34 @@ def _resolve_scene(session: Session, store: Store, scene: str | dict) -> tuple[d
     return doc, f"inline:{doc['name']}" if doc.get("name") else "inline"
 
 
-def create_job(session: Session, store: Store, settings: Settings, request: JobCreate,
-               now: datetime) -> Job:
-    """Validate a render request, store its scene and add a queued job to `session`.
+def create_job(session: Session, store: Store, settings: Settings, actor: Principal,
+               request: JobCreate, now: datetime) -> Job:
+    """Validate a render request, store its scene and add a queued job of
+    `actor` to `session`.
 
-    Raises `InvalidRequest`, `SceneError` or `SpecError` naming what is wrong.
+    Raises `InvalidRequest`, `SceneError` or `SpecError` naming what is wrong,
+    `Forbidden` for a caller that may not submit, `RateLimited` for an owner
+    with too many active jobs (`service.admission`: the role's limits).
     """
-    doc, scene_name = _resolve_scene(session, store, request.scene)
+    require_submit(actor)
+    doc, scene_name = _resolve_scene(session, store, actor, request.scene)
     camera = doc["camera"]
     spec = RenderSpec(method=request.method, spp=request.spp, depth=request.depth,
                       width=camera["width"] if request.width is None else request.width,
                       height=camera["height"] if request.height is None else request.height,
                       tile_size=request.tile_size, seed=request.seed, sampler=request.sampler,
                       options=dict(request.options))
-    spec.validate(settings.max_work)
+    spec.validate(settings.max_work, scene=doc)
     tiles = math.ceil(spec.width / spec.tile_size) * math.ceil(spec.height / spec.tile_size)
     if tiles > settings.max_units:
         least = math.ceil(math.sqrt(spec.width * spec.height / settings.max_units))
         raise InvalidRequest("tile_size", f"{tiles} tiles exceed the limit of {settings.max_units} "
                                           f"work units; use tile_size >= {least}")
+    admission.admit_job(session, settings, actor, spec, request.progressive)
     key, text = scene_text(doc)
     store.put_scene(key, text)
-    job = Job(id=new_job_id(), created=now, status="queued", scene=scene_name[:200],
+    job = Job(id=new_job_id(), created=now, status="queued", owner=actor.user,
+              scene=scene_name[:200],
               scene_hash=key, spec=spec.to_dict(), width=spec.width, height=spec.height,
               units_total=0, units_done=0, samples=0, rays=0, priority=request.priority,
               progressive=request.progressive, paused_seconds=0.0, unit_seconds=0.0,
@@ -89,17 +101,27 @@ def create_job(session: Session, store: Store, settings: Settings, request: JobC
     return job
 
 
-def get_job(session: Session, job_id: str) -> Job:
-    job = session.get(Job, job_id)
+def get_job(session: Session, actor: Principal, job_id: str) -> Job:
+    """The job `job_id` if `actor` may see it; else NotFound, as if there were none."""
+    job = session.scalars(select(Job).where(Job.id == job_id,
+                                            visible_jobs(actor, Job.owner))).first()
     if job is None:
         raise NotFound(f"no job '{job_id}'")
     return job
 
 
-def list_jobs(session: Session, *, status: str | None = None, limit: int = 100,
-              offset: int = 0) -> list[Job]:
-    """Jobs, newest first."""
-    query = select(Job).order_by(Job.created.desc(), Job.id).limit(limit).offset(offset)
+def _job_to_change(session: Session, actor: Principal, job_id: str) -> Job:
+    """The job `job_id` if `actor` may change it (NotFound, or Forbidden for a viewer)."""
+    job = get_job(session, actor, job_id)
+    require_change(actor, job.owner, f"job '{job_id}'")
+    return job
+
+
+def list_jobs(session: Session, actor: Principal, *, status: str | None = None,
+              limit: int = 100, offset: int = 0) -> list[Job]:
+    """The jobs `actor` may see, newest first."""
+    query = (select(Job).where(visible_jobs(actor, Job.owner))
+             .order_by(Job.created.desc(), Job.id).limit(limit).offset(offset))
     if status is not None:
         if status not in states.JOB_STATUSES:
             raise InvalidRequest("status", f"unknown status '{status}' "
@@ -109,17 +131,26 @@ def list_jobs(session: Session, *, status: str | None = None, limit: int = 100,
     return list(session.scalars(query))
 
 
-def list_units(session: Session, job_id: str) -> list[WorkUnit]:
+def visible_job_ids(session: Session, actor: Principal, job_ids) -> set[str]:
+    """Those of `job_ids` that `actor` may see."""
+    job_ids = set(job_ids)
+    if actor.sees_everything or not job_ids:
+        return job_ids
+    return set(session.scalars(select(Job.id).where(Job.id.in_(job_ids),
+                                                    visible_jobs(actor, Job.owner))))
+
+
+def list_units(session: Session, actor: Principal, job_id: str) -> list[WorkUnit]:
     """A job's units in plan order (empty until the scheduler planned it)."""
-    job = get_job(session, job_id)
+    job = get_job(session, actor, job_id)
     return list(session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)
                                 .order_by(WorkUnit.index)))
 
 
-def cancel_job(session: Session, job_id: str, now: datetime) -> Job:
+def cancel_job(session: Session, actor: Principal, job_id: str, now: datetime) -> Job:
     """Mark a job and its unfinished units canceled. The scheduler sees the
     units leave flight and revokes their tasks. A finished job is a Conflict."""
-    job = get_job(session, job_id)
+    job = _job_to_change(session, actor, job_id)
     states.change_job(job, "canceled", now, error="canceled by request")
     units = session.scalars(select(WorkUnit).where(
         WorkUnit.job_id == job.id, WorkUnit.state.not_in(states.FINAL_UNIT)))
@@ -128,26 +159,26 @@ def cancel_job(session: Session, job_id: str, now: datetime) -> Job:
     return job
 
 
-def pause_job(session: Session, job_id: str, now: datetime) -> Job:
+def pause_job(session: Session, actor: Principal, job_id: str, now: datetime) -> Job:
     """Stop enqueuing a job's units; those in flight finish and are collected."""
-    job = get_job(session, job_id)
+    job = _job_to_change(session, actor, job_id)
     states.change_job(job, "paused", now)
     return job
 
 
-def resume_job(session: Session, job_id: str, now: datetime) -> Job:
+def resume_job(session: Session, actor: Principal, job_id: str, now: datetime) -> Job:
     """A paused job continues (or waits to be planned, if it never was)."""
-    job = get_job(session, job_id)
+    job = _job_to_change(session, actor, job_id)
     if job.status != "paused":
         raise Conflict(f"job {job.id} is {job.status}, not paused; nothing to resume")
     states.change_job(job, "running" if job.units_total else "queued", now)
     return job
 
 
-def retry_job(session: Session, job_id: str, now: datetime) -> Job:
+def retry_job(session: Session, actor: Principal, job_id: str, now: datetime) -> Job:
     """Failed units (and those canceled when their job failed) go back to
     pending; a failed job runs again, keeping the units it finished."""
-    job = get_job(session, job_id)
+    job = _job_to_change(session, actor, job_id)
     units = list(session.scalars(select(WorkUnit).where(
         WorkUnit.job_id == job.id, WorkUnit.state.in_(("failed", "canceled")))))
     failed = [u for u in units if u.state == "failed"]
@@ -163,10 +194,11 @@ def retry_job(session: Session, job_id: str, now: datetime) -> Job:
     return job
 
 
-def requeue_job(session: Session, store: Store, job_id: str, now: datetime) -> Job:
+def requeue_job(session: Session, store: Store, actor: Principal, job_id: str,
+                now: datetime) -> Job:
     """Start a job again from nothing: its units and results are forgotten and
     it is queued, so the scheduler plans it anew (all units pending)."""
-    job = get_job(session, job_id)
+    job = _job_to_change(session, actor, job_id)
     states.change_job(job, "queued", now)
     for unit in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)):
         session.delete(unit)  # in-flight tasks: the scheduler cancels units that left
@@ -178,26 +210,31 @@ def requeue_job(session: Session, store: Store, job_id: str, now: datetime) -> J
     return job
 
 
-def set_priority(session: Session, job_id: str, priority: int, now: datetime) -> Job:
-    """Change a job's priority; the scheduler serves higher ones first from its next tick."""
-    job = get_job(session, job_id)
+def set_priority(session: Session, actor: Principal, job_id: str, priority: int,
+                 now: datetime) -> Job:
+    """Change a job's priority; the scheduler serves higher ones first (within
+    its owner's fair share) from its next tick."""
+    job = _job_to_change(session, actor, job_id)
     job.priority = priority
     events.note(job)
     return job
 
 
-def delete_job(session: Session, store: Store, job_id: str, now: datetime) -> None:
+def delete_job(session: Session, store: Store, actor: Principal, job_id: str,
+               now: datetime) -> str:
     """Forget a job: canceled first if it is still active, then its rows and
     files are removed. The scheduler cancels the tasks of units that vanished;
-    anything it writes for the job afterwards it removes again."""
-    job = get_job(session, job_id)
+    anything it writes for the job afterwards it removes again. Returns its owner."""
+    job = _job_to_change(session, actor, job_id)
     if job.status not in states.FINAL_JOB:
-        cancel_job(session, job_id, now)
+        cancel_job(session, actor, job_id, now)
         session.flush()
+    owner = job.owner
     session.execute(delete(WorkUnit).where(WorkUnit.job_id == job.id))
     session.delete(job)
     session.flush()
     store.delete_job(job.id)
+    return owner
 
 
 def retrying(sessions: sessionmaker[Session], job_id: str,
@@ -214,17 +251,18 @@ def retrying(sessions: sessionmaker[Session], job_id: str,
     raise AssertionError("unreachable")
 
 
-def cancel_job_retrying(sessions: sessionmaker[Session], job_id: str,
+def cancel_job_retrying(sessions: sessionmaker[Session], actor: Principal, job_id: str,
                         clock: Callable[[], datetime], tries: int = 5) -> Job:
     """`cancel_job` in its own transaction, retried on concurrent changes."""
-    return retrying(sessions, job_id, lambda session: cancel_job(session, job_id, clock()), tries)
+    return retrying(sessions, job_id,
+                    lambda session: cancel_job(session, actor, job_id, clock()), tries)
 
 
-def result_file(session: Session, store: Store, job_id: str, kind: str):
+def result_file(session: Session, store: Store, actor: Principal, job_id: str, kind: str):
     """Path of a done job's `result.exr`, or of a job's `preview.png` or
     `noise.png` (written as its units land, so there before it is done); else
     `ResultNotReady`."""
-    job = get_job(session, job_id)
+    job = get_job(session, actor, job_id)
     if kind in ("preview.png", "noise.png"):
         path = store.preview_path(job.id) if kind == "preview.png" else store.noise_path(job.id)
         if not path.is_file():

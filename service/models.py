@@ -1,5 +1,5 @@
-"""The job ledger's tables: `jobs` and their work `units` (SQLAlchemy 2), and
-the uploaded `scenes`.
+"""The job ledger's tables: `jobs` and their work `units` (SQLAlchemy 2), the
+uploaded `scenes` and who claims them, and the farm's `users` and their `tokens`.
 
 Both carry a version counter (optimistic locking): the API (cancel) and the
 scheduler (progress) change the same rows from different threads or
@@ -17,7 +17,7 @@ from sqlalchemy import (JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, 
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
-__all__ = ["Base", "Job", "SceneRecord", "WorkUnit", "utcnow"]
+__all__ = ["ApiToken", "Base", "Job", "SceneClaim", "SceneRecord", "User", "WorkUnit", "utcnow"]
 
 
 def utcnow() -> datetime:
@@ -56,6 +56,10 @@ class Job(Base):
     started: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished: Mapped[datetime | None] = mapped_column(UTCDateTime)
     status: Mapped[str] = mapped_column(String(16), index=True)
+    # The user who submitted it (`users.name`): who may see and change it, and
+    # whose fair share its units count against. Jobs from before accounts: "admin".
+    owner: Mapped[str] = mapped_column(String(64), index=True, default="admin",
+                                       server_default=text("'admin'"))
     scene: Mapped[str] = mapped_column(String(200))
     scene_hash: Mapped[str] = mapped_column(String(64))
     spec: Mapped[dict] = mapped_column(JSON)
@@ -156,3 +160,50 @@ class SceneRecord(Base):
     width: Mapped[int] = mapped_column(Integer)
     height: Mapped[int] = mapped_column(Integer)
     bytes: Mapped[int] = mapped_column(BigInteger, doc="length of the resolved canonical text")
+
+
+class SceneClaim(Base):
+    """An owner's claim on an uploaded scene. The scene (its text, its record)
+    is shared by content hash; each owner who uploaded it sees it, and deleting
+    it removes only that owner's claim (the record goes with the last one)."""
+
+    __tablename__ = "scene_claims"
+
+    scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"),
+                                          primary_key=True)
+    owner: Mapped[str] = mapped_column(String(64), primary_key=True)
+    created: Mapped[datetime] = mapped_column(UTCDateTime)
+
+
+class User(Base):
+    """A person (or a pipeline) using the farm, with a role (`service.access`)."""
+
+    __tablename__ = "users"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    role: Mapped[str] = mapped_column(String(16))
+    # Weight of the user's jobs in the fair share between owners (OpenCue's
+    # "shares", Deadline's weights): units in flight are split in proportion.
+    share: Mapped[float] = mapped_column(Float, default=1.0, server_default=text("1"))
+    created: Mapped[datetime] = mapped_column(UTCDateTime)
+    disabled: Mapped[bool] = mapped_column(Boolean, default=False, server_default=text("false"))
+
+
+class ApiToken(Base):
+    """A bearer token, stored only as the SHA-256 of its secret (the secret is
+    shown once, at creation). `kind` "api" is a token a person or a script
+    holds; "session" is a dashboard login made from one (`parent`), which dies
+    with it."""
+
+    __tablename__ = "tokens"
+
+    id: Mapped[str] = mapped_column(String(16), primary_key=True)
+    user: Mapped[str] = mapped_column(ForeignKey("users.name", ondelete="CASCADE"), index=True)
+    kind: Mapped[str] = mapped_column(String(16), default="api")
+    parent: Mapped[str | None] = mapped_column(String(16))
+    secret_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    label: Mapped[str] = mapped_column(String(200), default="")
+    created: Mapped[datetime] = mapped_column(UTCDateTime)
+    expires: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    revoked: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    last_used: Mapped[datetime | None] = mapped_column(UTCDateTime)

@@ -9,6 +9,11 @@ An upload is a scene JSON file and the Wavefront `.obj` files its mesh shapes
 name by `"file"` (base names only). It is resolved like any scene, with mesh
 files read only from the upload's private directory; the resolved document is
 self-contained, so it is stored by its hash and nothing else is kept.
+
+Uploads are shared by content hash but owned by claim: each user who uploaded
+a scene holds a claim on it (`SceneClaim`) and sees it; nobody else does
+(admins and viewers see every upload). Deleting an upload removes the
+caller's claim; the record goes with the last claim.
 """
 
 from __future__ import annotations
@@ -28,8 +33,9 @@ from sqlalchemy.orm import Session, sessionmaker
 from renderer import SceneError, builtin_scene_names, resolve_document, scene_text
 from renderer.scene import triangle_count
 
-from .errors import Conflict, InvalidRequest, NotFound, ResultNotReady
-from .models import SceneRecord
+from .access import Principal, require_submit
+from .errors import Conflict, Forbidden, InvalidRequest, NotFound, ResultNotReady
+from .models import SceneClaim, SceneRecord
 from .store import Store
 
 __all__ = ["SceneInfo", "UploadedFile", "MESH_SUFFIX", "add_upload", "resolve_upload",
@@ -103,34 +109,49 @@ def unknown_scene_hint() -> str:
 
 # -- reading --------------------------------------------------------------------------
 
-def list_scenes(session: Session) -> list[SceneInfo]:
-    """Built-in scenes by name, then uploaded ones, newest first."""
-    uploads = session.scalars(select(SceneRecord).order_by(SceneRecord.created.desc(),
-                                                           SceneRecord.id))
+def _visible_uploads(actor: Principal):
+    """SELECT of the upload records `actor` may see."""
+    query = select(SceneRecord)
+    if not actor.sees_everything:
+        query = query.join(SceneClaim, SceneClaim.scene_id == SceneRecord.id).where(
+            SceneClaim.owner == actor.user)
+    return query
+
+
+def _visible_upload(session: Session, actor: Principal, scene_id: str) -> SceneRecord | None:
+    return session.scalars(_visible_uploads(actor).where(SceneRecord.id == scene_id)).first()
+
+
+def list_scenes(session: Session, actor: Principal) -> list[SceneInfo]:
+    """Built-in scenes by name, then the uploads `actor` may see, newest first."""
+    uploads = session.scalars(_visible_uploads(actor).order_by(SceneRecord.created.desc(),
+                                                               SceneRecord.id))
     return [info for info, _ in _builtins().values()] + [SceneInfo.from_record(r) for r in uploads]
 
 
-def get_scene(session: Session, scene_id: str) -> SceneInfo:
+def get_scene(session: Session, actor: Principal, scene_id: str) -> SceneInfo:
     builtin = _builtins().get(scene_id)
     if builtin is not None:
         return builtin[0]
-    record = session.get(SceneRecord, scene_id)
+    record = _visible_upload(session, actor, scene_id)
     if record is None:
         raise NotFound(f"no scene '{scene_id}' ({unknown_scene_hint()})")
     return SceneInfo.from_record(record)
 
 
-def uploaded_document(session: Session, store: Store, scene_id: str) -> tuple[dict, str] | None:
-    """(resolved document, name) of the uploaded scene `scene_id`, or None."""
-    record = session.get(SceneRecord, scene_id)
+def uploaded_document(session: Session, store: Store, actor: Principal,
+                      scene_id: str) -> tuple[dict, str] | None:
+    """(resolved document, name) of the uploaded scene `scene_id`, or None
+    (also when it is not the caller's to use)."""
+    record = _visible_upload(session, actor, scene_id)
     if record is None:
         return None
     return json.loads(store.scene_text(record.id)), record.name
 
 
-def thumbnail_file(session: Session, store: Store, scene_id: str) -> Path:
+def thumbnail_file(session: Session, store: Store, actor: Principal, scene_id: str) -> Path:
     """The scene's thumbnail PNG; `ResultNotReady` until the service rendered it."""
-    info = get_scene(session, scene_id)
+    info = get_scene(session, actor, scene_id)
     path = store.thumbnail_path(info.scene_hash)
     if not path.is_file():
         raise ResultNotReady(f"scene '{scene_id}' has no thumbnail yet; it is rendered in the "
@@ -152,26 +173,38 @@ def scene_hashes(sessions: sessionmaker[Session], store: Store) -> list[str]:
 
 # -- changing -----------------------------------------------------------------------------
 
-def delete_scene(session: Session, scene_id: str) -> None:
-    """Forget an uploaded scene. Its text stays in the store, so jobs that
-    were submitted with it keep running; new jobs can no longer name it."""
+def delete_scene(session: Session, actor: Principal, scene_id: str) -> None:
+    """Remove the caller's claim on an uploaded scene (an admin without one
+    removes every claim); the record goes with the last claim. Its text stays
+    in the store, so jobs that were submitted with it keep running."""
     if scene_id in _builtins():
         raise Conflict(f"scene '{scene_id}' is built in; only uploaded scenes can be deleted")
-    record = session.get(SceneRecord, scene_id)
+    record = _visible_upload(session, actor, scene_id)
     if record is None:
         raise NotFound(f"no scene '{scene_id}' ({unknown_scene_hint()})")
-    session.delete(record)
+    if actor.role == "viewer":
+        raise Forbidden(f"user '{actor.user}' is a viewer: it can read, not delete, scenes")
+    claims = list(session.scalars(select(SceneClaim).where(SceneClaim.scene_id == scene_id)))
+    mine = [c for c in claims if c.owner == actor.user]
+    for claim in mine or claims:  # an admin without a claim of its own removes them all
+        session.delete(claim)
+    session.flush()
+    if len(mine or claims) == len(claims):
+        session.delete(record)
 
 
-def add_upload(sessions: sessionmaker[Session], store: Store, scene: UploadedFile,
-               files: list[UploadedFile], directory: Path, now: datetime
+def add_upload(sessions: sessionmaker[Session], store: Store, actor: Principal,
+               scene: UploadedFile, files: list[UploadedFile], directory: Path, now: datetime
                ) -> tuple[SceneInfo, bool]:
-    """Resolve an upload, store it by hash and record it. Returns (info, created):
-    identical content uploaded before answers its existing record, not created.
+    """Resolve an upload, store it by hash, record it and the caller's claim.
+    Returns (info, created): content this caller uploaded before answers its
+    existing record, not created (someone else's identical upload is shared,
+    and is new to this caller).
 
     Raises `InvalidRequest` (naming the field: ``files[1]``) or `SceneError`
     (naming the location in the scene: ``shapes[0].file``).
     """
+    require_submit(actor)
     doc, stem = resolve_upload(scene, files, directory)
     key, text = scene_text(doc)
     store.put_scene(key, text)
@@ -179,19 +212,22 @@ def add_upload(sessions: sessionmaker[Session], store: Store, scene: UploadedFil
     record = SceneRecord(id=key, name=(doc["name"] or stem)[:200], description=doc["description"],
                          created=now, triangles=triangle_count(doc), width=camera["width"],
                          height=camera["height"], bytes=len(text.encode()))
-    try:
-        with sessions.begin() as session:
-            existing = session.get(SceneRecord, key)
-            if existing is not None:
-                return SceneInfo.from_record(existing), False
-            session.add(record)
-    except IntegrityError:  # the same content uploaded at the same moment: one record
-        with sessions() as session:
-            existing = session.get(SceneRecord, key)
-            if existing is None:
-                raise
-            return SceneInfo.from_record(existing), False
-    return SceneInfo.from_record(record), True
+    for _ in range(3):  # the same content uploaded at the same moment: one record
+        try:
+            with sessions.begin() as session:
+                existing = session.get(SceneRecord, key)
+                if existing is None:
+                    session.add(record)
+                    session.flush()
+                    existing = record
+                claimed = session.get(SceneClaim, (key, actor.user)) is not None
+                if not claimed:
+                    session.add(SceneClaim(scene_id=key, owner=actor.user, created=now))
+                return SceneInfo.from_record(existing), not claimed
+        except IntegrityError:
+            record = SceneRecord(**{c.name: getattr(record, c.name)
+                                    for c in SceneRecord.__table__.columns})
+    raise Conflict(f"scene {key} is being uploaded by someone else right now; try again")
 
 
 def resolve_upload(scene: UploadedFile, files: list[UploadedFile],

@@ -1,109 +1,91 @@
 """The scheduler: one background thread that moves jobs forward.
 
-Each tick, for every queued, running or paused job (higher priority first,
-then oldest):
-1. plan a queued job into unit rows (its method's plan: tiles x passes,
+Each tick:
+1. take a census: the scheduled (queued, running, paused) jobs and, in one
+   small query, their units in flight (queued or running) by job;
+2. for every job that needs it (queued, units in flight, complete, or a
+   running preview to flush; a job that only waits is not touched):
+   plan a queued job into unit rows (its method's plan: tiles x passes,
    progressive or not, or a small DAG of prepass -> units, renderer/plan.py)
-   and mark it running;
-2. observe its units in flight: store a finished unit's film (atomically)
-   *before* marking the unit done, exactly once; re-enqueue lost units;
-   retry failed ones up to `max_attempts`, then fail the job;
-3. enqueue pending units whose needs are done (a DAG unit travels with the
-   stored films of the units it needs) while the executor has capacity,
-   unless the job is paused or a job before it in the order still has
-   pending units ready to go (so priority holds on both executors: the
-   Celery executor also passes it to the broker as the message priority);
-4. refresh the job's `preview.png` and `noise.png` from the units landed so
-   far, and publish a `preview` event;
-5. when every unit is done, merge the stored films in unit order into
-   `result.exr` + `preview.png` + `noise.png`, then mark the job done.
+   and mark it running; observe its units in flight: store a finished
+   unit's film (atomically) *before* marking the unit done, exactly once;
+   re-enqueue lost units; retry failed ones up to `max_attempts`, then fail
+   the job; refresh its `preview.png` and `noise.png` from the units landed
+   so far and publish a `preview` event; when every unit is done, merge the
+   stored films in unit order into `result.exr` + `preview.png` +
+   `noise.png`, then mark the job done;
+3. dispatch: take the census again and fill the executor's free slots
+   (`capacity`, which every executor bounds) by fair share
+   (`service.fairshare`): each slot goes to the owner with the fewest units
+   in flight relative to its share, within an owner to its highest priority,
+   then to the job with the fewest units in flight, then the oldest. Only
+   pending units whose needs are done go (a DAG unit travels with the stored
+   films of the units it needs); paused jobs collect but never enqueue. The
+   units are enqueued in the order they were chosen, so different jobs'
+   units interleave in the executor's queue too, and no job can hold it:
+   a small job submitted behind a huge one starts within a few ticks.
 Units whose job was canceled (by the API) leave flight; their tasks are
 canceled. The ledger is the truth: after a restart the scheduler picks up
 where the rows say it was.
 
+The tick stays cheap with many jobs waiting: its queries count units in
+flight (a number the executors bound), not pending ones. A running job's
+pending units are its planned units minus those done and in flight (its
+counters change in the same transactions as its units'), an upper bound
+that `_ready_units` makes exact for the few jobs fair share asks about.
+
 Every committed status change and progress step is published to the event
-streams (`service.events`). The running preview is cheap by design: each
-landed unit's film is added (float32 sums and weight) into an in-memory frame
-per job, and the PNGs are written at most every `PREVIEW_INTERVAL` seconds per
-job (the first unit's at once). A frame missing after a restart (or evicted: at most `PREVIEW_JOBS`
-are kept) is rebuilt once from the stored films of the done units. The
-preview's order of addition does not matter; the final EXR is merged from
-the stored films in unit order, as without previews.
+streams (`service.events`). The scheduler only schedules: the running
+previews of the jobs in flight are `service.previews`' (fed the films that
+land), the final merge and its images `service.results`'.
 """
 
 from __future__ import annotations
 
-import itertools
+import errno
 import logging
 import threading
 import time
+from collections import Counter, deque
 from datetime import datetime
-from typing import Callable
+from typing import Callable, NamedTuple
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
-import numpy as np
 
-from renderer import METHODS, Film, PartialFilm, RenderSpec, merge
+from renderer import METHODS, PartialFilm, RenderSpec
 
 from . import events, states
 from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
-from .models import Job, WorkUnit, utcnow
+from .fairshare import Contender, fair_share
+from .metrics import FarmMetrics
+from .models import Job, User, WorkUnit, utcnow
+from .previews import RunningPreviews
+from .results import EXR_METADATA_KEYS, write_result
 from .settings import Settings
 from .store import Store
 
-__all__ = ["Scheduler", "EXR_METADATA_KEYS", "PREVIEW_INTERVAL", "PREVIEW_JOBS"]
+__all__ = ["Scheduler"]
 
 log = logging.getLogger(__name__)
 
-EXR_METADATA_KEYS = ("job_id", "scene", "scene_hash", "method", "spp", "depth", "seed",
-                     "sampler", "tile_size", "width", "height")
-PREVIEW_INTERVAL = 1.0  # seconds between two writes of a job's running preview
-PREVIEW_JOBS = 4  # running previews kept in memory (float32: 28 bytes per pixel)
+STORE_FAILED = "storing the unit's film failed"  # a unit's and its job's error meanwhile
+RESULT_STORE_FAILED = "writing the result failed"  # a complete job's error while the disk is full
 
 
-class _Preview:
-    """A job's running preview: the sums and weight of the units added so far."""
+class _JobRow(NamedTuple):
+    """A scheduled job as the tick's census reads it (no unit rows)."""
 
-    def __init__(self, width: int, height: int):
-        self.sum = np.zeros((height, width, 3), np.float32)
-        self.sum_sq = np.zeros((height, width, 3), np.float32)
-        self.weight = np.zeros((height, width), np.float32)
-        self.splat: np.ndarray | None = None  # splat batches (film.py), when the method splats
-        self.splat_sq: np.ndarray | None = None
-        self.splat_paths, self.splat_batches = 0.0, 0
-        self.added: set[int] = set()
-        self.written = -1e9  # time.monotonic() of the last PNG
-        self.dirty = False
-
-    def add(self, index: int, part: PartialFilm) -> None:
-        if index in self.added:
-            return
-        ys = slice(part.y0, part.y0 + part.height)
-        xs = slice(part.x0, part.x0 + part.width)
-        self.sum[ys, xs] += part.sum
-        self.sum_sq[ys, xs] += part.sum_sq
-        self.weight[ys, xs] += part.weight
-        if part.splat is not None:
-            if self.splat is None:
-                self.splat, self.splat_sq = np.zeros_like(self.sum), np.zeros_like(self.sum)
-            self.splat += part.splat
-            self.splat_sq += part.splat_sq
-            self.splat_paths += part.splat_paths
-            self.splat_batches += part.splat_batches
-        self.added.add(index)
-        self.dirty = True
-
-    def write(self, preview_path, noise_path) -> None:
-        film = Film(0, 0, self.sum, self.sum_sq, self.weight, splat=self.splat,
-                    splat_sq=self.splat_sq, splat_paths=self.splat_paths,
-                    splat_batches=self.splat_batches)
-        film.write_png(preview_path)
-        film.write_noise_png(noise_path)
-        self.written, self.dirty = time.monotonic(), False
+    id: str
+    owner: str
+    status: str
+    priority: int | None
+    created: datetime
+    units_total: int
+    units_done: int
 
 
 class Scheduler:
@@ -111,13 +93,13 @@ class Scheduler:
 
     def __init__(self, settings: Settings, sessions: sessionmaker[Session], store: Store,
                  executor: Executor, clock: Callable[[], datetime] = utcnow,
-                 hub: EventHub | None = None):
+                 hub: EventHub | None = None, metrics: FarmMetrics | None = None):
         self.settings, self.sessions, self.store, self.executor = settings, sessions, store, executor
         self.clock = clock
         self.events = hub if hub is not None else EventHub()
-        self._preview_versions = itertools.count(1)
+        self.metrics = metrics if metrics is not None else FarmMetrics()  # service.metrics
         self._tracked: dict[tuple[str, int], tuple[str, ...]] = {}  # units we put in flight
-        self._previews: dict[str, _Preview] = {}  # running previews, least recently used first
+        self.previews = RunningPreviews(store, self.events, self._done_units)
         self._stop = threading.Event()
         # Set when the executor reports a unit finished: the next tick starts at
         # once instead of after poll_interval, so short units don't leave the
@@ -164,30 +146,65 @@ class Scheduler:
 
     # -- one tick ------------------------------------------------------------------
     def tick(self) -> None:
-        """Advance every scheduled job once, in priority order."""
-        with self.sessions() as session:
-            job_ids = list(session.scalars(
-                select(Job.id).where(Job.status.in_(states.SCHEDULED_JOB))
-                .order_by(Job.priority.desc(), Job.created, Job.id)))
+        """Collect and advance the jobs that need it, then fill free slots by fair share."""
+        started = time.perf_counter()
+        try:
+            self._tick()
+        finally:
+            self.metrics.tick(time.perf_counter() - started)
+
+    def _tick(self) -> None:
+        jobs, flying = self._census()
         self._cancel_departed()
-        for job_id in [j for j in self._previews if j not in job_ids]:
-            del self._previews[job_id]
-        may_enqueue = True
+        self.previews.keep_only(jobs)
         self._inputs = {}
-        for job_id in job_ids:
-            if self._stop.is_set():
-                break
+        try:
+            for job in jobs.values():
+                if self._stop.is_set():
+                    return
+                if not self._needs_visit(job, flying[job.id]):
+                    continue
+                try:
+                    if self._advance(job.id):
+                        self._finish(job.id)
+                except StaleDataError:
+                    log.info("job %s changed meanwhile (canceled?); next tick", job.id)
+                    self._forget_if_deleted(job.id)
             try:
-                complete, waiting = self._advance(job_id, may_enqueue)
-                if waiting:  # jobs after it wait until its pending units are enqueued
-                    may_enqueue = False
-                if complete:
-                    self._finish(job_id)
+                self._dispatch()
             except StaleDataError:
-                log.info("job %s changed meanwhile (canceled?); next tick", job_id)
-                self._forget_if_deleted(job_id)
-        self._inputs = {}
-        self.ticks += 1
+                # A job changed (canceled, deleted) while its units were enqueued: the
+                # whole batch is rolled back; its tasks are no longer in flight in the
+                # ledger, so the next tick cancels them and chooses again.
+                log.info("a job changed while units were enqueued; next tick chooses again")
+        finally:
+            self._inputs = {}
+            self.ticks += 1
+
+    def _census(self) -> tuple[dict[str, _JobRow], Counter[str]]:
+        """The scheduled jobs (higher priority first, then oldest) and their
+        units in flight, by job: two small queries, whatever the pending units."""
+        with self.sessions() as session:
+            jobs = {row.id: _JobRow(*row) for row in session.execute(
+                select(Job.id, Job.owner, Job.status, Job.priority, Job.created,
+                       Job.units_total, Job.units_done)
+                .where(Job.status.in_(states.SCHEDULED_JOB))
+                .order_by(Job.priority.desc(), Job.created, Job.id))}
+            flying = Counter({job_id: n for job_id, n in session.execute(
+                select(WorkUnit.job_id, func.count()).join(Job, Job.id == WorkUnit.job_id)
+                .where(WorkUnit.state.in_(states.IN_FLIGHT),
+                       Job.status.in_(states.SCHEDULED_JOB))
+                .group_by(WorkUnit.job_id))})
+        return jobs, flying
+
+    def _needs_visit(self, job: _JobRow, in_flight: int) -> bool:
+        """Does the job need its own transaction this tick? A running job that
+        only waits for a slot does not (the dispatch reads its units)."""
+        if job.status == "queued" or in_flight:
+            return True
+        if job.status == "running" and job.units_done == job.units_total:
+            return True  # complete: merge (e.g. the service stopped before it could)
+        return self.previews.dirty(job.id)  # a throttled preview to write
 
     def _cancel_departed(self) -> None:
         """Cancel the tasks of units that left flight behind our back (job canceled)."""
@@ -201,23 +218,21 @@ class Scheduler:
         for key in [k for k in self._tracked if k not in live]:
             self.executor.cancel(key[0], self._tracked.pop(key))
 
-    def _advance(self, job_id: str, may_enqueue: bool = True) -> tuple[bool, bool]:
-        """Plan, collect and enqueue (if `may_enqueue`) for one job; returns
-        (all its units are done, it still has pending units to enqueue)."""
+    def _advance(self, job_id: str) -> bool:
+        """Plan a queued job, collect a job's units in flight and refresh its
+        preview; returns whether all its units are done."""
         released: list[tuple[str, ...]] = []
         landed: list[tuple[int, PartialFilm]] = []
-        enqueue_error: Exception | None = None
-        with self.sessions.begin() as session:  # the plan stands even if enqueuing fails
+        with self.sessions.begin() as session:  # the plan stands even if collecting fails
             job = session.get(Job, job_id)
             if job is None or job.status not in states.SCHEDULED_JOB:
-                return False, False
+                return False
             if job.status == "queued":
                 self._plan(session, job, self.clock())
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
             if job is None or job.status not in ("running", "paused"):
-                return False, False
-            waiting = False
+                return False
             now = self.clock()
             flying = list(session.scalars(
                 select(WorkUnit).where(WorkUnit.job_id == job.id,
@@ -232,58 +247,100 @@ class Scheduler:
                     break  # the job failed
             if landed:
                 job.note_samples(sum(int(f.stats.get("samples", 0)) for _, f in landed), now)
-            if job.status == "running":
-                # Asked after collecting: finished units free their slots at once.
-                slots = max(self.executor.capacity(), 0) if may_enqueue else 0
-                pending = self._ready_units(session, job, slots + 1)
-                waiting = len(pending) > slots
-                for unit in pending[:slots]:
-                    try:
-                        self._enqueue(job, unit, now)
-                    except Exception as exc:  # broker down: keep what was sent, retry later
-                        enqueue_error = exc
-                        waiting = True
-                        break
-                    unit.attempts = 1
             complete = job.status == "running" and job.units_done == job.units_total
-            width, height = job.width, job.height
+            width, height, method = job.width, job.height, job.spec.get("method", "")
+        for _, film in landed:  # committed: each unit counts once
+            self.metrics.unit_done(method, float(film.stats.get("seconds", 0.0)),
+                                   int(film.stats.get("samples", 0)), int(film.stats.get("rays", 0)))
         for task_ids in released:  # only once the ledger says done (or failed)
             self.executor.release(task_ids)
         if not complete:  # a complete job's preview comes from the final merge
             try:
-                self._refresh_preview(job_id, width, height, landed)
+                written = self.previews.refresh(job_id, width, height, landed)
+                if written is not None:
+                    # Written after the tick's commit: a job deleted in between
+                    # would get its directory back (with the PNGs in it) for good.
+                    self._forget_if_deleted(job_id)
+                    self.previews.publish(job_id, written)
             except Exception:  # a preview is a courtesy; never stop the job for it
                 log.exception("preview of job %s failed", job_id)
-                self._previews.pop(job_id, None)
+                self.previews.drop(job_id)
+        return complete
+
+    def _dispatch(self) -> None:
+        """Fill the executor's free slots by fair share (module doc, step 3).
+        Asked after collecting, so finished units have freed their slots."""
+        jobs, flying = self._census()
+        contenders = [Contender(j.id, j.owner, j.priority or 0, j.created, flying[j.id])
+                      for j in jobs.values() if j.status == "running"
+                      and j.units_total - j.units_done - flying[j.id] > 0]
+        if not contenders:
+            return
+        slots = max(self.executor.capacity(sum(flying.values())), 0)
+        if not slots:
+            return
+        owner_in_flight: Counter[str] = Counter()
+        for job in jobs.values():
+            owner_in_flight[job.owner] += flying[job.id]
+        enqueue_error: Exception | None = None
+        with self.sessions.begin() as session:
+            now = self.clock()
+            shares = {name: share for name, share in session.execute(
+                select(User.name, User.share).where(User.name.in_({c.owner for c in contenders})))}
+            ready: dict[str, deque[WorkUnit]] = {}
+
+            def count_ready(job_id: str) -> int:
+                job = session.get(Job, job_id)  # paused or deleted since the census: none
+                running = job is not None and job.status == "running"
+                units = self._ready_units(session, job, slots) if running else []
+                ready[job_id] = deque(units)
+                return len(units)
+
+            for job_id in fair_share(contenders, owner_in_flight, shares, slots, count_ready):
+                unit = ready[job_id].popleft()
+                try:
+                    self._enqueue(session.get(Job, job_id), unit, now)
+                except Exception as exc:  # broker down: keep what was sent, retry later
+                    enqueue_error = exc
+                    break
+                unit.attempts = 1
         if enqueue_error is not None:
             raise enqueue_error
-        return complete, waiting
 
     def _ready_units(self, session: Session, job: Job, limit: int) -> list[WorkUnit]:
         """Up to `limit` pending units of the job whose needs are all done, in
-        unit order. Tile jobs need nothing; a DAG's later stages wait here."""
-        pending = session.scalars(
-            select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending")
-            .order_by(WorkUnit.index))
+        unit order. Tile jobs need nothing; a DAG's later stages wait here.
+        Read in batches: a huge job's pending units are never all loaded."""
         ready: list[WorkUnit] = []
         done: set[int] | None = None
-        for unit in pending:
-            needs = unit.unit.get("needs") or ()
-            if needs:
-                if done is None:
-                    done = set(session.scalars(select(WorkUnit.index).where(
-                        WorkUnit.job_id == job.id, WorkUnit.state == "done")))
-                if not done.issuperset(needs):
-                    continue
-            ready.append(unit)
-            if len(ready) >= limit:
+        after, batch_size = -1, max(2 * limit, 64)
+        while len(ready) < limit:
+            batch = list(session.scalars(
+                select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending",
+                                       WorkUnit.index > after)
+                .order_by(WorkUnit.index).limit(batch_size)))
+            if not batch:
+                break
+            after = batch[-1].index
+            for unit in batch:
+                needs = unit.unit.get("needs") or ()
+                if needs:
+                    if done is None:
+                        done = set(session.scalars(select(WorkUnit.index).where(
+                            WorkUnit.job_id == job.id, WorkUnit.state == "done")))
+                    if not done.issuperset(needs):
+                        continue
+                ready.append(unit)
+                if len(ready) >= limit:
+                    break
+            if len(batch) < batch_size:  # that was the last of them
                 break
         return ready
 
     def _plan(self, session: Session, job: Job, now: datetime) -> None:
         spec = RenderSpec.from_dict(job.spec)
         units = METHODS[spec.method].make_plan(spec, bool(job.progressive))
-        self._previews.pop(job.id, None)  # planned anew (e.g. requeued): a fresh preview
+        self.previews.drop(job.id)  # planned anew (e.g. requeued): a fresh preview
         for unit in units:
             session.add(WorkUnit(job_id=job.id, index=unit.index, state="pending",
                                  unit=unit.to_dict(), attempts=0, task_ids=[]))
@@ -316,7 +373,16 @@ class Scheduler:
             else:
                 # Stored before the unit is marked done; a crash in between only
                 # means the same bytes are written again.
-                self.store.put_unit_film(job.id, unit.index, obs.film)
+                try:
+                    self.store.put_unit_film(job.id, unit.index, obs.film)
+                except OSError as exc:  # e.g. a full disk: keep the result, try next tick
+                    self._store_failed(job, unit, exc)
+                    return False
+                if unit.error and unit.error.startswith(STORE_FAILED):
+                    unit.error = None
+                if job.error and job.error.startswith(f"unit {unit.index}: {STORE_FAILED}"):
+                    job.error = None  # space is back (another unit still failing says so)
+                    events.note(job)
                 states.change_unit(unit, "done", now)
                 unit.worker = obs.worker or unit.worker
                 unit.seconds = float(film.stats.get("seconds", 0.0))
@@ -339,6 +405,7 @@ class Scheduler:
             log.warning("unit %s/%d lost (task %s); enqueuing it again",
                         job.id, unit.index, unit.task_ids[-1] if unit.task_ids else None)
             self._enqueue(job, unit, now)
+            self.metrics.requeued("lost")
         elif obs.state == "failed":
             unit.error = obs.error
             if unit.attempts >= self.settings.max_attempts:
@@ -352,7 +419,23 @@ class Scheduler:
                         obs.error)
             unit.attempts += 1
             self._enqueue(job, unit, now)
+            self.metrics.requeued("failed")
         return False
+
+    def _store_failed(self, job: Job, unit: WorkUnit, exc: OSError) -> None:
+        """A finished unit whose film could not be stored (ENOSPC, EIO, ...): it is
+        not done, and its result is not released, so the executor still holds it
+        and the next tick stores it again. The unit's and the job's error say why
+        while it waits; the first successful store clears them."""
+        error = f"{STORE_FAILED}: {exc.strerror or exc}"
+        if unit.error != error:
+            log.error("unit %s/%d: %s (the result is kept; retried every tick)",
+                      job.id, unit.index, error)
+            unit.error = error
+        job_error = f"unit {unit.index}: {error}"
+        if job.error != job_error and not (job.error and STORE_FAILED in job.error):
+            job.error = job_error
+            events.note(job)
 
     def _fail_job(self, session: Session, job: Job, now: datetime, error: str) -> None:
         states.change_job(job, "failed", now, error=error)
@@ -360,38 +443,11 @@ class Scheduler:
                 WorkUnit.job_id == job.id, WorkUnit.state.not_in(states.FINAL_UNIT))):
             states.change_unit(other, "canceled", now)  # their tasks are canceled next tick
 
-    # -- the running preview ----------------------------------------------------------
-    def _refresh_preview(self, job_id: str, width: int, height: int,
-                         landed: list[tuple[int, PartialFilm]]) -> None:
-        """Add the units that just landed (committed as done) to the job's running
-        preview; write its PNG if it changed and the last write is old enough."""
-        preview = self._previews.pop(job_id, None)
-        if preview is None:
-            if not landed:
-                return
-            preview = _Preview(width, height)
-            with self.sessions() as session:  # after a restart or eviction: the done units
-                done = list(session.scalars(select(WorkUnit.index).where(
-                    WorkUnit.job_id == job_id, WorkUnit.state == "done")))
-            fresh = {index for index, _ in landed}
-            for index in done:
-                if index not in fresh:
-                    preview.add(index, PartialFilm.from_bytes(self.store.unit_film(job_id, index)))
-        for index, film in landed:
-            preview.add(index, film)
-        self._previews[job_id] = preview  # most recently used last
-        while len(self._previews) > PREVIEW_JOBS:
-            self._previews.pop(next(iter(self._previews)))
-        if preview.dirty and time.monotonic() - preview.written >= PREVIEW_INTERVAL:
-            preview.write(self.store.preview_path(job_id), self.store.noise_path(job_id))
-            self._publish_preview(job_id, len(preview.added))
-
-    def _publish_preview(self, job_id: str, units: int) -> None:
-        version = next(self._preview_versions)
-        self.events.publish("preview", job_id, {
-            "job_id": job_id, "version": version, "units": units,
-            "url": f"/jobs/{job_id}/preview.png?v={version}",
-            "noise_url": f"/jobs/{job_id}/noise.png?v={version}"})
+    def _done_units(self, job_id: str) -> list[int]:
+        """The indices of a job's done units (a preview rebuilt after a restart)."""
+        with self.sessions() as session:
+            return list(session.scalars(select(WorkUnit.index).where(
+                WorkUnit.job_id == job_id, WorkUnit.state == "done")))
 
     def _forget_if_deleted(self, job_id: str) -> None:
         """A job deleted while a tick worked on it: drop what the tick may have
@@ -399,7 +455,7 @@ class Scheduler:
         with self.sessions() as session:
             if session.get(Job, job_id) is not None:
                 return
-        self._previews.pop(job_id, None)
+        self.previews.drop(job_id)
         self.store.delete_job(job_id)
 
     # -- finishing -------------------------------------------------------------------
@@ -413,19 +469,22 @@ class Scheduler:
             metadata = {"job_id": job.id, "scene": job.scene, "scene_hash": job.scene_hash,
                         **{k: spec[k] for k in EXR_METADATA_KEYS if k in spec}}
             width, height = job.width, job.height
-        error = None
+        error = waiting = None
         try:
-            film = merge(width, height, (PartialFilm.from_bytes(self.store.unit_film(job_id, i))
-                                         for i in range(n_units)))
-            film.write_exr(self.store.result_path(job_id),
-                           {k: str(metadata[k]) for k in EXR_METADATA_KEYS})
-            film.write_png(self.store.preview_path(job_id))
-            film.write_noise_png(self.store.noise_path(job_id))
-            self._publish_preview(job_id, n_units)
+            try:
+                write_result(self.store, job_id, width, height, n_units, metadata)
+            except OSError as exc:
+                if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                    raise
+                # A full disk: the unit films are all stored; merge again next tick.
+                waiting = f"{RESULT_STORE_FAILED}: {exc.strerror or exc}"
+            else:
+                self.previews.publish(job_id, n_units)
         except Exception as exc:
             log.exception("merging job %s failed", job_id)
             error = f"merge failed: {type(exc).__name__}: {exc}"
-        self._previews.pop(job_id, None)
+        if waiting is None:
+            self.previews.drop(job_id)
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
             if job is None:  # deleted while it was merged
@@ -433,6 +492,14 @@ class Scheduler:
                 return
             if job.status != "running":
                 return
+            if waiting is not None:
+                if job.error != waiting:
+                    log.error("job %s: %s (retried every tick)", job_id, waiting)
+                    job.error = waiting
+                    events.note(job)
+                return
+            if job.error and job.error.startswith(RESULT_STORE_FAILED):
+                job.error = None
             if error is None:
                 states.change_job(job, "done", self.clock())
             else:

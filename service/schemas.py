@@ -4,25 +4,81 @@ Bounds and allowed names shown in the OpenAPI schema are read from the
 renderer (`BOUNDS`, `METHODS`, `SAMPLERS`); the checks themselves are the
 renderer's (`RenderSpec.validate`), so the API and the CLI refuse the same
 things with the same words.
+
+Every request body is a `RequestModel`: unknown fields are refused, and
+nothing is coerced (strict: "4" is no integer, "yes" no boolean, 2.0 no
+integer); numbers are finite. Python's JSON reader accepts NaN, Infinity
+and 1e999 (= inf), which no JSON writer may send back: a typed field refuses
+them, and the free-form parts (a job's `options`, an inline `scene`) refuse
+them wherever they hide, naming the path, as they refuse nesting deeper than
+MAX_JSON_DEPTH.
 """
 
 from __future__ import annotations
 
+import math
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictInt
+from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, StrictBool, StrictFloat,
+                      StrictInt, StrictStr)
+from pydantic_core import PydanticCustomError
 
 from renderer import BOUNDS, METHODS, SAMPLERS, RenderSpec
 
 from .executors import WorkerInfo
-from .models import Job, WorkUnit
+from .models import ApiToken, Job, User, WorkUnit
 
-__all__ = ["JobCreate", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS", "Progress",
-           "ScenePublic", "UnitPublic", "WorkerPublic"]
+__all__ = ["RequestModel", "JobCreate", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS",
+           "Progress", "ScenePublic", "UnitPublic", "WorkerPublic", "LoginRequest", "Me", "UserCreate",
+           "UserUpdate", "UserPublic", "TokenCreate", "TokenPublic", "TokenCreated"]
 
 _DEFAULTS = RenderSpec()
 PRIORITY_BOUNDS = (-100, 100)
+
+
+class RequestModel(BaseModel):
+    """A request body: strict types, finite numbers, no unknown fields."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+
+
+MAX_JSON_DEPTH = 32  # levels of lists and objects in a free-form part (a scene needs 6)
+
+
+def _first_problem(value: Any) -> str | None:
+    """What is wrong with parsed free-form JSON, naming the path: a NaN or an
+    infinity, or nesting deeper than MAX_JSON_DEPTH (which would exhaust the
+    stack of whatever reads it next); None if nothing. Iterative."""
+    stack: list[tuple[str, Any, int]] = [("", value, 1)]
+    while stack:
+        path, item, depth = stack.pop()
+        where = path or "the value"
+        if isinstance(item, float) and not math.isfinite(item):
+            return f"{where} must be a finite number, got {item!r} (JSON has no NaN or Infinity)"
+        if isinstance(item, dict):
+            children = [(f"{path}.{key}" if path else str(key), v) for key, v in item.items()]
+        elif isinstance(item, list):
+            children = [(f"{path}[{i}]", v) for i, v in enumerate(item)]
+        else:
+            continue
+        if depth > MAX_JSON_DEPTH:
+            return (f"nests lists and objects more than {MAX_JSON_DEPTH} levels deep "
+                    f"(at {where[:40]}{'...' if len(where) > 40 else ''})")
+        stack.extend((where_, child, depth + 1) for where_, child in reversed(children))
+    return None
+
+
+def _plain_json(value: Any) -> Any:
+    problem = _first_problem(value)
+    if problem:
+        raise PydanticCustomError("plain_json", "{problem}", {"problem": problem})
+    return value
+
+
+# Free-form JSON with finite numbers and a sane depth (the renderer checks the rest).
+PlainJson = AfterValidator(_plain_json)
+
 
 Priority = Annotated[StrictInt, Field(
     ge=PRIORITY_BOUNDS[0], le=PRIORITY_BOUNDS[1],
@@ -37,14 +93,14 @@ def _bounded(name: str, description: str):
                                       json_schema_extra={"minimum": lo, "maximum": hi})]
 
 
-class JobCreate(BaseModel):
+class JobCreate(RequestModel):
     """A render request: `POST /jobs`."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+    model_config = ConfigDict(json_schema_extra={"examples": [
         {"scene": "cornell-box", "method": "path", "spp": 16, "depth": 5, "tile_size": 32,
          "seed": 0, "width": 128, "height": 128}]})
 
-    scene: str | dict[str, Any] = Field(
+    scene: Annotated[str | dict[str, Any], PlainJson] = Field(
         description="a built-in scene's name, an uploaded scene's id (GET /scenes) "
                     "or an inline scene document")
     method: str = Field(description="rendering method (GET /methods)",
@@ -57,18 +113,17 @@ class JobCreate(BaseModel):
                          json_schema_extra={"enum": list(SAMPLERS)})
     width: _bounded("width", "image width; default: the scene camera's") | None = None
     height: _bounded("height", "image height; default: the scene camera's") | None = None
-    options: dict[str, Any] = Field(default_factory=dict,
-                                    description="method options (GET /methods lists them)")
+    options: Annotated[dict[str, Any], PlainJson] = Field(
+        default_factory=dict, description="method options (GET /methods lists them)")
     priority: Priority = 0
-    progressive: bool = Field(True, description="render in sample passes (1, 1, 2, 4, ... spp "
-                                                "per pass) so the preview improves while the "
-                                                "job runs; the final image is the same")
+    progressive: StrictBool = Field(True, description="render in sample passes (1, 1, 2, 4, ... "
+                                                      "spp per pass) so the preview improves "
+                                                      "while the job runs; the final image is "
+                                                      "the same")
 
 
-class JobUpdate(BaseModel):
+class JobUpdate(RequestModel):
     """`PATCH /jobs/{id}`: what can change after submission."""
-
-    model_config = ConfigDict(extra="forbid")
 
     priority: Priority
 
@@ -105,6 +160,7 @@ class JobPublic(BaseModel):
 
     id: str
     status: str
+    owner: str = Field(description="the user who submitted it")
     scene: str
     scene_hash: str
     method: str
@@ -146,7 +202,7 @@ class JobPublic(BaseModel):
         elif job.status == "running" and (job.recent_rate or rate):
             eta = max(total - job.samples, 0) / (job.recent_rate or rate)
         return cls(
-            id=job.id, status=job.status, scene=job.scene, scene_hash=job.scene_hash,
+            id=job.id, status=job.status, owner=job.owner, scene=job.scene, scene_hash=job.scene_hash,
             method=spec["method"], spp=spec["spp"], depth=spec["depth"],
             tile_size=spec["tile_size"], seed=spec["seed"], sampler=spec["sampler"],
             width=job.width, height=job.height, options=spec.get("options", {}),
@@ -262,3 +318,74 @@ class WorkerPublic(BaseModel):
                    units_done=w.units_done, samples=w.samples, rays=w.rays, seconds=w.seconds,
                    samples_per_second=w.samples / w.seconds if w.seconds > 0 else None,
                    started=w.started, last_seen=w.last_seen, silent_seconds=w.silent_seconds)
+
+
+# -- accounts ------------------------------------------------------------------------
+
+class LoginRequest(RequestModel):
+    """`POST /auth/login`: trade an API token for the dashboard's session cookie."""
+
+    token: StrictStr = Field(max_length=200)
+
+
+class Me(BaseModel):
+    """`GET /auth/me`: who the caller is."""
+
+    user: str
+    role: str
+    via: str = Field(description="bearer (Authorization header) or cookie (the dashboard)")
+    token_id: str | None = Field(description="the API token it authenticated with")
+
+
+class UserCreate(RequestModel):
+    name: StrictStr = Field(max_length=64, description="a-z, 0-9, '.', '_', '-'")
+    role: Literal["admin", "artist", "viewer"] = "artist"
+    share: StrictFloat | StrictInt = Field(1.0, ge=0.01, le=1000,
+                                           description="weight in the fair share between owners")
+
+
+class UserUpdate(RequestModel):
+    role: Literal["admin", "artist", "viewer"] | None = None
+    share: StrictFloat | StrictInt | None = Field(None, ge=0.01, le=1000)
+    disabled: StrictBool | None = None
+
+
+class UserPublic(BaseModel):
+    name: str
+    role: str
+    share: float
+    disabled: bool
+    created: datetime
+
+    @classmethod
+    def from_user(cls, user: User) -> "UserPublic":
+        return cls(name=user.name, role=user.role, share=user.share, disabled=bool(user.disabled),
+                   created=user.created)
+
+
+class TokenCreate(RequestModel):
+    user: StrictStr = Field(max_length=64)
+    label: StrictStr = Field("", max_length=200)
+    expires_in_days: StrictFloat | StrictInt | None = Field(
+        None, gt=0, le=36500, description="none: the token does not expire")
+
+
+class TokenPublic(BaseModel):
+    """A token as listed: never its secret (only its hash is stored)."""
+
+    id: str
+    user: str
+    label: str
+    created: datetime
+    expires: datetime | None
+    revoked: datetime | None
+    last_used: datetime | None
+
+    @classmethod
+    def from_token(cls, token: ApiToken) -> "TokenPublic":
+        return cls(id=token.id, user=token.user, label=token.label, created=token.created,
+                   expires=token.expires, revoked=token.revoked, last_used=token.last_used)
+
+
+class TokenCreated(TokenPublic):
+    token: str = Field(description="the secret: shown this once, stored only as a hash")

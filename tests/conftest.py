@@ -2,18 +2,26 @@
 
 - `local_client`: one embedded-mode service (FastAPI + scheduler + local
   process pool) for the whole session; Numba kernels load once per process.
-- `redis_url`: the real Redis at 127.0.0.1:6379, database 15 (RAYFARM_TEST_REDIS_DB),
-  flushed per test.
+- `redis_url`: a real Redis that this test run started itself (`redis-server`
+  on a free port, nothing kept on disk), flushed per test; a developer's own
+  Redis on 6379 is never touched.
 - `spawn_worker` / `spawn_serve`: `rayfarm worker` / `rayfarm serve` as child
   processes in their own process groups, killed (the whole group) afterwards.
 - `embedded_serve`: one `rayfarm serve` child in embedded mode (no broker:
   SQLite, a local pool of 2) per test module; yields (child, base URL).
 - `reference_channels`: an undisturbed render of a job body, in this process.
+
+Authentication is on, as in production: every service a test starts has the
+admin token `TEST_ADMIN_TOKEN` (RAYFARM_ADMIN_TOKEN), the test process and its
+children find it in RAYFARM_TOKEN (the client and CLI read it), `local_client`
+sends it, and `ADMIN_HEADERS` carries it for plain httpx calls. `make_user`
+adds users of other roles with tokens of their own.
 """
 
 from __future__ import annotations
 
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -36,9 +44,11 @@ if "RAYFARM_CACHE_DIR" not in os.environ:
 
     os.environ["RAYFARM_CACHE_DIR"] = tempfile.mkdtemp(prefix="rayfarm-test-cache-")
     atexit.register(shutil.rmtree, os.environ["RAYFARM_CACHE_DIR"], ignore_errors=True)
-# Farm tests flush this Redis database; two suites running at once on one
-# machine need different ones (RAYFARM_TEST_REDIS_DB), or they eat each other's tasks.
-FARM_REDIS_DB = int(os.environ.get("RAYFARM_TEST_REDIS_DB", "15"))
+# The admin token of every service the tests start (see the module doc).
+TEST_ADMIN_TOKEN = "rf_test-admin-" + secrets.token_urlsafe(24)
+os.environ["RAYFARM_TOKEN"] = TEST_ADMIN_TOKEN  # what clients and the CLI send
+os.environ["RAYFARM_ADMIN_TOKEN"] = TEST_ADMIN_TOKEN  # what every Settings() here bootstraps
+ADMIN_HEADERS = {"Authorization": f"Bearer {TEST_ADMIN_TOKEN}"}
 TINY = {"scene": "cornell-box", "method": "path", "spp": 4, "depth": 3, "tile_size": 8,
         "seed": 7, "width": 32, "height": 32}
 
@@ -95,17 +105,55 @@ def local_settings(tmp_path_factory):
     from service.settings import Settings
 
     return Settings(data_dir=tmp_path_factory.mktemp("local-farm"), broker_url="",
-                    database_url="", local_workers=2, poll_interval=0.05)
+                    database_url="", local_workers=2, poll_interval=0.05,
+                    admin_token=TEST_ADMIN_TOKEN)
 
 
 @pytest.fixture(scope="session")
-def local_client(local_settings):
+def local_app(local_settings):
+    """The embedded service's app, started (lifespan entered) for the session."""
     from fastapi.testclient import TestClient
 
     from service.main import create_app
 
-    with TestClient(create_app(local_settings)) as client:
-        yield client
+    app = create_app(local_settings)
+    with TestClient(app):
+        yield app
+
+
+@pytest.fixture(scope="session")
+def local_client(local_app):
+    """A client of the embedded service, logged in as the admin (bearer token).
+    Not entered as a context manager: that would run the app's lifespan a second
+    time, a second scheduler and pool on the same ledger."""
+    from fastapi.testclient import TestClient
+
+    client = TestClient(local_app, headers=ADMIN_HEADERS)
+    yield client
+    client.close()
+
+
+@pytest.fixture(scope="session")
+def make_user(local_app):
+    """make_user(name, role="artist") -> a TestClient of the embedded service
+    holding a fresh token of that (new or existing) user."""
+    from fastapi.testclient import TestClient
+
+    from service import auth
+    from service.models import User, utcnow
+
+    sessions = local_app.state.farm.sessions
+
+    def make(name: str, role: str = "artist") -> TestClient:
+        with sessions.begin() as session:
+            if session.get(User, name) is None:
+                auth.add_user(session, name, role, utcnow())
+            _, secret = auth.create_token(session, name, utcnow(), label="test")
+        client = TestClient(local_app, headers={"Authorization": f"Bearer {secret}"})
+        client.token = secret
+        return client
+
+    return make
 
 
 # -- reference renders ---------------------------------------------------------------
@@ -166,18 +214,54 @@ def get_json(client):
 
 # -- the real farm: Redis and child processes ---------------------------------------------
 
-@pytest.fixture
-def redis_url():
+@pytest.fixture(scope="session")
+def redis_server(tmp_path_factory):
+    """A `redis-server` of this test run on a free port of 127.0.0.1 (no
+    persistence), stopped at the end; yields its URL without a database."""
     import redis
 
-    url = f"redis://127.0.0.1:6379/{FARM_REDIS_DB}"
+    binary = shutil.which("redis-server")
+    if binary is None:
+        message = "no redis-server on PATH (apt-get install redis-server; .ci/run does)"
+        if os.environ.get("CI"):  # .ci/run installs it: its absence is a failure there
+            pytest.fail(message)
+        pytest.skip(message)
+    directory = tmp_path_factory.mktemp("redis")
+    port = free_port()
+    proc = subprocess.Popen([binary, "--port", str(port), "--bind", "127.0.0.1", "--save", "",
+                             "--appendonly", "no", "--dir", str(directory),
+                             "--logfile", str(directory / "redis.log")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True)
+    url = f"redis://127.0.0.1:{port}"
     client = redis.Redis.from_url(url)
+
+    def answers():
+        if proc.poll() is not None:
+            pytest.fail(f"redis-server exited: {(directory / 'redis.log').read_text()}")
+        try:
+            return client.ping()
+        except redis.RedisError:
+            return False
     try:
-        client.ping()
-    except redis.RedisError as exc:
-        if os.environ.get("CI"):  # .ci/run starts a Redis: its absence is a failure there
-            pytest.fail(f"no Redis at 127.0.0.1:6379 ({exc})")
-        pytest.skip(f"no Redis at 127.0.0.1:6379 ({exc})")
+        wait_for(answers, 30, "redis-server to answer")
+        yield url
+    finally:
+        client.close()
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+@pytest.fixture
+def redis_url(redis_server):
+    """Database 0 of this run's own Redis, empty at the start and end of the test."""
+    import redis
+
+    url = f"{redis_server}/0"
+    client = redis.Redis.from_url(url)
     client.flushdb()
     yield url
     client.flushdb()
@@ -232,7 +316,9 @@ class Child:
 
 def farm_env(redis_url: str, **extra: str) -> dict:
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update({"RAYFARM_BROKER_URL": redis_url, "PYTHONUNBUFFERED": "1", **extra})
+    env.update({"RAYFARM_BROKER_URL": redis_url, "PYTHONUNBUFFERED": "1",
+                "RAYFARM_ADMIN_TOKEN": TEST_ADMIN_TOKEN, "RAYFARM_TOKEN": TEST_ADMIN_TOKEN,
+                **extra})
     return env
 
 
@@ -306,7 +392,8 @@ def embedded_serve(tmp_path_factory):
     directory = tmp_path_factory.mktemp("embedded-serve")
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
     env.update(RAYFARM_DATA_DIR=str(directory / "data"), RAYFARM_POLL_INTERVAL="0.05",
-               RAYFARM_LOCAL_WORKERS="2", PYTHONUNBUFFERED="1")
+               RAYFARM_LOCAL_WORKERS="2", PYTHONUNBUFFERED="1",
+               RAYFARM_ADMIN_TOKEN=TEST_ADMIN_TOKEN, RAYFARM_TOKEN=TEST_ADMIN_TOKEN)
     port = free_port()
     child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
                   env, directory / "serve.log")

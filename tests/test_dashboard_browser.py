@@ -2,19 +2,26 @@
 driven by Playwright) against a real `rayfarm serve` in embedded mode.
 
 Every test saves screenshots to test-artifacts/screenshots/ and fails if the
-page throws, logs an error, or requests anything from another host (the
-dashboard must work offline).
+page throws, logs an error (but those it announces with
+`page.allow_console_error`, such as the 401s of a test that logs out), or
+requests anything from another host (the dashboard must work offline).
+
+`page` is logged in as the admin through the login URL; `anon_page` is not
+logged in at all (test09 onwards: logging in and out, CSRF, CSP, roles).
 """
 
 from __future__ import annotations
 
 import os
+import re
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import httpx
 import pytest
 
-from conftest import ROOT, wait_for
+from conftest import ADMIN_HEADERS, ROOT, TEST_ADMIN_TOKEN, TINY, poll_job, wait_for
 
 CHROMIUM = os.environ.get("RAYFARM_CHROMIUM", "/usr/bin/chromium")
 SHOTS = ROOT / "test-artifacts" / "screenshots"
@@ -47,14 +54,19 @@ def browser():
 
 
 @pytest.fixture
-def page(browser, server, request):
-    """A fresh page (1440 x 900, a laptop screen) whose problems fail the test."""
+def anon_page(browser, server):
+    """A fresh page (1440 x 900, a laptop screen) in a browser context of its
+    own, not logged in, whose problems fail the test. A test that provokes an
+    error on purpose (a 401 after logging out) says so first:
+    `page.allow_console_error("status of 401")`."""
     context = browser.new_context(viewport={"width": 1440, "height": 900})
     page = context.new_page()
     problems: list[str] = []
+    allowed = ["422"]  # the submit form's validation answers (test03)
+    page.allow_console_error = allowed.append
     page.on("pageerror", lambda exc: problems.append(f"page error: {exc}"))
     page.on("console", lambda msg: problems.append(f"console {msg.type}: {msg.text}")
-            if msg.type == "error" and "422" not in msg.text else None)
+            if msg.type == "error" and not any(a in msg.text for a in allowed) else None)
     page.on("request", lambda req: problems.append(f"request to another host: {req.url}")
             if not req.url.startswith((server, "data:", "blob:")) else None)
     page.set_default_timeout(60_000)
@@ -64,13 +76,53 @@ def page(browser, server, request):
     assert not problems, problems
 
 
+@pytest.fixture
+def page(anon_page, server):
+    """`anon_page`, logged in as the admin."""
+    anon_page.goto(f"{server}/?token={TEST_ADMIN_TOKEN}")  # the login URL `rayfarm serve` prints
+    anon_page.wait_for_url(f"{server}/")
+    return anon_page
+
+
+@pytest.fixture(scope="module")
+def login_url(embedded_serve):
+    """The login URL the module's `rayfarm serve` printed when it started."""
+    match = re.search(r"http://\S+/\?token=\S+", embedded_serve[0].log())
+    assert match, embedded_serve[0].log()
+    return match.group(0)
+
+
+@pytest.fixture
+def other_origin():
+    """A page of another origin: http://127.0.0.1:<another port>/ (same site as the
+    service, as SameSite counts sites: its requests do carry the cookies)."""
+    class Page(BaseHTTPRequestHandler):
+        def do_GET(self):
+            body = b"<!doctype html><title>another site</title><p>Nothing to see here.</p>"
+            self.send_response(200)
+            self.send_header("Content-Type", "text/html")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Page)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{httpd.server_port}"
+    httpd.shutdown()
+    httpd.server_close()
+
+
 def shot(page, name: str) -> None:
     SHOTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(SHOTS / f"{name}.png"), full_page=True)
 
 
 def api(server: str):
-    return httpx.Client(base_url=server, timeout=30)
+    return httpx.Client(base_url=server, timeout=30, headers=ADMIN_HEADERS)
 
 
 def progress_value(page) -> int:
@@ -249,3 +301,268 @@ def test08_a_dag_job_shows_its_phases(page):
         any(c.startswith("gather (stage") for c in cells)
     page.wait_for_selector("#stage img#preview[data-loaded]")
     shot(page, "12-dag-job-phases")
+
+
+# -- logging in and out, CSRF, CSP, roles ------------------------------------------------
+
+def cookies_of(page) -> dict[str, dict]:
+    """The browser's cookies for the service, HttpOnly ones included."""
+    return {c["name"]: c for c in page.context.cookies(page.base)}
+
+
+def log_in_on_the_form(page, token: str) -> None:
+    page.wait_for_selector("#login-form")
+    page.fill("#login-token", token)
+    page.click("#login-button")
+
+
+def wait_done(base: str, job_id: str, headers: dict = ADMIN_HEADERS) -> dict:
+    with httpx.Client(base_url=base, timeout=30, headers=headers) as client:
+        return poll_job(lambda path: client.get(path).json(), job_id)
+
+
+def test09_the_printed_login_url_logs_in_and_leaves_the_address_bar(anon_page, login_url):
+    page = anon_page
+    assert TEST_ADMIN_TOKEN in login_url  # the URL `rayfarm serve` printed, from its log
+    page.goto(login_url)
+    page.wait_for_url(f"{page.base}/")  # 303 to `/`: the token left the address bar
+    assert "token" not in page.url and TEST_ADMIN_TOKEN not in page.url
+    page.wait_for_selector("#jobs-table")
+    assert page.inner_text("#whoami-user") == "admin"
+    assert page.text_content("#whoami-role") == "admin"
+    assert page.is_visible("#logout")
+    # The session cookie is HttpOnly (no script reads it); the CSRF cookie is
+    # meant for the dashboard's script. Both SameSite=Strict.
+    script_sees = page.evaluate("document.cookie")
+    assert "rayfarm_session" not in script_sees and "rayfarm_csrf=" in script_sees
+    jar = cookies_of(page)
+    assert jar["rayfarm_session"]["httpOnly"] and jar["rayfarm_session"]["sameSite"] == "Strict"
+    assert not jar["rayfarm_csrf"]["httpOnly"] and jar["rayfarm_csrf"]["sameSite"] == "Strict"
+    assert TEST_ADMIN_TOKEN not in {c["value"] for c in jar.values()}  # a session, not the token
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.locator(".topbar").screenshot(path=str(SHOTS / "13-topbar-admin.png"))
+    shot(page, "14-logged-in-by-url")
+
+
+def test10_logout_then_log_in_again_by_pasting_the_token(page):
+    page.goto(f"{page.base}/#/workers")
+    page.wait_for_selector("#workers-table tr[data-worker]")
+    old_session = cookies_of(page)["rayfarm_session"]["value"]
+    page.allow_console_error("status of 401")  # from here on, 401s are what we look for
+    page.click("#logout")
+    page.wait_for_url("**/#/login")
+    page.wait_for_selector("#login-form")
+    assert not page.is_visible("#whoami-user") and not page.is_visible("#logout")
+    assert "rayfarm_session" not in cookies_of(page)
+    statuses = page.evaluate("async () => Promise.all(['/jobs', '/workers', '/auth/me', '/scenes']"
+                             ".map(async (path) => (await fetch(path)).status))")
+    assert statuses == [401, 401, 401, 401]
+    # The login was revoked, not only forgotten by this browser.
+    answer = httpx.get(f"{page.base}/auth/me", headers={"Cookie": f"rayfarm_session={old_session}"})
+    assert answer.status_code == 401, answer.text
+    shot(page, "15-logged-out")
+
+    # Going somewhere without a login: the login page, which goes on there afterwards.
+    page.goto(f"{page.base}/#/workers")
+    page.wait_for_url(re.compile(r".*#/login\?next=%23%2Fworkers$"))
+    log_in_on_the_form(page, "rf_not-a-token")
+    assert "not accepted" in page.inner_text("#login-refused")
+    assert "#/login" in page.url and "rayfarm_session" not in cookies_of(page)
+    shot(page, "16-login-refused")
+    log_in_on_the_form(page, f"  {TEST_ADMIN_TOKEN}\n")  # pasted with blanks around it
+    page.wait_for_url("**/#/workers")
+    page.wait_for_selector("#workers-table tr[data-worker]")
+    assert page.inner_text("#whoami-user") == "admin"
+    assert page.evaluate("fetch('/auth/me').then((r) => r.json())")["via"] == "cookie"
+
+
+def test11_a_bad_login_link_lands_on_the_login_page_saying_so(anon_page):
+    page = anon_page
+    page.goto(f"{page.base}/")  # no login: the login page, which says where tokens come from
+    page.wait_for_url(re.compile(r".*#/login\?next=%23%2Fjobs$"))
+    help_text = page.inner_text("#login-help")
+    assert "rayfarm serve" in help_text and "rayfarm tokens create USER" in help_text
+    assert not page.is_visible("#login-failed")
+    shot(page, "17-login")
+    page.goto(f"{page.base}/?token=rf_not-a-token")
+    page.wait_for_url("**/#/login?failed=1")
+    assert "token was not accepted" in page.inner_text("#login-failed")
+    assert not page.is_visible("#whoami-user")
+    assert "rayfarm_session" not in cookies_of(page)
+    shot(page, "18-login-link-refused")
+
+
+def test12_csrf_another_origin_cannot_cancel_nor_a_request_without_the_header(page, other_origin,
+                                                                              embedded_serve):
+    def answered(method: str, path: str) -> int:
+        """The status the service answered, from its access log (the browser
+        does not let the other page read it: Cross-Origin-Resource-Policy)."""
+        line = re.compile(rf'"{method} {re.escape(path)} HTTP/1.1" (\d{{3}})')
+        return int(wait_for(lambda: line.search(embedded_serve[0].log()), 10,
+                            f"{method} {path} in the service's log").group(1))
+
+    with api(page.base) as client:
+        job = client.post("/jobs", json=SLOW).json()
+    try:
+        page.goto(f"{page.base}/#/jobs/{job['id']}")
+        page.wait_for_selector("#view .page-head .badge")
+        # A page of another origin, while this browser is logged in. 127.0.0.1 on
+        # another port is the same *site*: SameSite=Strict lets the cookies through
+        # (the probe is answered 200, as the logged-in admin), so the service's
+        # own check must refuse the cancel.
+        other = page.context.new_page()
+        other.goto(f"{other_origin}/")
+        fetch = """url => fetch(url, {method: 'POST', mode: 'no-cors', credentials: 'include',
+            headers: {'Content-Type': 'text/plain'}, body: 'x'}).then(() => 'read', (err) => 'unread')"""
+        probe = f"/auth/me?probe={job['id']}"
+        other.evaluate("url => fetch(url, {mode: 'no-cors', credentials: 'include'})"
+                       ".then(() => 'read', (err) => 'unread')", f"{page.base}{probe}")
+        assert answered("GET", probe) == 200
+        other.evaluate(fetch, f"{page.base}/jobs/{job['id']}/cancel")
+        assert answered("POST", f"/jobs/{job['id']}/cancel") == 403
+        other.close()
+        with api(page.base) as client:
+            assert client.get(f"/jobs/{job['id']}").json()["status"] in ("queued", "running")
+        # The dashboard's own origin, without the X-CSRF-Token header: refused too.
+        page.allow_console_error("status of 403")
+        status = page.evaluate("id => fetch(`/jobs/${id}/cancel`, {method: 'POST'}).then((r) => r.status)",
+                               job["id"])
+        assert status == 403
+        with api(page.base) as client:
+            assert client.get(f"/jobs/{job['id']}").json()["status"] in ("queued", "running")
+        # ... and with it, as the dashboard sends it, the cookie login may cancel.
+        status = page.evaluate("""id => fetch(`/jobs/${id}/cancel`, {method: 'POST', headers: {
+            'X-CSRF-Token': decodeURIComponent(/rayfarm_csrf=([^;]*)/.exec(document.cookie)[1])}})
+            .then((r) => r.status)""", job["id"])
+        assert status == 200
+        with api(page.base) as client:
+            assert client.get(f"/jobs/{job['id']}").json()["status"] == "canceled"
+    finally:
+        with api(page.base) as client:
+            client.post(f"/jobs/{job['id']}/cancel")
+
+
+CSP_WATCH = """document.addEventListener('securitypolicyviolation',
+  (e) => (window.__cspViolations ||= []).push(`${e.violatedDirective} ${e.blockedURI}`));"""
+
+
+def test13_no_csp_violation_on_any_dashboard_page_and_the_docs_still_render(page):
+    with api(page.base) as client:
+        job = client.post("/jobs", json=TINY).json()
+    wait_done(page.base, job["id"])
+    reports: list[str] = []
+    page.on("console", lambda msg: reports.append(msg.text)
+            if "Content Security Policy" in msg.text else None)
+    page.add_init_script(CSP_WATCH)
+    page.goto(f"{page.base}/#/jobs")
+    response = page.reload()  # a fresh load: the watcher is in
+    policy = response.headers["content-security-policy"]
+    assert "script-src 'self';" in policy and "style-src 'self';" in policy
+    assert "unsafe-inline" not in policy
+    page.wait_for_selector(f"tr[data-job='{job['id']}'] .badge[data-state='done']")
+    page.goto(f"{page.base}/#/jobs/{job['id']}")
+    page.wait_for_selector("#stage img#preview[data-loaded]")
+    page.check("#show-tiles")
+    page.select_option("#color-tiles", "worker")
+    page.wait_for_selector("#legend .sw")
+    page.click("[data-view='noise']")
+    page.wait_for_selector("#stage img#preview[data-view='noise'][data-loaded]")
+    page.goto(f"{page.base}/#/submit")
+    page.wait_for_selector("#f-opt-heuristic")
+    page.wait_for_selector("#scene-thumb img")
+    page.goto(f"{page.base}/#/workers")
+    page.wait_for_selector("#workers-table tr[data-worker]")
+    page.goto(f"{page.base}/#/login")
+    page.wait_for_selector("#login-already")
+    page.wait_for_timeout(300)  # reports are asynchronous
+    assert reports == []
+    assert page.evaluate("window.__cspViolations || []") == []
+    # The watch itself works: an inline style it is shown is reported.
+    page.allow_console_error("Content Security Policy")
+    page.evaluate("document.body.setAttribute('style', 'outline: 1px solid red')")
+    wait_for(lambda: reports and page.evaluate("window.__cspViolations || []"), 10,
+             "the planted violation to be reported")
+
+    # Swagger UI, under its own policy, with the schema it loads by the cookie login.
+    page.goto(f"{page.base}/docs")
+    page.wait_for_selector(".swagger-ui .opblock")
+    assert "rayfarm" in page.inner_text(".swagger-ui .info .title")
+    assert page.locator(".swagger-ui .opblock").count() > 10
+
+
+def test14_a_stream_refused_for_want_of_a_login_brings_the_login_page(page):
+    page.goto(f"{page.base}/#/login")  # logged in; no view that calls the API
+    page.wait_for_selector("#login-already")
+    jar = cookies_of(page)
+    # The login ends elsewhere (another tab logs out): this browser still holds the cookie.
+    answer = httpx.post(f"{page.base}/auth/logout", headers={
+        "Cookie": f"rayfarm_session={jar['rayfarm_session']['value']}; "
+                  f"rayfarm_csrf={jar['rayfarm_csrf']['value']}",
+        "X-CSRF-Token": jar["rayfarm_csrf"]["value"]})
+    assert answer.status_code == 204, answer.text
+    # The jobs list answers from here, so only its event stream can find out.
+    page.route("**/jobs?limit=*", lambda route: route.fulfill(
+        status=200, content_type="application/json", body="[]"))
+    page.allow_console_error("401")
+    with page.expect_response(lambda r: r.url.endswith("/events")) as events:
+        page.goto(f"{page.base}/#/jobs")
+    assert events.value.status == 401
+    page.wait_for_url(re.compile(r".*#/login\?next=%23%2Fjobs&ended=1$"))
+    assert "Your login has ended" in page.inner_text("#login-ended")
+    assert not page.is_visible("#whoami-user")
+
+
+def test15_a_viewer_sees_everything_and_changes_nothing_an_artist_its_own(anon_page):
+    page = anon_page
+    tokens = {}
+    with api(page.base) as client:
+        for name, role in (("vera", "viewer"), ("arti", "artist")):
+            assert client.post("/users", json={"name": name, "role": role}).status_code == 201
+            answer = client.post("/tokens", json={"user": name, "label": "browser test"})
+            assert answer.status_code == 201, answer.text
+            tokens[name] = answer.json()["token"]
+        admin_job = client.post("/jobs", json=TINY).json()
+    arti = {"Authorization": f"Bearer {tokens['arti']}"}
+    with httpx.Client(base_url=page.base, timeout=30, headers=arti) as client:
+        arti_job = client.post("/jobs", json=dict(TINY, seed=8)).json()
+    wait_done(page.base, admin_job["id"])
+    wait_done(page.base, arti_job["id"], arti)
+
+    page.goto(f"{page.base}/#/login")
+    log_in_on_the_form(page, tokens["vera"])
+    page.wait_for_url("**/#/jobs")
+    assert (page.inner_text("#whoami-user"), page.text_content("#whoami-role")) == ("vera", "viewer")
+    for job in (admin_job, arti_job):  # every job, with its owner
+        page.wait_for_selector(f"tr[data-job='{job['id']}']")
+        assert page.inner_text(f"tr[data-job='{job['id']}'] td.owner") == job["owner"]
+    assert page.is_disabled("#new-job")
+    assert "viewer" in page.inner_text("#read-only-note")
+    page.goto(f"{page.base}/#/jobs/{admin_job['id']}")
+    page.wait_for_selector("#view .page-head .badge[data-state='done']")
+    assert page.inner_text("#job-owner .owner") == "admin"
+    assert page.inner_text("#param-owner") == "admin"
+    for action in ("pause", "resume", "cancel", "retry", "requeue", "set", "delete"):
+        assert page.is_disabled(f"button[data-action='{action}']"), action
+    assert page.is_disabled("#priority")
+    assert "viewer" in page.inner_text("#read-only-note")
+    assert "viewer" in page.get_attribute("button[data-action='delete']", "title")
+    shot(page, "19-viewer-job")
+    page.goto(f"{page.base}/#/submit")
+    page.wait_for_selector("#f-method option", state="attached")
+    assert page.is_disabled("#submit-button") and page.is_disabled("#upload-button")
+    assert "viewer" in page.inner_text("#read-only-note")
+    shot(page, "20-viewer-submit")
+
+    page.click("#logout")
+    log_in_on_the_form(page, tokens["arti"])
+    page.wait_for_url("**/#/jobs")
+    page.wait_for_selector(f"tr[data-job='{arti_job['id']}']")
+    assert page.inner_text("#view h1") == "Your jobs"
+    owners = page.eval_on_selector_all("#jobs-table td.owner", "els => els.map((e) => e.textContent)")
+    assert set(owners) == {"arti"}
+    assert page.is_enabled("#new-job")
+    page.goto(f"{page.base}/#/jobs/{arti_job['id']}")
+    page.wait_for_selector("#view .page-head .badge[data-state='done']")
+    assert page.is_enabled("button[data-action='requeue']") and page.is_enabled("button[data-action='delete']")
+    assert not page.is_visible("#read-only-note")
+    shot(page, "21-artist-job")

@@ -254,7 +254,7 @@ def test08_solutions_are_cached_in_memory_and_on_disk(cache_dir):
     first, films = render(scene, **kw)
     assert films[0].stats["cached"] == "no" and films[0].stats["rays"] > 0
     files = list((cache_dir / "radiosity").iterdir())
-    assert len(files) == 1 and files[0].suffix == ".npy"  # no .part left behind
+    assert len(files) == 1 and files[0].suffix == ".entry"  # no temporary file left behind
     second, films2 = render(scene, **kw)
     assert films2[0].stats["cached"] == "memory" and films2[0].stats["rays"] == 0
     R.clear_cache()

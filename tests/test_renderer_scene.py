@@ -116,3 +116,129 @@ def test07_mesh_from_obj_file_and_transform_ops(tmp_path):
     path.write_text(json.dumps(doc))
     with pytest.raises(SceneError, match="inside the scene's directory"):
         load_scene(path)
+
+
+def _with(*shapes, emitters=()) -> dict:
+    """MINIMAL plus `shapes` (shapes[1], ...) and point `emitters`."""
+    doc = json.loads(json.dumps(MINIMAL))
+    doc["shapes"].extend(shapes)
+    doc["emitters"] = list(emitters)
+    return doc
+
+
+LIGHT = {"type": "area", "radiance": [1, 1, 1]}
+BIG = 1e7  # beyond MAX_COORDINATE = 1e6
+
+
+@pytest.mark.parametrize("doc, location, words", [
+    (_with({"type": "rectangle", "material": "m", "emitter": {"type": "area", "radiance": [1e300, 1, 1]}}),
+     "shapes[1].emitter.radiance[0]", "<= 1000000"),
+    (_with(emitters=[{"type": "point", "position": [0, 1, 0], "intensity": [1, 2e6, 1]}]),
+     "emitters[0].intensity[1]", "<= 1000000"),
+    (_with(emitters=[{"type": "point", "position": [0, -BIG, 0], "intensity": 1}]),
+     "emitters[0].position[1]", ">= -1000000"),
+    (_with({"type": "mesh", "material": "m", "vertices": [[0, 0, 0], [BIG, 0, 0], [0, 1, 0]],
+            "faces": [[0, 1, 2]]}), "shapes[1].vertices", "vertex 1"),
+    (_with({"type": "sphere", "material": "m", "center": [BIG, 0, 0]}), "shapes[1].center[0]", "<="),
+    (_with({"type": "sphere", "material": "m", "radius": BIG}), "shapes[1].radius", "<="),
+    (_with({"type": "rectangle", "material": "m", "to_world": [{"translate": [0, 0, 1e300]}]}),
+     "shapes[1].to_world[0].translate[2]", "<="),
+    (_with({"type": "rectangle", "material": "m", "to_world": [{"scale": [1, BIG, 1]}]}),
+     "shapes[1].to_world[0].scale[1]", "<="),
+    (_with({"type": "rectangle", "material": "m",
+            "to_world": [{"rotate": {"axis": [0, 1, 0], "angle": 1e300}}]}),
+     "shapes[1].to_world[0].rotate.angle", "<="),
+    (_with({"type": "rectangle", "material": "m",
+            "to_world": [[1, 0, 0, BIG], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}),
+     "shapes[1].to_world[0][3]", "<="),
+    (_with({"type": "rectangle", "material": "m",
+            "to_world": [{"scale": [1e6, 1e6, 1e6]}, {"scale": [10, 10, 10]}]}),
+     "shapes[1].to_world", "composed matrix"),
+    (_with({"type": "mesh", "material": "m", "vertices": [[0, 0, 0], [1, 0, float("nan")], [0, 1, 0]],
+            "faces": [[0, 1, 2]]}), "shapes[1].vertices", "finite"),
+    ({**MINIMAL, "camera": {**MINIMAL["camera"], "origin": [0, 0, BIG]}}, "camera.origin[2]", "<="),
+])
+def test08_scene_numbers_are_finite_and_bounded(doc, location, words):
+    with pytest.raises(SceneError) as err:
+        resolve_document(doc)
+    assert (err.value.location, words in err.value.message) == (location, True), err.value
+
+
+@pytest.mark.parametrize("shape, location, words", [
+    # each number is in bounds; the transform carries the points out of them
+    ({"type": "mesh", "material": "m", "vertices": [[0, 0, 0], [1e6, 0, 0], [0, 1, 0]],
+      "faces": [[0, 1, 2]], "to_world": [{"scale": [10, 10, 10]}]}, "shapes[1].vertices",
+     "vertex 1 lies at [10000000.0, 0.0, 0.0] after to_world"),
+    ({"type": "cube", "material": "m", "to_world": [{"translate": [1e6, 0, 0]}]},
+     "shapes[1].to_world", "after to_world"),
+    ({"type": "sphere", "material": "m", "center": [1e6, 0, 0], "to_world": [{"translate": [1, 0, 0]}]},
+     "shapes[1].to_world", "the centre lies at"),
+    ({"type": "sphere", "material": "m", "radius": 1e6, "to_world": [{"scale": [2, 2, 2]}]},
+     "shapes[1].to_world", "the radius is 2e+06"),
+])
+def test09_points_are_bounded_again_after_to_world(shape, location, words):
+    with pytest.raises(SceneError) as err:
+        resolve_document(_with(shape))
+    assert (err.value.location, words in err.value.message) == (location, True), err.value
+
+
+def _mesh(vertices, faces=((0, 1, 2),)) -> dict:
+    return {"type": "mesh", "material": "m", "vertices": vertices, "faces": [list(f) for f in faces]}
+
+
+@pytest.mark.parametrize("shape, location", [
+    (_mesh([[0, 1, 0], [1, 1, 0], [2, 1, 0]]), "shapes[1].faces[0]"),                  # collinear
+    (_mesh([[0, 1, 0], [0, 1, 0], [0, 1, 0]]), "shapes[1].faces[0]"),                  # one point
+    (_mesh([[0, 1, 0], [1, 1, 0], [2, 1, 1e-200]]), "shapes[1].faces[0]"),             # a sliver
+    (_mesh([[0, 1, 0], [1, 1, 0], [0, 1, 1], [0, 1, 2]], [(0, 1, 2), (0, 2, 3)]),      # face 1 only
+     "shapes[1].faces[1]"),
+    (_mesh([[0, 0, 0], [1e-7, 0, 0], [0, 1e-7, 0]]), "shapes[1].faces[0]"),            # area 5e-15
+    # a primitive whose triangles the transform flattens (det 1e-6: not singular)
+    ({"type": "rectangle", "material": "m", "to_world": [{"scale": [1e-12, 1e6, 1]}]},
+     "shapes[1].to_world"),
+    ({"type": "disk", "material": "m", "to_world": [{"scale": [1e-7, 1e-7, 1e6]}]}, "shapes[1].to_world"),
+    ({"type": "sphere", "material": "m", "radius": 1e-200}, "shapes[1].radius"),
+])
+def test10_emitters_need_an_area_other_shapes_do_not(shape, location):
+    """A light without area crashed every method's render process (SIGSEGV:
+    light sampling picks a triangle among none): refused, naming the face."""
+    resolve_document(_with(shape))  # emitting nothing, a degenerate shape is merely never hit
+    with pytest.raises(SceneError) as err:
+        resolve_document(_with({**shape, "emitter": LIGHT}))
+    assert err.value.location == location, err.value
+    assert "area" in err.value.message
+
+
+def test11_only_format_version_1_is_read():
+    assert resolve_document(MINIMAL)["format"] == "rayfarm-scene/1"  # absent: the current one
+    assert resolve_document({**MINIMAL, "format": "rayfarm-scene/1"})["format"] == "rayfarm-scene/1"
+    for version in ("rayfarm-scene/99", "rayfarm-scene/2", 1, None):
+        with pytest.raises(SceneError) as err:
+            resolve_document({**MINIMAL, "format": version})
+        assert err.value.location == "format" and "rayfarm-scene/1" in err.value.message
+
+
+@pytest.mark.parametrize("value", ["yes", "false", 1, 0, None])
+def test12_flip_normals_is_true_or_false(value):
+    for flag in (True, False):
+        assert resolve_document(_with({"type": "rectangle", "material": "m",
+                                       "flip_normals": flag}))["shapes"][1]["flip_normals"] is flag
+    with pytest.raises(SceneError) as err:
+        resolve_document(_with({"type": "rectangle", "material": "m", "flip_normals": value}))
+    assert err.value.location == "shapes[1].flip_normals" and "true or false" in err.value.message
+
+
+def test13_documents_nested_too_deep_are_refused_before_anything_recurses(tmp_path):
+    deep = [[0]]
+    for _ in range(2000):  # deeper than Python's stack: copying or printing it would fail
+        deep = [deep]
+    for doc in (dict(MINIMAL, name=deep), dict(MINIMAL, shapes=[{"type": "mesh", "vertices": deep}])):
+        with pytest.raises(SceneError, match="more than 16 levels deep"):
+            resolve_document(doc)
+    path = tmp_path / "deep.json"
+    path.write_text(json.dumps(dict(MINIMAL, name=[[[[[[[[[[[[[[[[[0]]]]]]]]]]]]]]]]])))
+    with pytest.raises(SceneError, match="deep.json nests lists and objects more than 16"):
+        resolve_document(path)
+    path.write_text('{"name": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    with pytest.raises(SceneError, match="deep.json is nested too deeply"):
+        resolve_document(path)

@@ -8,7 +8,7 @@ import pytest
 
 from service.cli import main
 
-from conftest import rayfarm_command
+from conftest import ADMIN_HEADERS, rayfarm_command
 
 
 def test01_console_script_lists_the_subcommands():
@@ -60,7 +60,7 @@ def test05_serve_in_embedded_mode_renders_over_http(embedded_serve, tmp_path, re
     from conftest import TINY, assert_bit_identical, channels_of, poll_job
 
     serve, base = embedded_serve
-    with httpx.Client(base_url=base, timeout=30) as client:
+    with httpx.Client(base_url=base, timeout=30, headers=ADMIN_HEADERS) as client:
         assert client.get("/healthz").json()["executor"] == "local"
         job_id = client.post("/jobs", json=TINY).json()["id"]
         job = poll_job(lambda path: client.get(path).json(), job_id)
@@ -68,3 +68,36 @@ def test05_serve_in_embedded_mode_renders_over_http(embedded_serve, tmp_path, re
         (tmp_path / "out.exr").write_bytes(client.get(job["result_url"]).content)
     assert "Traceback" not in serve.log(), serve.log()
     assert_bit_identical(channels_of(tmp_path / "out.exr"), reference_channels(TINY))
+
+
+def test06_serve_prints_a_login_url_that_logs_a_browser_in(tmp_path):
+    """A first start with no RAYFARM_ADMIN_TOKEN: `rayfarm serve` makes the admin,
+    prints the login URL (Jupyter's way) and the URL's token works."""
+    import os
+    import re
+
+    import httpx
+
+    from conftest import Child, free_port, wait_healthy
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
+    env.update(RAYFARM_DATA_DIR=str(tmp_path / "data"), RAYFARM_LOCAL_WORKERS="1",
+               PYTHONUNBUFFERED="1")
+    port = free_port()
+    child = Child([*rayfarm_command(), "serve", "--port", str(port)], env, tmp_path / "serve.log")
+    try:
+        base = f"http://127.0.0.1:{port}"
+        wait_healthy(child, base)
+        url = re.search(r"http://127\.0\.0\.1:\d+/\?token=(rf_[\w-]+)", child.log())
+        assert url, child.log()
+        token = url.group(1)
+        assert (tmp_path / "data" / "admin.token").read_text().strip() == token
+        with httpx.Client(base_url=base, timeout=30) as browser:
+            assert browser.get("/jobs").status_code == 401
+            login = browser.get(f"/?token={token}", follow_redirects=False)
+            assert login.status_code == 303 and login.headers["location"] == "/"
+            assert browser.get("/auth/me").json()["user"] == "admin"  # by the cookie now
+        assert "token=..." in child.log()  # the access log line of the login, redacted
+        assert child.log().count(token) == 1  # in the printed URL only
+    finally:
+        child.stop()

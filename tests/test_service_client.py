@@ -23,8 +23,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from conftest import (ROOT, TINY, assert_bit_identical, channels_of, free_port,
-                      rayfarm_command, wait_for)
+from conftest import (ADMIN_HEADERS, ROOT, TEST_ADMIN_TOKEN, TINY, assert_bit_identical,
+                      channels_of, free_port, rayfarm_command, wait_for)
 from service.client import (Conflict, Invalid, NotFound, RayfarmClient, ServerSentEvent,
                             ServerUnavailable, parse_sse)
 
@@ -37,6 +37,7 @@ def cli(*args: str, server: str | None, env: dict | None = None, timeout: float 
         cwd: Path = ROOT) -> subprocess.CompletedProcess:
     """Run the `rayfarm` console script with `--server` (unless None)."""
     base_env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
+    base_env["RAYFARM_TOKEN"] = TEST_ADMIN_TOKEN
     command = [*rayfarm_command(), *args] + (["--server", server] if server else [])
     return subprocess.run(command, capture_output=True, text=True, timeout=timeout, cwd=cwd,
                           env={**base_env, **(env or {})})
@@ -322,7 +323,7 @@ def test12_events_yield_job_units_unit_preview_end_in_order(client):
     assert {u["index"] for u in unit_events if u["state"] == "done"} == set(range(48))
     final_preview = [data for kind, data in rest if kind == "preview"][-1]
     assert final_preview["units"] == 48
-    assert httpx.get(client.base_url + final_preview["url"]).headers["content-type"] == "image/png"
+    assert httpx.get(client.base_url + final_preview["url"], headers=ADMIN_HEADERS).headers["content-type"] == "image/png"
 
 
 def test13_events_reconnect_once_after_a_dropped_connection(server, client):
@@ -424,7 +425,7 @@ def scene_file_body(path: Path) -> dict:
 
 
 def takes_uploads(farm: RayfarmClient) -> bool:
-    paths = httpx.get(f"{farm.base_url}/openapi.json", timeout=30).json()["paths"]
+    paths = httpx.get(f"{farm.base_url}/openapi.json", timeout=30, headers=ADMIN_HEADERS).json()["paths"]
     return "post" in paths.get("/scenes", {})
 
 
@@ -481,3 +482,25 @@ def test19_client_commands_load_neither_the_renderer_nor_the_server(server):
                          cwd=ROOT, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.splitlines()[-1] == "[]", out.stdout
+
+
+def test20_the_token_comes_from_the_flag_the_environment_or_a_token_file(server, tmp_path):
+    from service.client import Unauthorized
+
+    # No token anywhere (and no ./rayfarm-data/admin.token in that directory): 401, said clearly.
+    out = cli("jobs", server=server, env={"RAYFARM_TOKEN": ""}, cwd=tmp_path)
+    assert_clean_failure(out, 1, "token", "RAYFARM_TOKEN")
+    bad = cli("jobs", "--token", "rf_wrong", server=server, cwd=tmp_path)
+    assert_clean_failure(bad, 1, "invalid, expired or revoked token")
+    token_file = tmp_path / "token"
+    token_file.write_text(TEST_ADMIN_TOKEN + "\n")
+    by_file = cli("jobs", server=server, cwd=tmp_path,
+                  env={"RAYFARM_TOKEN": "", "RAYFARM_TOKEN_FILE": str(token_file)})
+    assert by_file.returncode == 0, by_file.stderr
+    data = tmp_path / "rayfarm-data"
+    data.mkdir()
+    (data / "admin.token").write_text(TEST_ADMIN_TOKEN)
+    assert cli("jobs", server=server, cwd=tmp_path, env={"RAYFARM_TOKEN": ""}).returncode == 0
+    with RayfarmClient(server, token="rf_wrong") as farm:
+        with pytest.raises(Unauthorized):
+            farm.jobs()

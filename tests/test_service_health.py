@@ -7,13 +7,13 @@ from fastapi.testclient import TestClient
 from service.main import create_app
 from service.settings import Settings
 
-from conftest import TINY, free_port, wait_for
+from conftest import ADMIN_HEADERS, TINY, free_port, wait_for
 
 
 def test01_unreachable_broker_is_degraded_and_jobs_wait(tmp_path):
     dead_broker = f"redis://127.0.0.1:{free_port()}/0"  # nothing listens there
     settings = Settings(data_dir=tmp_path / "data", broker_url=dead_broker, poll_interval=0.05)
-    with TestClient(create_app(settings)) as client:
+    with TestClient(create_app(settings), headers=ADMIN_HEADERS) as client:
         health = client.get("/healthz")
         assert health.status_code == 200
         assert health.json()["status"] == "degraded"

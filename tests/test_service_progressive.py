@@ -10,6 +10,7 @@ import pytest
 from PIL import Image
 from sqlalchemy import select
 
+from service.access import SYSTEM
 from service import jobs
 from service.farm import Farm
 from service.models import Job, WorkUnit, utcnow
@@ -156,7 +157,7 @@ def settings(tmp_path):
 
 def create(farm: Farm, body: dict) -> str:
     with farm.sessions.begin() as session:
-        return jobs.create_job(session, farm.store, farm.settings, JobCreate(**body), utcnow()).id
+        return jobs.create_job(session, farm.store, farm.settings, SYSTEM, JobCreate(**body), utcnow()).id
 
 
 def rows(farm: Farm, job_id: str) -> tuple[Job, list[WorkUnit]]:
@@ -185,7 +186,7 @@ def test07_higher_priority_jobs_run_first(settings):
         assert all(u.enqueued_at >= last_high for u in low_units if u.enqueued_at)
         # Reprioritized: the low job now goes before an even newer default job.
         with farm.sessions.begin() as session:
-            jobs.set_priority(session, low, 50, utcnow())
+            jobs.set_priority(session, SYSTEM, low, 50, utcnow())
         newer = create(farm, dict(TINY, progressive=False))
         everything = lambda: all(rows(farm, j)[0].status == "done" for j in (low, newer))
         tick_until(farm, everything, "both jobs")
@@ -203,7 +204,7 @@ def test08_retry_runs_the_failed_units_again(settings, reference_channels):
     scene_file.write_text(good)
     with Farm.open(settings) as farm:  # a fresh pool: no cached tampered scene
         with farm.sessions.begin() as session:
-            job = jobs.retry_job(session, job_id, utcnow())
+            job = jobs.retry_job(session, SYSTEM, job_id, utcnow())
             assert job.status == "running" and job.error is None and job.finished is None
         job, units = rows(farm, job_id)
         assert job.status == "running"

@@ -18,7 +18,8 @@ from PIL import Image
 
 from renderer import builtin_scene_names, resolve_document, scene_text
 
-from conftest import TINY, assert_bit_identical, channels_of, get_json, poll_job, submit, wait_for
+from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, get_json, poll_job,
+                      submit, wait_for)
 
 WALL = {"type": "rectangle", "material": "white"}
 ROOM = {
@@ -365,6 +366,7 @@ def test10_delete_forgets_an_upload_but_its_jobs_finish(local_client):
 
 def test11_thumbnail_is_404_until_rendered_and_rendered_once(tmp_path):
     from service import scenes
+    from service.access import SYSTEM
     from service.db import open_ledger
     from service.errors import ResultNotReady
     from service.models import utcnow
@@ -380,17 +382,17 @@ def test11_thumbnail_is_404_until_rendered_and_rendered_once(tmp_path):
             (directory / "part-0").write_bytes(scene_bytes(room("test11")))
             (directory / "part-1").write_text(CUBE_OBJ)
             info, created = scenes.add_upload(
-                sessions, store, scenes.UploadedFile("scene", 0, "room.json", directory / "part-0"),
+                sessions, store, SYSTEM, scenes.UploadedFile("scene", 0, "room.json", directory / "part-0"),
                 [scenes.UploadedFile("files", 0, "cube.obj", directory / "part-1")], directory,
                 utcnow())
         assert created and not directory.exists()
         with sessions() as session:
             with pytest.raises(ResultNotReady, match="no thumbnail yet"):
-                scenes.thumbnail_file(session, store, info.id)
+                scenes.thumbnail_file(session, store, SYSTEM, info.id)
         thumbnails = Thumbnailer(store)  # its thread not started: driven by hand
         assert thumbnails.make([info.id]) == 1 and thumbnails.failed == {}
         with sessions() as session:
-            path = scenes.thumbnail_file(session, store, info.id)
+            path = scenes.thumbnail_file(session, store, SYSTEM, info.id)
         assert path == store.root / "store" / "scenes" / f"{info.id}.png"
         assert Image.open(path).size == (128, 96)
         assert thumbnails.make([info.id]) == 0 and thumbnails.rendered == 1  # once per hash
@@ -421,7 +423,7 @@ def test12_bodies_above_the_limits_are_413_before_they_are_read(spawn_serve):
         while b"\r\n\r\n" not in answer:
             answer += sock.recv(4096)
         assert answer.startswith(b"HTTP/1.1 413"), answer
-    with httpx.Client(base_url=base, timeout=60) as client:
+    with httpx.Client(base_url=base, timeout=60, headers=ADMIN_HEADERS) as client:
         big = client.post("/scenes", files={"scene": ("room.json", b" " * total)})
         assert_413(big, "4096", "RAYFARM_MAX_UPLOAD_BYTES")
         # No Content-Length (chunked): cut off while streaming.

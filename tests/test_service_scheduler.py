@@ -10,6 +10,7 @@ import pytest
 from sqlalchemy import select
 from sqlalchemy.orm.exc import StaleDataError
 
+from service.access import SYSTEM
 from service import jobs, states
 from service.executors import Ticket
 from service.farm import Farm
@@ -49,7 +50,7 @@ def settings(request, tmp_path):
 
 def create(farm: Farm, body: dict) -> str:
     with farm.sessions.begin() as session:
-        return jobs.create_job(session, farm.store, farm.settings, JobCreate(**body), utcnow()).id
+        return jobs.create_job(session, farm.store, farm.settings, SYSTEM, JobCreate(**body), utcnow()).id
 
 
 def job_row(farm: Farm, job_id: str) -> Job:
@@ -145,8 +146,8 @@ def test04_cancel_stops_enqueuing_and_cancels_the_units(settings):
         farm.scheduler.tick()
         before = {u.index: list(u.task_ids) for u in unit_rows(farm, job_id)}
         enqueued = sum(1 for ids in before.values() if ids)
-        assert 0 < enqueued <= farm.executor.capacity() + 2 * settings.local_workers
-        canceled = jobs.cancel_job_retrying(farm.sessions, job_id, utcnow)
+        assert 0 < enqueued <= farm.executor.limit()
+        canceled = jobs.cancel_job_retrying(farm.sessions, SYSTEM, job_id, utcnow)
         assert canceled.status == "canceled"
         for _ in range(5):
             farm.scheduler.tick()
@@ -179,7 +180,7 @@ def test06_a_write_based_on_a_stale_read_fails_instead_of_overwriting(settings):
         session = farm.sessions()
         stale = session.get(Job, job_id)  # e.g. the scheduler, about to mark it done
         assert stale.status == "running"
-        jobs.cancel_job_retrying(farm.sessions, job_id, utcnow)  # the API, meanwhile
+        jobs.cancel_job_retrying(farm.sessions, SYSTEM, job_id, utcnow)  # the API, meanwhile
         states.change_job(stale, "done", utcnow())
         with pytest.raises(StaleDataError):
             session.commit()

@@ -49,6 +49,8 @@ def create_celery_app(settings: Settings) -> Celery:
         broker_connection_retry_on_startup=True,
     )
     app.conf.rayfarm_heartbeat_seconds = settings.worker_heartbeat_seconds
+    # The render processes are forked from here: they inherit the cache directory.
+    settings.configure_renderer()
     from .tasks import register_tasks
 
     register_tasks(app)

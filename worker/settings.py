@@ -12,18 +12,47 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from pydantic import Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from renderer import DEFAULT_MAX_WORK
 
-__all__ = ["Settings"]
+__all__ = ["AdminLimits", "RoleLimits", "Settings"]
+
+
+class RoleLimits(BaseModel):
+    """What one role may ask of the farm (admission control); the defaults are an
+    artist's. Set one field from the environment with a double underscore:
+    ``RAYFARM_LIMITS_ARTIST__MAX_ACTIVE_JOBS=5``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    max_samples_per_job: int = Field(1 << 30, gt=0,
+                                     description="width x height x spp of one job")
+    max_units_per_job: int = Field(16384, gt=0,
+                                   description="work units one job may be planned into")
+    max_active_jobs: int = Field(50, ge=0,
+                                 description="queued, running or paused jobs of one owner")
+    submissions_per_minute: int = Field(60, ge=0, description="POST /jobs per token and minute "
+                                                               "(429 with Retry-After above)")
+    uploads_per_hour: int = Field(120, ge=0, description="POST /scenes per owner and hour")
+
+
+class AdminLimits(RoleLimits):
+    """An admin's limits: the farm's own caps."""
+
+    max_samples_per_job: int = Field(DEFAULT_MAX_WORK, gt=0)
+    max_units_per_job: int = Field(65536, gt=0)
+    max_active_jobs: int = Field(1000, ge=0)
+    submissions_per_minute: int = Field(600, ge=0)
+    uploads_per_hour: int = Field(1000, ge=0)
 
 
 class Settings(BaseSettings):
     """Configuration of a rayfarm deployment (service and workers)."""
 
-    model_config = SettingsConfigDict(env_prefix="RAYFARM_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="RAYFARM_", extra="ignore",
+                                      env_nested_delimiter="__")
 
     broker_url: str = Field(
         "", description="Redis URL of the Celery broker and result backend; "
@@ -52,8 +81,47 @@ class Settings(BaseSettings):
     max_upload_files: int = Field(64, ge=0, description="most mesh files in one POST /scenes")
     max_job_bytes: int = Field(16 * 1024 * 1024, gt=0,
                                description="largest request body of POST /jobs (413 above)")
+    cache_dir: Path | None = Field(
+        None, description="the renderer's on-disk caches (radiosity solutions, in "
+                          "<cache_dir>/radiosity); empty = <data_dir>/cache")
+    cache_max_bytes: int = Field(1 << 30, gt=0,
+                                 description="size cap of each on-disk cache; the least "
+                                             "recently used entries are evicted above it")
+    min_free_bytes: int = Field(256 * 1024 * 1024, ge=0,
+                                description="/healthz reports degraded when the data dir's "
+                                            "file system has less free space than this")
 
-    @field_validator("broker_url", "database_url")
+    # -- accounts and admission (service only) ------------------------------------
+    admin_token: str = Field(
+        "", description="the first admin's token, when the ledger has no admin yet; empty = "
+                        "a random one, printed in the login URL and kept in "
+                        "<data_dir>/admin.token (mode 0600)")
+    session_hours: float = Field(168.0, gt=0, description="lifetime of a dashboard login")
+    cors_origins: list[str] = Field(
+        default_factory=list, description="origins allowed to call the API from a browser "
+                                          "(CORS); empty = none, same origin only")
+    limits_admin: AdminLimits = Field(default_factory=AdminLimits)
+    limits_artist: RoleLimits = Field(default_factory=RoleLimits)
+
+    @field_validator("cache_dir", mode="before")
+    @classmethod
+    def _empty_cache_dir(cls, value):
+        return None if isinstance(value, str) and not value.strip() else value
+
+    @model_validator(mode="after")
+    def _default_cache_dir(self) -> "Settings":
+        if self.cache_dir is None:
+            self.cache_dir = self.data_dir / "cache"
+        return self
+
+    def configure_renderer(self) -> None:
+        """Point the renderer's on-disk caches at `cache_dir` with `cache_max_bytes`
+        (the service and the Celery worker call this at start)."""
+        from renderer import cache
+
+        cache.configure(self.cache_dir, self.cache_max_bytes)
+
+    @field_validator("broker_url", "database_url", "admin_token")
     @classmethod
     def _strip(cls, value: str) -> str:
         return value.strip()

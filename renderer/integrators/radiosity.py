@@ -2,7 +2,7 @@
 
 | option | type | default | meaning |
 |---|---|---|---|
-| `patch_size` | float | 0 (auto) | patch edge length in world units (triangles split into k x k, k = ceil(second-longest edge / patch_size); sphere zones about patch_size on a side); 0 = the scene's bounding-box diagonal / (20 sqrt 3): 0.1 on cornell-box (a box of side 2), 1.6 on veach-mis |
+| `patch_size` | float | 0 (auto) | patch edge length in world units (triangles split into k x k, k = ceil(second-longest edge / patch_size); sphere zones about patch_size on a side); 0 = the scene's bounding-box diagonal / (20 sqrt 3): 0.1 on cornell-box (a box of side 2), 1.6 on veach-mis; a job cutting its scene into more than MAX_PATCHES = 250,000 patches, or patches x rays per patch above MAX_HITS = 2^28, is refused at submission (`check_scene`) |
 | `form_factors` | str | `montecarlo` | how F is estimated, both with visibility: `montecarlo` (area-to-area ray casting) or `hemicube` (point-to-area from each patch's centre, rays through the pixels of a hemicube) |
 | `ff_rays` | int | 512 | Monte Carlo form-factor rays per patch, and light samples per patch (both estimators) |
 | `hemicube_res` | int | 32 | hemicube resolution: res x res top face, 4 res x res/2 sides, so 3 res^2 rays per patch |
@@ -79,17 +79,18 @@ Farm plan: unit 0 (kind "solve", a 0x0 region, 0 samples) meshes, casts the
 form-factor rays and solves; its film carries the solution as the artefact
 `radiosity` (B(k), k = 0..min(K, depth), shape (k + 1, P, 3) float64).
 Solutions are cached by (scene hash, solution options, seed, code version) in-process (LRU) and on disk
-under $RAYFARM_CACHE_DIR/radiosity (default ~/.cache/rayfarm/radiosity),
-written atomically, so a second job on the same scene reuses it. Then the
+in the renderer's "radiosity" cache (renderer/cache.py: `<cache root>/radiosity`, the farm's
+`<data_dir>/cache/radiosity`, size-capped, least recently used evicted, written atomically),
+so a second job on the same scene reuses it. Then the
 ordinary tile plan, every unit needing unit 0.
 """
 
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import math
-import os
 import time
 from collections import OrderedDict, namedtuple
 from dataclasses import replace
@@ -98,6 +99,7 @@ from pathlib import Path
 import numpy as np
 from numba import prange
 
+from ..cache import DiskCache, disk_cache as cache_of
 from ..errors import SpecError
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_inline, kernel_parallel
@@ -111,6 +113,7 @@ from ..kernels.radiosity import DIRECT_ALL, DIRECT_POINT, PATCH_SPHERE, PATCH_TR
 from ..kernels.rng import sample_key
 from ..plan import Unit, plan as tile_plan
 from ..registry import METHODS, SAMPLERS, Method, Option, register_method
+from ..primitives import world_mesh
 from ..scene import camera_array
 from .path import DIMS_PER_BOUNCE, camera_ray, shadow_ray, u1d, u2d, unit_blocks
 
@@ -151,18 +154,30 @@ def _meshed(sc, mat, light) -> bool:
     return sc.mat_type[mat] == MAT_DIFFUSE or light >= 0
 
 
-def patch_count(scene, patch_size: float) -> int:
-    """How many patches `mesh_patches` would make (cheap: no patch is built)."""
+def _patch_total(tri_p: np.ndarray, sph_r: np.ndarray, patch_size: float) -> float:
+    """Patches `mesh_patches` cuts triangles `tri_p` (T, 3, 3), none of them
+    degenerate, and spheres of radii `sph_r` into (`_tri_k`, `_sphere_grid`,
+    vectorized); a float, since a tiny patch_size makes an astronomical count."""
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        edges = np.sort(np.linalg.norm(tri_p[:, [1, 2, 2]] - tri_p[:, [0, 0, 1]], axis=2), axis=1)
+        k = np.maximum(1.0, np.ceil(edges[:, 1] / patch_size - 1e-6))
+        nz = np.maximum(1.0, np.ceil(2 * sph_r / patch_size - 1e-6))
+        nphi = np.maximum(3.0, np.ceil(2 * math.pi * sph_r / patch_size - 1e-6))
+        return float(np.sum(k * k) + np.sum(nz * nphi))
+
+
+def _as_count(total: float) -> int | float:
+    return int(total) if math.isfinite(total) else total
+
+
+def patch_count(scene, patch_size: float) -> int | float:
+    """How many patches `mesh_patches` would make (cheap: no patch is built;
+    inf if it overflows)."""
     sc = scene.arrays
-    n = 0
-    for t in range(len(sc.tri_mat)):
-        if _meshed(sc, sc.tri_mat[t], sc.tri_light[t]) and np.any(sc.tri_n[t]):
-            n += _tri_k(sc.tri_p[t], patch_size) ** 2
-    for s in range(len(sc.sph)):
-        if _meshed(sc, sc.sph_mat[s], sc.sph_light[s]):
-            nz, nphi = _sphere_grid(sc.sph[s, 3], patch_size)
-            n += nz * nphi
-    return n
+    meshed_mat = sc.mat_type == MAT_DIFFUSE
+    tri = (meshed_mat[sc.tri_mat] | (sc.tri_light >= 0)) & np.any(sc.tri_n != 0, axis=1)
+    sph = meshed_mat[sc.sph_mat] | (sc.sph_light >= 0)
+    return _as_count(_patch_total(sc.tri_p[tri], sc.sph[sph, 3], patch_size))
 
 
 def mesh_patches(scene, patch_size: float) -> Patches:
@@ -420,9 +435,9 @@ def _code_version() -> str:
 _VERSION = _code_version()
 
 
-def cache_dir() -> Path:
-    root = os.environ.get("RAYFARM_CACHE_DIR") or "~/.cache/rayfarm"
-    return Path(root).expanduser() / "radiosity"
+def disk_cache() -> DiskCache | None:
+    """Where solutions are kept on disk (None: nowhere); see renderer/cache.py."""
+    return cache_of("radiosity")
 
 
 def solution_key(scene, options: dict, seed: int) -> str:
@@ -443,24 +458,22 @@ def solution(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
     if key in _SOLUTIONS:
         _SOLUTIONS.move_to_end(key)
         return _SOLUTIONS[key], {"cached": "memory", "rays": 0}
-    path = cache_dir() / f"{key}.npy"
+    disk = disk_cache()
     history, stats = None, None
-    try:
-        history = np.load(path, allow_pickle=False)
-        stats = {"cached": "disk", "rays": 0}
-    except (OSError, ValueError):
-        history = None
+    data = disk.get(key) if disk is not None else None
+    if data is not None:
+        try:
+            history = np.load(io.BytesIO(data), allow_pickle=False)
+            stats = {"cached": "disk", "rays": 0}
+        except (OSError, ValueError):
+            history = None
     if history is None:
         history, stats = solve(scene, options, seed)
         stats["cached"] = "no"
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f"{path.name}.{os.getpid()}.part")
-            with open(tmp, "wb") as f:
-                np.save(f, history, allow_pickle=False)
-            tmp.replace(path)  # readers never see a half-written solution
-        except OSError:
-            pass  # a read-only cache directory only costs the reuse
+        if disk is not None:  # a full or read-only cache only costs the reuse
+            buffer = io.BytesIO()
+            np.save(buffer, history, allow_pickle=False)
+            disk.put(key, buffer.getvalue())
     _SOLUTIONS[key] = history
     while len(_SOLUTIONS) > LRU_CAPACITY:
         _SOLUTIONS.popitem(last=False)
@@ -695,7 +708,68 @@ def auto_patch_size(scene) -> float:
     """The default patch size: the bounding-box diagonal / (20 sqrt 3), so a
     scene as large as a cube of side 2 (cornell-box) gets 0.1."""
     bounds = scene.arrays.bvh_nodes[0]
-    return float(np.linalg.norm(bounds[3:] - bounds[:3])) / (20.0 * math.sqrt(3.0))
+    return _patch_size_of_bounds(bounds[:3], bounds[3:])
+
+
+def _patch_size_of_bounds(lo: np.ndarray, hi: np.ndarray) -> float:
+    return float(np.linalg.norm(hi - lo)) / (20.0 * math.sqrt(3.0))
+
+
+def _document_geometry(doc: dict):
+    """What `build_scene` would make of a resolved document, without building
+    it (no BVH, no kernel): the world-space triangles and sphere radii that
+    become patches, and the bounds of every primitive that can be hit."""
+    diffuse = {name for name, m in doc["materials"].items() if m["type"] == "diffuse"}
+    tris, tri_meshed, radii, sph_meshed, lo, hi = [], [], [], [], [], []
+    for shape in doc["shapes"]:
+        meshed = shape["material"] in diffuse or "emitter" in shape
+        m = np.asarray(shape["to_world"], dtype=np.float64)
+        if shape["type"] == "sphere":
+            centre = m[:3, :3] @ np.asarray(shape["center"], dtype=np.float64) + m[:3, 3]
+            radius = shape["radius"] * np.linalg.norm(m[:3, 0])
+            radii.append(radius)
+            sph_meshed.append(meshed)
+            lo.append(centre - radius)
+            hi.append(centre + radius)
+            continue
+        vertices, faces = world_mesh(shape)
+        tri = vertices[faces]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        tri = tri[np.linalg.norm(cross, axis=1) > 0]  # build_scene's degenerate ones are no patches
+        if len(tri):
+            lo.append(tri.min(axis=(0, 1)))
+            hi.append(tri.max(axis=(0, 1)))
+        if meshed:
+            tris.append(tri)
+    tri_p = np.concatenate(tris) if tris else np.zeros((0, 3, 3))
+    sph_r = np.asarray(radii, dtype=np.float64)[np.asarray(sph_meshed, dtype=bool)]
+    bounds = (np.min(lo, axis=0), np.max(hi, axis=0)) if lo else (np.zeros(3), np.zeros(3))
+    return tri_p, sph_r, bounds
+
+
+def check_scene(spec, doc: dict) -> None:
+    """Refuse at submission what the solve unit would refuse later, on the
+    farm: more than MAX_PATCHES patches (the mesh is built in Python: ~15 s
+    at that size) or more than MAX_HITS stored form-factor hits (1 GiB).
+    Measured before this check: patch_size 1e-3 on cornell-box (58 million
+    patches) was accepted and its solve failed with SpecError in every
+    attempt; 5e-324 with OverflowError. The count is the exact one of
+    `mesh_patches`, from the document's world-space triangles."""
+    options = METHODS[spec.method].check_options(spec.options)
+    tri_p, sph_r, (lo, hi) = _document_geometry(doc)
+    patch_size = float(options["patch_size"]) or _patch_size_of_bounds(lo, hi)
+    total = _patch_total(tri_p, sph_r, patch_size) if patch_size > 0 else math.inf
+    if total > MAX_PATCHES:
+        count = f"{total:.3g}" if total >= 1e9 else str(_as_count(total))
+        raise SpecError("options.patch_size",
+                        f"patch_size {patch_size:g} cuts this scene into {count} patches (at "
+                        f"most {MAX_PATCHES}): choose a larger patch_size")
+    hemicube = options["form_factors"] == "hemicube"
+    n_rays = 3 * int(options["hemicube_res"]) ** 2 if hemicube else int(options["ff_rays"])
+    if total * n_rays > MAX_HITS:
+        raise SpecError("options.hemicube_res" if hemicube else "options.ff_rays",
+                        f"{int(total)} patches x {n_rays} rays per patch exceeds {MAX_HITS} "
+                        "stored hits: fewer rays or larger patches")
 
 
 def check_options(spec, scene=None) -> dict:
@@ -779,4 +853,5 @@ register_method(Method(
     family="radiosity",
     plan=plan_radiosity,
     phases=("solve", "tile"),
+    check_scene=check_scene,
 ))

@@ -1,28 +1,50 @@
 """Domain errors -> HTTP, in this one place.
 
+    Unauthorized                         401 {"detail": "..."} + WWW-Authenticate: Bearer
+    Forbidden                            403 {"detail": "..."}
+    RateLimited                          429 {"detail": "..."} + Retry-After
     NotFound (ResultNotReady)            404 {"detail": "..."}
     Conflict (IllegalTransition)         409 {"detail": "..."}
     InvalidRequest, SpecError, SceneError 422 {"detail": [{"loc", "msg", "type"}]}
+    RequestValidationError (FastAPI)     422 {"detail": [{"loc", "msg", "type", "input", ...}]}
     TooLarge                             413 {"detail": "..."}
 
 422 bodies have FastAPI's own validation shape, so clients parse one format;
 `msg` starts with the field's name (for scenes, the location inside it).
+FastAPI's own 422s echo the offending `input`: a NaN or infinity there (Python
+reads them in JSON bodies) is replaced by its repr, since no JSON writer may
+send it back. A JSON body that cannot even be decoded (not UTF-8, nested too
+deeply) is FastAPI's bare 400; here it is the 422 of any other invalid JSON.
+
+`responses(401, 404, ...)` documents these answers on a route (`responses=`
+of FastAPI), so the OpenAPI schema lists every status a route can give.
 """
 
 from __future__ import annotations
 
+import math
 import re
+from typing import Any
 
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel
+from starlette.exceptions import HTTPException
 
 from renderer import SceneError, SpecError
 
-from ..errors import Conflict, InvalidRequest, NotFound, ServiceError, TooLarge
+from ..errors import (Conflict, Forbidden, InvalidRequest, NotFound, RateLimited, ServiceError,
+                      TooLarge, Unauthorized)
 
-__all__ = ["install_error_handlers", "status_of"]
+__all__ = ["install_error_handlers", "status_of", "responses", "Message", "Invalid"]
 
 _STATUS: tuple[tuple[type[Exception], int], ...] = (
+    (Unauthorized, 401),
+    (Forbidden, 403),
+    (RateLimited, 429),
     (NotFound, 404),
     (Conflict, 409),
     (InvalidRequest, 422),
@@ -60,10 +82,119 @@ def _body(exc: Exception) -> dict:
     return {"detail": str(exc)}
 
 
+def _headers(exc: Exception) -> dict[str, str] | None:
+    if isinstance(exc, Unauthorized):
+        return {"WWW-Authenticate": 'Bearer realm="rayfarm"'}
+    if isinstance(exc, RateLimited):
+        return {"Retry-After": str(max(1, math.ceil(exc.retry_after)))}
+    return None
+
+
 async def _handle(request: Request, exc: Exception) -> JSONResponse:
-    return JSONResponse(status_code=status_of(exc), content=_body(exc))
+    return JSONResponse(status_code=status_of(exc), content=_body(exc), headers=_headers(exc))
+
+
+_SOURCES = ("body", "query", "path", "header", "cookie")
+
+
+_ECHO_DEPTH = 8  # levels of an error's echoed input shown; a body may nest far deeper
+
+
+def _json_safe(value: Any, depth: int = 0) -> Any:
+    """`value` with every non-finite float replaced by its repr, and what lies
+    deeper than _ECHO_DEPTH by "..."."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return repr(value)
+    if isinstance(value, (dict, list, tuple)) and depth >= _ECHO_DEPTH:
+        return "..."
+    if isinstance(value, dict):
+        return {key: _json_safe(item, depth + 1) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(item, depth + 1) for item in value]
+    return value
+
+
+def _field_name(loc: list) -> str:
+    """["body", "options", "radius"] -> "options.radius"; ["body", "files", 2] -> "files[2]"."""
+    parts = loc[1:] if loc and loc[0] in _SOURCES and len(loc) > 1 else loc
+    name = ""
+    for part in parts:
+        name += f"[{part}]" if isinstance(part, int) else (f".{part}" if name else str(part))
+    return name
+
+
+def _named(error: dict) -> dict:
+    """A FastAPI validation error whose msg starts with the field's name."""
+    error = dict(error)
+    loc = list(error.get("loc", ()))
+    raw = error.get("input")
+    if error.get("type") == "json_invalid":
+        where = loc[1] if len(loc) > 1 else "?"
+        reason = (error.get("ctx") or {}).get("error", "")
+        error["msg"] = f"body: invalid JSON at character {where}: {reason}".rstrip(": ")
+    else:
+        error["msg"] = f"{_field_name(loc)}: {error.get('msg', '')}"
+        if isinstance(raw, float) and not math.isfinite(raw):
+            error["msg"] += f", got {raw!r}"
+    return jsonable_encoder(_json_safe(error))
+
+
+async def _invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+    return JSONResponse(status_code=422, content={"detail": [_named(e) for e in exc.errors()]})
+
+
+_UNPARSABLE = "There was an error parsing the body"  # FastAPI's words for a body it cannot decode
+
+
+async def _http_error(request: Request, exc: HTTPException) -> Response:
+    cause = exc.__cause__
+    if exc.status_code == 400 and cause is not None and exc.detail == _UNPARSABLE:
+        msg = f"body: invalid JSON ({type(cause).__name__}: {cause})"[:300]
+        return JSONResponse(status_code=422, content={"detail": [
+            {"loc": ["body"], "msg": msg, "type": "json_invalid"}]})
+    return await http_exception_handler(request, exc)
 
 
 def install_error_handlers(app: FastAPI) -> None:
     for cls in (ServiceError, SpecError, SceneError):
         app.add_exception_handler(cls, _handle)
+    app.add_exception_handler(RequestValidationError, _invalid_request)
+    app.add_exception_handler(HTTPException, _http_error)
+
+
+# -- the same answers, as the OpenAPI schema documents them ----------------------------
+
+class Message(BaseModel):
+    """An error that is no field's: `{"detail": "..."}`."""
+
+    detail: str
+
+
+class InvalidField(BaseModel):
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+class Invalid(BaseModel):
+    """An invalid request: FastAPI's validation shape, `msg` naming the field."""
+
+    detail: list[InvalidField]
+
+
+_DOCUMENTED: dict[int, tuple[type[BaseModel], str]] = {
+    401: (Message, "no valid token (Authorization: Bearer, or the dashboard's session cookie)"),
+    403: (Message, "the caller's role may not do this (viewers only read), or a request "
+                   "authenticated by cookie without its CSRF header"),
+    404: (Message, "no such resource, or not the caller's to see"),
+    409: (Message, "the request contradicts the resource's state"),
+    413: (Message, "the request body (or its number of files) is above its limit"),
+    422: (Invalid, "an invalid field: loc and msg name it"),
+    429: (Message, "too many requests for now: Retry-After says when to try again"),
+}
+
+
+def responses(*statuses: int) -> dict[int, dict]:
+    """FastAPI `responses=` documenting these error statuses on a route."""
+    return {status: {"model": _DOCUMENTED[status][0], "description": _DOCUMENTED[status][1]}
+            for status in statuses}

@@ -117,8 +117,9 @@ async def receive_parts(request: Request, directory: Path, fields: Mapping[str, 
         raise InvalidRequest(first, f"send a multipart/form-data body (curl -F {first}=@file); "
                                     f"got Content-Type '{request.headers.get('content-type', '')}'")
     writer = _Writer(directory, fields, too_many or {})
-    parser = MultipartParser(params[b"boundary"], writer.callbacks())
     try:
+        # The parser refuses a boundary it cannot use (longer than 256 bytes) as it is built.
+        parser = MultipartParser(params[b"boundary"], writer.callbacks())
         async for chunk in request.stream():
             if chunk:
                 await run_in_threadpool(parser.write, chunk)

@@ -108,8 +108,15 @@ class Executor(ABC):
         """Stop these tasks if possible; their results will be ignored."""
 
     @abstractmethod
-    def capacity(self) -> int:
-        """How many more units to submit now (the rest wait as `pending`)."""
+    def capacity(self, in_flight: int) -> int:
+        """How many more units to submit now, given `in_flight` units the ledger
+        has queued or running (the rest wait as `pending`).
+
+        Every executor bounds its work in flight to a little more than it can
+        run at once: what waits in an executor's own queue is served first in,
+        first out, past the scheduler's fair share, so a deep queue would let one
+        job hold the farm. The count comes from the ledger, the truth, since an
+        executor's own count forgets a restart."""
 
     def on_progress(self, callback) -> None:
         """Call `callback()` (from any thread) whenever a unit may have finished,

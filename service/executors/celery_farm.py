@@ -9,6 +9,11 @@ new task id (its attempt count unchanged), when
   message itself is gone (e.g. Redis restarted without persistence).
 Results are collected from every task id a unit ever had; the first wins,
 and since units are deterministic a late duplicate changes nothing.
+
+Redis serves a queue first in, first out (per message priority), so the
+executor keeps only a few units per live render process in it (`limit`):
+the scheduler's fair share decides what runs next, not a deep queue filled
+by whichever job came first.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import logging
+import math
 import time
 import uuid
 from datetime import datetime, timedelta, timezone
@@ -23,6 +29,7 @@ from typing import Any, Callable, Sequence
 
 import redis
 
+from renderer import PartialFilm
 from worker.celery_app import create_celery_app
 from worker.keys import QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key
 from worker.presence import read_workers
@@ -54,6 +61,10 @@ def redis_priority(priority: int) -> int:
 
 class CeleryExecutor(Executor):
     name = "celery"
+    # Units in flight per live render process (see `limit`), and in all while no
+    # worker has reported yet.
+    MIN_AHEAD, MAX_AHEAD = 2, 8
+    NO_WORKER_SLOTS = 4
 
     def __init__(self, settings: Settings, load_scene_text: Callable[[str], str]):
         self.app = create_celery_app(settings)
@@ -64,6 +75,9 @@ class CeleryExecutor(Executor):
         self._load_scene_text = load_scene_text
         self._published: dict[str, float] = {}
         self._uncanceled: set[str] = set()  # jobs whose cancel marker we removed
+        self.poll_interval = settings.poll_interval
+        self._unit_seconds = 0.1  # a running mean of render seconds per unit (see limit)
+        self._processes, self._processes_read = 0, -1e9
 
     # -- submitting ------------------------------------------------------------
     def _publish_scene(self, scene_hash: str) -> None:
@@ -140,8 +154,9 @@ class CeleryExecutor(Executor):
                 result = meta.get("result") or {}
                 if "film" not in result:
                     return Observation("failed", error=f"task returned no film: {sorted(result)}")
-                return Observation("done", film=base64.b64decode(result["film"]),
-                                   worker=result.get("worker"))
+                film = base64.b64decode(result["film"])
+                self._note_seconds(film)
+                return Observation("done", film=film, worker=result.get("worker"))
         latest = metas[-1] if metas else None
         status = latest.get("status") if latest else None
         if status == "FAILURE":
@@ -158,6 +173,13 @@ class CeleryExecutor(Executor):
             return None
         return Observation("queued")
 
+    def _note_seconds(self, film: bytes) -> None:
+        try:
+            seconds = float(PartialFilm.stats_from_bytes(film).get("seconds", 0.0))
+        except Exception:  # an unreadable film fails its unit in the scheduler
+            return
+        self._unit_seconds += 0.2 * (seconds - self._unit_seconds)
+
     # -- cleaning up -----------------------------------------------------------
     def release(self, task_ids: Sequence[str]) -> None:
         for task_id in task_ids:
@@ -172,8 +194,35 @@ class CeleryExecutor(Executor):
             self.app.control.revoke(list(task_ids))
         self.release(task_ids)
 
-    def capacity(self) -> int:
-        return 1000  # the broker queues the rest; this only bounds one tick's work
+    def limit(self) -> int:
+        """Units to keep in flight (running, reserved by a worker or waiting in
+        Redis): `ahead` per render process of the live workers, as their presence
+        records say (worker/presence.py), or `NO_WORKER_SLOTS` while none has
+        reported (the first units wait for it in Redis). `ahead` covers one
+        scheduler tick of the mean unit (the service only notices finished units
+        on its ticks), between `MIN_AHEAD` and `MAX_AHEAD`: enough that no process
+        idles between ticks, few enough that the broker's first-in, first-out
+        queue holds little work, and fair share, not the queue, decides what
+        runs next."""
+        processes = self._live_processes()
+        if not processes:
+            return self.NO_WORKER_SLOTS
+        per_tick = math.ceil(self.poll_interval / max(self._unit_seconds, 1e-3)) + 1
+        return min(max(per_tick, self.MIN_AHEAD), self.MAX_AHEAD) * processes
+
+    def capacity(self, in_flight: int) -> int:
+        # A broker that is down raises here: the tick fails and the scheduler
+        # reports it (/healthz `scheduler_error`), as a failed send would.
+        return max(self.limit() - in_flight, 0)
+
+    def _live_processes(self) -> int:
+        """Render processes of the workers that beat recently (read at most once a second)."""
+        now = time.monotonic()
+        if now - self._processes_read >= 1.0:
+            self._processes = sum(w.concurrency for w in self.workers()
+                                  if w.state in ("busy", "idle"))
+            self._processes_read = now
+        return self._processes
 
     def workers(self) -> list[WorkerInfo]:
         """Every worker that reported to this broker (worker/presence.py):

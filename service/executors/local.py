@@ -33,6 +33,7 @@ class LocalExecutor(Executor):
     """A process pool of `settings.local_workers` single-threaded renderers."""
 
     name = "local"
+    MAX_AHEAD = 16  # units in flight per process, at most (see `limit`)
 
     def __init__(self, settings: Settings, load_scene_text: Callable[[str], str]):
         self.processes = settings.local_workers
@@ -154,14 +155,17 @@ class LocalExecutor(Executor):
     def on_progress(self, callback) -> None:
         self._progress = callback
 
-    def capacity(self) -> int:
-        # Enough in flight that every process has its next unit ready when one
-        # finishes: two each for long units, more for short ones (a progressive
-        # job's first passes take a millisecond per unit), up to 16 each so a
-        # higher-priority job or a cancel never waits long behind the queue.
-        ahead = min(max(math.ceil(0.05 / max(self._unit_seconds, 1e-4)), 2), 16)
-        busy = sum(1 for fut in self._futures.values() if not fut.done())
-        return max(ahead * self.processes - busy, 0)
+    def limit(self) -> int:
+        """Units to keep in flight: enough that every process has its next unit
+        ready when one finishes, two each for long units, more for short ones
+        (a progressive job's first passes take a millisecond per unit), up to
+        `MAX_AHEAD` each, so that the pool's queue holds about 50 ms of work and
+        a newcomer, a higher priority or a cancel never waits long behind it."""
+        ahead = min(max(math.ceil(0.05 / max(self._unit_seconds, 1e-4)), 2), self.MAX_AHEAD)
+        return ahead * self.processes
+
+    def capacity(self, in_flight: int) -> int:
+        return max(self.limit() - in_flight, 0)
 
     def health(self) -> dict:
         return {"executor": self.name, "workers": self.processes}

@@ -9,7 +9,8 @@ then carries `unit`, `job` and `preview` events as they are committed (see
 `service.events` for their data) and ends with an `end` event once the job is
 done, failed, canceled or deleted (`?follow=true` keeps it open across a
 requeue). A comment line every `KEEPALIVE` seconds keeps proxies from closing
-an idle stream. Every event has an `id:`; a reconnecting client gets a fresh
+an idle stream; at each one the caller's token is checked again, so a
+revoked token (or a disabled user) loses its streams within that time. Every event has an `id:`; a reconnecting client gets a fresh
 snapshot rather than a replay.
 """
 
@@ -22,12 +23,15 @@ from fastapi import APIRouter
 from fastapi.responses import StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
-from ... import jobs, states
+from ... import auth, jobs, states
 from ...events import JOB_KINDS, Subscription, sse_frame
 from ...farm import Farm
 from ...models import utcnow
 from ...schemas import JobPublic, UnitPublic
+from ...access import Principal
+from ..auth import ActorDep
 from ..deps import FarmDep
+from ..errors import responses
 
 router = APIRouter(tags=["events"])
 
@@ -38,16 +42,26 @@ _SSE_DOC = {200: {"content": {"text/event-stream": {}},
                   "description": "a stream of server-sent events"}}
 
 
-def _job_snapshot(farm: Farm, job_id: str) -> tuple[dict, list[dict]]:
+def _still_valid(farm: Farm, actor: Principal) -> bool:
     with farm.sessions() as session:
-        job = jobs.get_job(session, job_id)  # NotFound -> 404
+        return auth.still_valid(session, actor, utcnow())
+
+
+async def _keepalive(farm: Farm, actor: Principal) -> str | None:
+    """The keep-alive comment, or None when the caller's token stopped being valid."""
+    return ": keep-alive\n\n" if await run_in_threadpool(_still_valid, farm, actor) else None
+
+
+def _job_snapshot(farm: Farm, actor: Principal, job_id: str) -> tuple[dict, list[dict]]:
+    with farm.sessions() as session:
+        job = jobs.get_job(session, actor, job_id)  # NotFound (or not the caller's) -> 404
         units = [UnitPublic.from_unit(u).model_dump(mode="json")
-                 for u in jobs.list_units(session, job_id)]
+                 for u in jobs.list_units(session, actor, job_id)]
         return JobPublic.from_job(job, utcnow()).model_dump(mode="json"), units
 
 
-async def _job_stream(farm: Farm, sub: Subscription, job_id: str, snapshot: tuple,
-                      follow: bool) -> AsyncIterator[str]:
+async def _job_stream(farm: Farm, actor: Principal, sub: Subscription, job_id: str,
+                      snapshot: tuple, follow: bool) -> AsyncIterator[str]:
     try:
         yield f"retry: {RETRY_MS}\n\n"
         while True:
@@ -64,7 +78,10 @@ async def _job_stream(farm: Farm, sub: Subscription, job_id: str, snapshot: tupl
                     sub.overflowed = False
                     break
                 if event is None:
-                    yield ": keep-alive\n\n"
+                    keepalive = await _keepalive(farm, actor)
+                    if keepalive is None:
+                        return
+                    yield keepalive
                     continue
                 yield event.sse()
                 if event.kind == "deleted":
@@ -74,27 +91,31 @@ async def _job_stream(farm: Farm, sub: Subscription, job_id: str, snapshot: tupl
                         and not follow):
                     yield sse_frame("end", {"job_id": job_id, "status": event.data["status"]})
                     return
-            snapshot = await run_in_threadpool(_job_snapshot, farm, job_id)
+            snapshot = await run_in_threadpool(_job_snapshot, farm, actor, job_id)
     finally:
         sub.close()
 
 
-@router.get("/jobs/{job_id}/events", response_class=StreamingResponse, responses=_SSE_DOC)
-async def job_events(job_id: str, farm: FarmDep, follow: bool = False) -> StreamingResponse:
+@router.get("/jobs/{job_id}/events", response_class=StreamingResponse,
+            responses={**_SSE_DOC, **responses(404)})
+async def job_events(job_id: str, farm: FarmDep, actor: ActorDep,
+                     follow: bool = False) -> StreamingResponse:
     """Server-sent events of one job: a snapshot (`job`, `units`), then `unit`,
     `job` and `preview` events as they happen; `end` when the job is final
-    (404 for an unknown job)."""
-    sub = farm.events.subscribe(job_id, asyncio.get_running_loop())  # before the snapshot
+    (404 for an unknown job, or one the caller may not see)."""
+    # Subscribed before the snapshot (no event falls between them); nothing is
+    # sent before the snapshot has shown that the caller may see the job.
+    sub = farm.events.subscribe(job_id, asyncio.get_running_loop())
     try:
-        snapshot = await run_in_threadpool(_job_snapshot, farm, job_id)
+        snapshot = await run_in_threadpool(_job_snapshot, farm, actor, job_id)
     except BaseException:
         sub.close()
         raise
-    return StreamingResponse(_job_stream(farm, sub, job_id, snapshot, follow),
+    return StreamingResponse(_job_stream(farm, actor, sub, job_id, snapshot, follow),
                              media_type="text/event-stream", headers=_HEADERS)
 
 
-async def _all_stream(sub: Subscription) -> AsyncIterator[str]:
+async def _all_stream(farm: Farm, actor: Principal, sub: Subscription) -> AsyncIterator[str]:
     try:
         yield f"retry: {RETRY_MS}\n\n"
         while True:
@@ -103,7 +124,10 @@ async def _all_stream(sub: Subscription) -> AsyncIterator[str]:
                 sub.overflowed = False
                 yield sse_frame("resync", {})  # reload the list: events were dropped
             if event is None:
-                yield ": keep-alive\n\n"
+                keepalive = await _keepalive(farm, actor)
+                if keepalive is None:
+                    return
+                yield keepalive
                 continue
             yield event.sse()
     finally:
@@ -111,9 +135,10 @@ async def _all_stream(sub: Subscription) -> AsyncIterator[str]:
 
 
 @router.get("/events", response_class=StreamingResponse, responses=_SSE_DOC)
-async def all_events(farm: FarmDep) -> StreamingResponse:
-    """Server-sent events of every job: `job` (any status or progress change,
-    new jobs included) and `deleted`; `resync` asks the client to reload the
-    list. Never ends by itself."""
-    sub = farm.events.subscribe(None, asyncio.get_running_loop(), kinds=JOB_KINDS)
-    return StreamingResponse(_all_stream(sub), media_type="text/event-stream", headers=_HEADERS)
+async def all_events(farm: FarmDep, actor: ActorDep) -> StreamingResponse:
+    """Server-sent events of every job the caller may see: `job` (any status or
+    progress change, new jobs included) and `deleted`; `resync` asks the
+    client to reload the list. Never ends by itself."""
+    sub = farm.events.subscribe(None, asyncio.get_running_loop(), kinds=JOB_KINDS,
+                                owner=None if actor.sees_everything else actor.user)
+    return StreamingResponse(_all_stream(farm, actor, sub), media_type="text/event-stream", headers=_HEADERS)

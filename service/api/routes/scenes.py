@@ -7,11 +7,13 @@ from fastapi import APIRouter, Request, Response, status
 from fastapi.responses import FileResponse
 from starlette.concurrency import run_in_threadpool
 
-from ... import scenes
+from ... import admission, scenes
 from ...errors import InvalidRequest
 from ...models import utcnow
 from ...schemas import ScenePublic
+from ..auth import ActorDep
 from ..deps import FarmDep, SessionDep
+from ..errors import responses
 from ..multipart import receive_parts
 
 router = APIRouter(prefix="/scenes", tags=["scenes"])
@@ -32,14 +34,16 @@ def _public(farm, info: scenes.SceneInfo) -> ScenePublic:
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=ScenePublic,
              openapi_extra=_UPLOAD_BODY,
              responses={200: {"model": ScenePublic, "description": "uploaded before: the same id"},
-                        413: {"description": "body or number of files above the limit"}})
-async def upload_scene(request: Request, farm: FarmDep, response: Response) -> ScenePublic:
+                        **responses(403, 409, 413, 422, 429)})
+async def upload_scene(request: Request, farm: FarmDep, actor: ActorDep,
+                       response: Response) -> ScenePublic:
     """Upload a scene file (multipart field `scene`) with the mesh files it
     names (field `files`, repeated). It is validated (422 naming the field, or
     the location in the scene and the line in a file), stored by content hash
     and its thumbnail rendered in the background. 201 with a Location; 200 with
     the existing record for content uploaded before."""
     settings = farm.settings
+    admission.check_upload_rate(farm.limiter, settings, actor)  # 429 past uploads per hour
     with farm.store.upload_dir() as directory:
         parts = await receive_parts(
             request, directory, fields={"scene": 1, "files": settings.max_upload_files},
@@ -53,7 +57,7 @@ async def upload_scene(request: Request, farm: FarmDep, response: Response) -> S
         files = [scenes.UploadedFile("files", i, p.filename or "", p.path)
                  for i, p in enumerate(p for p in parts if p.field == "files")]
         info, created = await run_in_threadpool(scenes.add_upload, farm.sessions, farm.store,
-                                                scene, files, directory, utcnow())
+                                                actor, scene, files, directory, utcnow())
     farm.thumbnails.request(info.scene_hash)  # a no-op if it exists
     if created:
         response.headers["Location"] = f"/scenes/{info.id}"
@@ -63,30 +67,33 @@ async def upload_scene(request: Request, farm: FarmDep, response: Response) -> S
 
 
 @router.get("", response_model=list[ScenePublic])
-def list_scenes(session: SessionDep, farm: FarmDep) -> list[ScenePublic]:
-    """Built-in scenes (id = name), then uploaded ones (id = hash), newest first;
-    a job's `scene` names either by its id (or is an inline scene document)."""
-    return [_public(farm, info) for info in scenes.list_scenes(session)]
+def list_scenes(session: SessionDep, farm: FarmDep, actor: ActorDep) -> list[ScenePublic]:
+    """Built-in scenes (id = name), then the caller's uploads (id = hash; admins
+    and viewers: every upload), newest first; a job's `scene` names either by
+    its id (or is an inline scene document)."""
+    return [_public(farm, info) for info in scenes.list_scenes(session, actor)]
 
 
-@router.get("/{scene_id}", response_model=ScenePublic)
-def get_scene(scene_id: str, session: SessionDep, farm: FarmDep) -> ScenePublic:
+@router.get("/{scene_id}", response_model=ScenePublic, responses=responses(404))
+def get_scene(scene_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> ScenePublic:
     """One scene (404 naming the id)."""
-    return _public(farm, scenes.get_scene(session, scene_id))
+    return _public(farm, scenes.get_scene(session, actor, scene_id))
 
 
 @router.get("/{scene_id}/thumbnail.png", response_class=FileResponse,
-            responses={200: {"content": {"image/png": {}}}, 404: {}})
-def thumbnail(scene_id: str, session: SessionDep, farm: FarmDep) -> FileResponse:
+            responses={200: {"content": {"image/png": {}}}, **responses(404)})
+def thumbnail(scene_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> FileResponse:
     """The scene's thumbnail, at most 128 px on the long side (404 until rendered)."""
-    return FileResponse(scenes.thumbnail_file(session, farm.store, scene_id),
+    return FileResponse(scenes.thumbnail_file(session, farm.store, actor, scene_id),
                         media_type="image/png")
 
 
-@router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT)
-def delete_scene(scene_id: str, session: SessionDep) -> Response:
-    """Forget an uploaded scene (409 for a built-in one). Jobs submitted with it
-    keep running: they carry its hash, and its text stays in the store."""
-    scenes.delete_scene(session, scene_id)
+@router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT,
+               responses=responses(403, 404, 409))
+def delete_scene(scene_id: str, session: SessionDep, actor: ActorDep) -> Response:
+    """Remove the caller's claim on an uploaded scene (409 for a built-in one);
+    others who uploaded the same content keep it. Jobs submitted with it keep
+    running: they carry its hash, and its text stays in the store."""
+    scenes.delete_scene(session, actor, scene_id)
     session.commit()
     return Response(status_code=status.HTTP_204_NO_CONTENT)

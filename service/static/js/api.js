@@ -25,8 +25,28 @@ export class ApiError extends Error {
   }
 }
 
-async function request(method, path, body, isForm = false) {
+// The dashboard logs in with a session cookie; a request that changes
+// something echoes the CSRF cookie in a header (the service's double-submit check).
+function csrfToken() {
+  const match = /(?:^|;\s*)rayfarm_csrf=([^;]*)/.exec(document.cookie);
+  return match ? decodeURIComponent(match[1]) : "";
+}
+
+// The session cookie is HttpOnly (no script reads it); the CSRF cookie comes
+// and goes with it, so its absence means this browser is not logged in.
+export function hasLoginCookie() {
+  return csrfToken() !== "";
+}
+
+// Any 401 means this browser's login is gone (logged out in another tab,
+// expired, revoked): the API says so with this window event, and main.js
+// shows the login page. `anonymous` requests (logging in, asking who we are)
+// handle their 401 themselves.
+export const UNAUTHORIZED = "rayfarm:unauthorized";
+
+async function request(method, path, body, { isForm = false, anonymous = false } = {}) {
   const init = { method, headers: {} };
+  if (method !== "GET") init.headers["x-csrf-token"] = csrfToken();
   if (body !== undefined) {
     if (isForm) init.body = body;
     else {
@@ -40,6 +60,7 @@ async function request(method, path, body, isForm = false) {
   } catch (err) {
     throw new ApiError(0, `the service does not answer (${err.message})`);
   }
+  if (response.status === 401 && !anonymous) window.dispatchEvent(new CustomEvent(UNAUTHORIZED));
   if (response.status === 204) return null;
   const text = await response.text();
   let data = null;
@@ -53,8 +74,21 @@ export const api = {
   post: (path, body) => request("POST", path, body),
   patch: (path, body) => request("PATCH", path, body),
   del: (path) => request("DELETE", path),
-  upload: (path, form) => request("POST", path, form, true),
+  upload: (path, form) => request("POST", path, form, { isForm: true }),
+  // The session (service/api/routes/auth.py): POST /auth/login answers 401 for
+  // a bad token, which is the login form's business, not a lost login.
+  me: () => request("GET", "/auth/me", undefined, { anonymous: true }),
+  login: (token) => request("POST", "/auth/login", { token }, { anonymous: true }),
+  logout: () => request("POST", "/auth/logout"),
 };
+
+// EventSource tells nothing of why a stream failed (a 401 looks like a
+// dropped connection), so a failing stream asks GET /auth/me, one at a time:
+// a 401 there raises UNAUTHORIZED as any API call does.
+let checkingLogin = null;
+function checkLogin() {
+  checkingLogin ??= request("GET", "/auth/me").catch(() => null).finally(() => { checkingLogin = null; });
+}
 
 // A server-sent event stream with named events; `handlers` maps an event name
 // to a function of its parsed data. EventSource reconnects by itself; the
@@ -65,6 +99,9 @@ export function stream(path, handlers, onState) {
     source.addEventListener(name, (event) => handler(JSON.parse(event.data)));
   }
   source.onopen = () => onState && onState("open");
-  source.onerror = () => onState && onState(source.readyState === EventSource.CLOSED ? "closed" : "reconnecting");
+  source.onerror = () => {
+    if (onState) onState(source.readyState === EventSource.CLOSED ? "closed" : "reconnecting");
+    checkLogin();
+  };
   return () => source.close();
 }

@@ -1,14 +1,22 @@
-// The dashboard's entry point: a hash router over four views and a health light.
-//   #/jobs  #/jobs/<id>  #/submit  #/workers
+// The dashboard's entry point: a hash router over its views, the logged-in
+// user in the top bar, and a health light.
+//   #/login  #/jobs  #/jobs/<id>  #/submit  #/workers
+// Every view but the login page needs a login; an API answer 401 anywhere
+// (api.js raises UNAUTHORIZED) brings the login page, which comes back here.
 
-import { h, replace } from "./ui.js";
+import { UNAUTHORIZED, api } from "./api.js";
+import { may, onSessionChange, readOnlyReason, refresh, session, setMe } from "./session.js";
+import { h, replace, toast } from "./ui.js";
 import { jobsView } from "./views/jobs.js";
 import { jobView } from "./views/job.js";
+import { loginView } from "./views/login.js";
 import { submitView } from "./views/submit.js";
 import { workersView } from "./views/workers.js";
 
+const LOGIN = /^#\/login(?:\?(.*))?$/;
 const routes = [
-  [/^#?\/?(jobs)?\/?$/, "jobs", () => jobsView],
+  [LOGIN, "login", (m) => (root) => loginView(root, new URLSearchParams(m[1] || ""))],
+  [/^#?\/?(jobs)?\/?(\?.*)?$/, "jobs", () => jobsView],
   [/^#\/jobs\/([0-9a-f]{6,32})$/, "jobs", (m) => (root) => jobView(root, m[1])],
   [/^#\/submit$/, "submit", () => submitView],
   [/^#\/workers$/, "workers", () => workersView],
@@ -16,8 +24,18 @@ const routes = [
 
 let cleanup = null;
 
+// To the login page, which goes on to `next` afterwards; replaces the history
+// entry, so Back does not bounce off the login page.
+function toLogin(next, extra = "") {
+  location.replace(`#/login?next=${encodeURIComponent(next)}${extra}`);
+}
+
 function route() {
   const hash = location.hash || "#/jobs";
+  if (!session.me && !LOGIN.test(hash)) {
+    toLogin(hash);
+    return;
+  }
   if (cleanup) { cleanup(); cleanup = null; }
   const root = document.getElementById("view");
   for (const [pattern, nav, view] of routes) {
@@ -33,6 +51,46 @@ function route() {
   replace(root, h("div.empty", {}, "No such page. ", h("a", { href: "#/jobs" }, "Back to the jobs.")));
 }
 
+// -- the account in the top bar ---------------------------------------------------
+function renderAccount(me) {
+  document.body.classList.toggle("logged-out", !me);
+  const account = document.getElementById("account");
+  account.hidden = !me;
+  if (!me) { replace(account); return; }
+  const logout = h("button.small#logout", { type: "button", title: "end this browser's login" }, "Log out");
+  logout.addEventListener("click", async () => {
+    logout.disabled = true;
+    try {
+      await api.logout();
+    } catch (err) {
+      if (err.status !== 401) { // a 401: the login was over already
+        toast(`Log out: ${err.message}`, true);
+        logout.disabled = false;
+        return;
+      }
+    }
+    setMe(null);
+    location.hash = "#/login";
+  });
+  const reason = readOnlyReason();
+  replace(account,
+    h("span.who#whoami", { title: reason || `logged in as ${me.user} (${me.role})` },
+      h("span.user#whoami-user", {}, me.user),
+      h(`span.role.role-${me.role}#whoami-role`, {}, me.role)),
+    logout);
+  const submitLink = document.querySelector("[data-nav='submit']");
+  submitLink.classList.toggle("off", !may.submit());
+  submitLink.title = may.submit() ? "" : reason;
+}
+
+window.addEventListener(UNAUTHORIZED, () => {
+  const was = session.me;
+  setMe(null);
+  const hash = location.hash || "#/jobs";
+  if (!LOGIN.test(hash)) toLogin(hash, was ? "&ended=1" : "");
+});
+
+// -- health -------------------------------------------------------------------------
 async function health() {
   const el = document.getElementById("health");
   let report;
@@ -52,7 +110,18 @@ async function health() {
   el.title = JSON.stringify(report, null, 1);
 }
 
-window.addEventListener("hashchange", route);
-route();
+async function start() {
+  onSessionChange(renderAccount);
+  try {
+    await refresh();
+  } catch (err) {
+    setMe(null); // the service does not answer: the login page says so when tried
+    toast(`Could not ask who is logged in: ${err.message}`, true);
+  }
+  window.addEventListener("hashchange", route);
+  route();
+}
+
+start();
 health();
 setInterval(health, 5000);

@@ -3,6 +3,7 @@
 // Live from GET /jobs/{id}/events: job, units (snapshot), unit, preview, end.
 
 import { ApiError, api, stream } from "../api.js";
+import { may, readOnlyReason } from "../session.js";
 import { FINAL, badge, fmt, h, progressBar, replace, toast } from "../ui.js";
 import { elapsedNow, etaNow, progressLabel } from "./jobs.js";
 
@@ -36,6 +37,7 @@ export function jobView(root, jobId) {
   const title = h("h1.mono");
   const status = h("span");
   const summary = h("span.muted");
+  const owner = h("span#job-owner");
   const actions = h("div.actions#job-actions");
   const banner = h("div");
   const stage = h("div.stage#stage");
@@ -57,7 +59,7 @@ export function jobView(root, jobId) {
 
   replace(root,
     h("div.page-head", {},
-      h("a.muted", { href: "#/jobs" }, "← Jobs"), title, status, summary, h("div.spacer"), actions),
+      h("a.muted", { href: "#/jobs" }, "← Jobs"), title, status, owner, summary, h("div.spacer"), actions),
     banner,
     h("div.job-layout", {},
       h("div", { style: { display: "flex", flexDirection: "column", gap: "16px" } },
@@ -115,7 +117,9 @@ export function jobView(root, jobId) {
     }, ".danger"),
   };
   buttons.priority.title = "change the priority (higher runs first)";
-  replace(actions, buttons.pause, buttons.resume, buttons.cancel, buttons.retry, buttons.requeue,
+  // Someone who may not change this job (a viewer) sees the buttons off, and why.
+  const readOnly = h("span.muted.read-only#read-only-note", { hidden: true });
+  replace(actions, readOnly, buttons.pause, buttons.resume, buttons.cancel, buttons.retry, buttons.requeue,
     h("span.muted", { style: { marginLeft: "8px" } }, "priority"), priorityInput, buttons.priority,
     buttons.delete);
 
@@ -131,8 +135,16 @@ export function jobView(root, jobId) {
       priority: s !== null,
       delete: s !== null,
     };
-    for (const [name, on] of Object.entries(enabled)) buttons[name].disabled = !on;
-    priorityInput.disabled = s === null;
+    const mayChange = !job || may.change(job);
+    const reason = mayChange ? "" : readOnlyReason() || "you may not change this job";
+    for (const [name, on] of Object.entries(enabled)) {
+      buttons[name].disabled = !on || !mayChange;
+      if (name !== "priority") buttons[name].title = reason;
+    }
+    buttons.priority.title = reason || "change the priority (higher runs first)";
+    priorityInput.disabled = s === null || !mayChange;
+    readOnly.hidden = mayChange;
+    readOnly.textContent = reason;
     if (job && document.activeElement !== priorityInput) priorityInput.value = job.priority;
   }
 
@@ -303,6 +315,7 @@ export function jobView(root, jobId) {
   function renderParams() {
     const options = Object.entries(job.options || {});
     replace(paramsBox, kv([
+      ["owner", job.owner, "param-owner"],
       ["scene", job.scene],
       ["scene hash", h("span.mono", { title: job.scene_hash }, job.scene_hash.slice(0, 12))],
       ["method", job.method],
@@ -377,6 +390,7 @@ export function jobView(root, jobId) {
     job._received = Date.now();
     replace(title, job.id);
     replace(status, badge(job.status));
+    replace(owner, h("span.muted", {}, "by "), h("span.owner", {}, job.owner));
     replace(summary, `${job.scene} · ${job.method} · ${job.sampler} · ${job.spp} spp · depth ${job.depth}`);
     document.title = `${job.id} · ${job.status} · rayfarm`;
     sizeStage();

@@ -2,6 +2,7 @@
 // It loads GET /jobs once, then follows GET /events (job, deleted, resync).
 
 import { api, stream } from "../api.js";
+import { may, readOnlyReason, session } from "../session.js";
 import { badge, fmt, h, progressBar, replace, toast } from "../ui.js";
 
 const STATUSES = ["all", "queued", "running", "paused", "done", "failed", "canceled"];
@@ -33,14 +34,17 @@ export function jobsView(root) {
   const tabs = h("div.tabs", { role: "tablist", "aria-label": "filter by status" });
   const body = h("tbody");
   const table = h("table.grid#jobs-table", {},
-    h("thead", {}, h("tr", {}, ["Job", "Scene", "Method", "Sampler", "spp", "Depth", "Priority",
+    h("thead", {}, h("tr", {}, ["Job", "Owner", "Scene", "Method", "Sampler", "spp", "Depth", "Priority",
       "Status", "Progress", "Elapsed", "ETA", "Submitted"].map((t, i) =>
-      h(i >= 4 && i <= 6 || i >= 9 && i <= 10 ? "th.num" : "th", {}, t)))),
+      h(i >= 5 && i <= 7 || i >= 10 && i <= 11 ? "th.num" : "th", {}, t)))),
     body);
   const error = h("div");
+  // A viewer cannot submit: the button stays, off, with the reason beside it.
+  const newJob = may.submit() ? h("a.button#new-job", { href: "#/submit" }, "+ New job")
+    : [h("span.muted.read-only#read-only-note", {}, readOnlyReason()),
+      h("button#new-job", { type: "button", disabled: true, title: readOnlyReason() }, "+ New job")];
   replace(root,
-    h("div.page-head", {}, h("h1", {}, "Jobs"), tabs, h("div.spacer"),
-      h("a.button", { href: "#/submit" }, "+ New job")),
+    h("div.page-head", {}, h("h1", {}, session.me.role === "artist" ? "Your jobs" : "Jobs"), tabs, h("div.spacer"), newJob),
     error,
     h("div.panel", {}, table));
 
@@ -56,6 +60,7 @@ export function jobsView(root) {
   function row(job) {
     return h("tr.clickable", { "data-job": job.id, onclick: () => { location.hash = `#/jobs/${job.id}`; } },
       h("td", {}, h("a.mono", { href: `#/jobs/${job.id}` }, job.id)),
+      h("td.owner", {}, job.owner),
       h("td", { title: job.scene_hash }, job.scene),
       h("td", {}, job.method),
       h("td", {}, job.sampler),
@@ -75,8 +80,8 @@ export function jobsView(root) {
       .filter((job) => filter === "all" || job.status === filter)
       .sort((a, b) => (a.created < b.created ? 1 : a.created > b.created ? -1 : 0));
     replace(body, shown.length ? shown.map(row)
-      : h("tr", {}, h("td.empty", { colspan: 12 }, filter === "all"
-        ? h("span", {}, "No jobs yet. ", h("a", { href: "#/submit" }, "Submit one."))
+      : h("tr", {}, h("td.empty", { colspan: 13 }, filter === "all"
+        ? h("span", {}, "No jobs yet. ", may.submit() ? h("a", { href: "#/submit" }, "Submit one.") : null)
         : `No ${filter} jobs.`)));
   }
 

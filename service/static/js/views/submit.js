@@ -3,6 +3,7 @@
 // The service validates; its 422 messages are shown next to their fields.
 
 import { ApiError, api } from "../api.js";
+import { may, readOnlyReason } from "../session.js";
 import { h, replace, toast } from "../ui.js";
 
 const NUMBER_FIELDS = [
@@ -24,7 +25,10 @@ export function submitView(root) {
   let methods = [];
   const form = h("form#submit-form", { novalidate: true });
   const formError = h("div#form-error");
-  replace(root, h("div.page-head", {}, h("h1", {}, "New render job")), formError, form);
+  // A viewer may look at the registries, not submit or upload: it is told so.
+  const readOnly = may.submit() ? null : h("div.notice#read-only-note", {},
+    `${readOnlyReason()}. Submitting and uploading need an artist's or an admin's token.`);
+  replace(root, h("div.page-head", {}, h("h1", {}, "New render job")), readOnly, formError, form);
 
   const field = (name, label, control, hint) => h("div.field", { "data-field": name },
     h("label", { for: `f-${name}` }, label), control, hint ? h("span.hint", {}, hint) : null,
@@ -63,6 +67,12 @@ export function submitView(root) {
         field("progressive", "Passes", h("label.check", {}, progressive,
           "progressive: 1, 1, 2, 4, … spp per pass, the preview sharpens while it runs")))),
       h("div.actions", {}, submit, h("span.muted", {}, "The service checks every field.")))));
+  if (!may.submit()) {
+    for (const control of [submit, uploadButton, upload]) {
+      control.disabled = true;
+      control.title = readOnlyReason();
+    }
+  }
 
   // -- registries --------------------------------------------------------------
   function renderScenes(selected) {
@@ -193,7 +203,7 @@ export function submitView(root) {
       slot.textContent = err.status === 413 ? `too large: ${messages}` : messages;
       slot.closest(".field").classList.add("invalid");
     } finally {
-      uploadButton.disabled = false;
+      uploadButton.disabled = !may.submit();
     }
   });
 
@@ -223,7 +233,7 @@ export function submitView(root) {
       if (err instanceof ApiError && err.status === 422) showErrors(err);
       else replace(formError, h("div.error-box", {}, `Submit failed: ${err.message}`));
     } finally {
-      submit.disabled = false;
+      submit.disabled = !may.submit();
     }
   });
   return () => clearTimeout(thumbTimer);

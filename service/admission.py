@@ -1,0 +1,194 @@
+"""Admission control: what one caller may ask of the farm, checked before a job
+or an upload is accepted. Plain Python, no HTTP; the job and upload use cases
+call it with the caller (`service.access.Principal`), and the error tree maps
+the refusals (`InvalidRequest` 422, `Forbidden` 403, `RateLimited` 429 with
+Retry-After).
+
+    limits = limits_for(settings, actor)            # the role's RoleLimits
+    check_job(settings, actor, spec, units=planned_units(spec, progressive=True),
+              active_jobs=count_active_jobs(session, actor.user))
+    check_submission_rate(limiter, settings, actor) # POST /jobs per token and minute
+    check_upload_rate(limiter, settings, actor)     # POST /scenes per owner and hour
+
+Limits are per role (`Settings.limits_admin`, `Settings.limits_artist`;
+`RAYFARM_LIMITS_ARTIST__MAX_ACTIVE_JOBS=5` sets one); a viewer submits
+nothing. They refuse what the farm cannot serve fairly: a job too big to
+finish (samples), one whose plan would swamp the ledger (units), an owner
+queueing more than its share of jobs, a script submitting in a loop.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from renderer import METHODS, RenderSpec
+from worker.settings import RoleLimits
+
+from . import states
+from .access import Principal, require_submit
+from .errors import InvalidRequest, RateLimited
+from .models import Job
+from .settings import Settings
+
+__all__ = ["limits_for", "check_job", "planned_units", "unit_floor", "admit_job", "count_active_jobs", "RateLimiter",
+           "check_submission_rate", "check_upload_rate", "ACTIVE_JOBS_RETRY_AFTER"]
+
+# Retry-After of a refusal for too many active jobs: a hint, since nobody knows
+# when one of them finishes (or is canceled).
+ACTIVE_JOBS_RETRY_AFTER = 30.0
+
+
+def limits_for(settings: Settings, actor: Principal) -> RoleLimits:
+    """The limits of the actor's role; a viewer may submit nothing (`Forbidden`)."""
+    require_submit(actor)
+    return settings.limits_admin if actor.is_admin else settings.limits_artist
+
+
+def _setting(actor: Principal, field: str) -> str:
+    """The environment variable that sets `field` of the actor's role."""
+    return f"RAYFARM_LIMITS_{actor.role.upper()}__{field.upper()}"
+
+
+def unit_floor(spec: RenderSpec, progressive: bool) -> int:
+    """A lower bound of the job's planned units, computed without planning:
+    tiles x passes for tile, BDPT and radiosity plans (exact for tile plans),
+    an iteration's photon unit for SPPM. A request for millions of units is
+    refused on this, before `planned_units` would build them (seconds of CPU)."""
+    from renderer.plan import sample_passes
+
+    method = METHODS[spec.method]
+    tiles = math.ceil(spec.width / spec.tile_size) * math.ceil(spec.height / spec.tile_size)
+    if method.family in ("tile", "radiosity") or method.name == "bdpt":  # tiles x passes
+        return tiles * len(sample_passes(spec.spp, progressive))
+    if method.family == "photons":
+        return spec.spp
+    return 1  # light tracing and MLT: a few dozen units whatever the job
+
+
+def planned_units(spec: RenderSpec, progressive: bool) -> int:
+    """How many work units the job would be planned into (the planner is pure,
+    so this is exact, also for DAG methods). Check `unit_floor` first."""
+    return len(METHODS[spec.method].make_plan(spec, progressive))
+
+
+def check_job(settings: Settings, actor: Principal, spec: RenderSpec, units: int,
+              active_jobs: int) -> None:
+    """Refuse a job the actor's role may not submit: too many samples
+    (`InvalidRequest` on `spp`), too many units (on `tile_size`), or too many
+    of the owner's jobs already queued, running or paused (`RateLimited`).
+
+    `units` is the job's planned units (`planned_units`), `active_jobs` the
+    owner's (`count_active_jobs`)."""
+    limits = limits_for(settings, actor)
+    pixels = spec.width * spec.height
+    samples = pixels * spec.spp
+    if samples > limits.max_samples_per_job:
+        most = max(limits.max_samples_per_job // pixels, 0)
+        raise InvalidRequest("spp", f"{spec.width}x{spec.height} pixels x {spec.spp} spp = "
+                                    f"{samples} samples exceed the {actor.role} limit of "
+                                    f"{limits.max_samples_per_job} samples per job "
+                                    f"({_setting(actor, 'max_samples_per_job')}); "
+                                    f"use spp <= {most} at this size")
+    if units > limits.max_units_per_job:
+        raise InvalidRequest("tile_size", f"the job plans {units} work units, above the "
+                                          f"{actor.role} limit of {limits.max_units_per_job} "
+                                          f"({_setting(actor, 'max_units_per_job')}); use a "
+                                          "larger tile_size, fewer spp or progressive=false")
+    if active_jobs >= limits.max_active_jobs:
+        raise RateLimited(f"user '{actor.user}' has {active_jobs} jobs queued, running or "
+                          f"paused; the {actor.role} limit is {limits.max_active_jobs} "
+                          f"({_setting(actor, 'max_active_jobs')}): wait for one to finish "
+                          "or cancel one", retry_after=ACTIVE_JOBS_RETRY_AFTER)
+
+
+def admit_job(session: Session, settings: Settings, actor: Principal, spec: RenderSpec,
+              progressive: bool) -> int:
+    """Every admission check of a job, cheapest first; returns its planned units."""
+    check_job(settings, actor, spec, units=unit_floor(spec, progressive), active_jobs=0)
+    units = planned_units(spec, progressive)
+    check_job(settings, actor, spec, units=units,
+              active_jobs=count_active_jobs(session, actor.user))
+    return units
+
+
+def count_active_jobs(session: Session, owner: str) -> int:
+    """The owner's jobs that hold a place in the farm: queued, running or paused."""
+    return session.scalar(select(func.count()).select_from(Job).where(
+        Job.owner == owner, Job.status.in_(states.SCHEDULED_JOB))) or 0
+
+
+class RateLimiter:
+    """At most `limit` hits per key within any `window_seconds` (a sliding
+    window of the hits' times), in this process, thread-safe.
+
+        limiter = RateLimiter()
+        limiter.hit("submit:3f9c0a1b", limit=60, window_seconds=60)  # or RateLimited
+
+    The windows live in this process's memory: with several service replicas,
+    each enforces its own window, so a client spread over N replicas may make
+    up to N x `limit` requests per window (and a restart forgets the hits).
+    Refused hits are not recorded: a client retrying too early does not push
+    its own retry further away.
+    """
+
+    MAX_KEYS = 10000  # beyond this, keys whose hits all left their window are dropped
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._hits: dict[str, tuple[float, deque[float]]] = {}  # key -> (window, hit times)
+
+    def hit(self, key: str, limit: int, window_seconds: float, now: float | None = None) -> None:
+        """Record one hit of `key` at `now` (default: `time.monotonic()`), or
+        raise `RateLimited` with the seconds until the oldest hit leaves the
+        window, when `limit` hits are in it already. A limit of 0 refuses all."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            _, hits = self._hits.get(key, (window_seconds, None))
+            hits = hits if hits is not None else deque()
+            while hits and hits[0] <= now - window_seconds:
+                hits.popleft()
+            if len(hits) >= limit:
+                retry_after = hits[0] + window_seconds - now if hits else window_seconds
+                self._hits[key] = (window_seconds, hits)
+                raise RateLimited(f"more than {limit} requests in {_span(window_seconds)}; "
+                                  f"retry in {math.ceil(retry_after)} s",
+                                  retry_after=retry_after)
+            hits.append(now)
+            self._hits[key] = (window_seconds, hits)
+            if len(self._hits) > self.MAX_KEYS:
+                self._sweep(now)
+
+    def _sweep(self, now: float) -> None:
+        for key in [k for k, (window, hits) in self._hits.items()
+                    if not hits or hits[-1] <= now - window]:
+            del self._hits[key]
+
+
+def _span(seconds: float) -> str:
+    if seconds == 60:
+        return "a minute"
+    if seconds == 3600:
+        return "an hour"
+    return f"{seconds:g} s"
+
+
+def check_submission_rate(limiter: RateLimiter, settings: Settings, actor: Principal,
+                          now: float | None = None) -> None:
+    """One job submission by the actor's token (per token: a script and its
+    owner's dashboard count apart), at most `submissions_per_minute`."""
+    limits = limits_for(settings, actor)
+    key = f"submit:{actor.token_id or 'user:' + actor.user}"
+    limiter.hit(key, limits.submissions_per_minute, 60.0, now)
+
+
+def check_upload_rate(limiter: RateLimiter, settings: Settings, actor: Principal,
+                      now: float | None = None) -> None:
+    """One scene upload by the actor (per owner), at most `uploads_per_hour`."""
+    limits = limits_for(settings, actor)
+    limiter.hit(f"upload:{actor.user}", limits.uploads_per_hour, 3600.0, now)

@@ -1,0 +1,134 @@
+"""The running previews of jobs in flight: each landed unit's film is added
+to an in-memory `renderer.Film` per job (`Film.add`: the one definition of
+"merging is addition"), and the job's `preview.png` and `noise.png` are
+written from it at most every `PREVIEW_INTERVAL` seconds (the first unit's
+at once), each write announced as a `preview` event.
+
+    previews = RunningPreviews(store, hub, done_units=lambda job_id: [...])
+    units = previews.refresh(job_id, width, height, landed)   # written: units in it
+    if units is not None: previews.publish(job_id, units)
+
+Frames are float32 and kept up to `PREVIEW_BYTES` in all (jobs interleave,
+so every running job's frame is in use); beyond that the one cheapest to
+rebuild goes. A frame missing after a restart or an eviction is rebuilt from
+the stored films of the done units, at most once per `PREVIEW_INTERVAL` per
+job (a rebuild reads every done unit). The order of addition does not matter
+for a preview; the final EXR is merged from the stored films in unit order
+(`service.results`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from typing import Callable, Iterable
+
+import numpy as np
+
+from renderer import Film, PartialFilm
+
+from .events import EventHub
+from .store import Store
+
+__all__ = ["RunningPreviews", "PREVIEW_INTERVAL", "PREVIEW_BYTES"]
+
+PREVIEW_INTERVAL = 1.0  # seconds between two writes of a job's running preview
+PREVIEW_BYTES = 256 << 20  # running previews kept in memory (float32: 28 bytes per pixel)
+
+
+class _Frame:
+    """A job's running preview: a float32 Film, the units in it, when it was written."""
+
+    def __init__(self, width: int, height: int):
+        self.film = Film(0, 0, np.zeros((height, width, 3), np.float32),
+                         np.zeros((height, width, 3), np.float32),
+                         np.zeros((height, width), np.float32))
+        self.added: set[int] = set()
+        self.written = -1e9  # time.monotonic() of the last PNG
+        self.dirty = False
+
+    @property
+    def nbytes(self) -> int:
+        f = self.film
+        return sum(a.nbytes for a in (f.sum, f.sum_sq, f.weight, f.splat, f.splat_sq)
+                   if a is not None)
+
+    def add(self, index: int, part: PartialFilm) -> None:
+        if index not in self.added:
+            self.film.add(part)
+            self.added.add(index)
+            self.dirty = True
+
+
+class RunningPreviews:
+    """The previews of the jobs in flight (module doc); one thread (the scheduler's)."""
+
+    def __init__(self, store: Store, hub: EventHub,
+                 done_units: Callable[[str], Iterable[int]]):
+        self.store, self.events, self._done_units = store, hub, done_units
+        self._versions = itertools.count(1)
+        self._frames: dict[str, _Frame] = {}  # least recently used first
+        self._rebuilt: dict[str, float] = {}  # job -> time.monotonic() of its last rebuild
+
+    def dirty(self, job_id: str) -> bool:
+        """Has the job's frame units not yet written (a throttled preview)?"""
+        frame = self._frames.get(job_id)
+        return frame is not None and frame.dirty
+
+    def keep_only(self, job_ids) -> None:
+        """Forget the frames of jobs no longer scheduled."""
+        for job_id in [j for j in self._frames if j not in job_ids]:
+            del self._frames[job_id]
+        for job_id in [j for j in self._rebuilt if j not in job_ids]:
+            del self._rebuilt[job_id]
+
+    def drop(self, job_id: str) -> None:
+        self._frames.pop(job_id, None)
+
+    def refresh(self, job_id: str, width: int, height: int,
+                landed: list[tuple[int, PartialFilm]]) -> int | None:
+        """Add the units that just landed (committed as done) to the job's frame
+        and write its PNGs if it changed and the last write is old enough;
+        returns the number of units in what was written, or None."""
+        frame = self._frames.pop(job_id, None)
+        if frame is None:
+            if not landed:
+                return None
+            now = time.monotonic()
+            if now - self._rebuilt.get(job_id, -1e9) < PREVIEW_INTERVAL:
+                return None  # rebuilt a moment ago: what landed since joins the next rebuild
+            self._rebuilt[job_id] = now
+            frame = _Frame(width, height)
+            fresh = {index for index, _ in landed}
+            for index in self._done_units(job_id):  # after a restart or an eviction
+                if index not in fresh:
+                    frame.add(index, PartialFilm.from_bytes(self.store.unit_film(job_id, index)))
+        for index, film in landed:
+            frame.add(index, film)
+        self._frames[job_id] = frame  # most recently used last
+        self._evict(keep=job_id)
+        if not frame.dirty or time.monotonic() - frame.written < PREVIEW_INTERVAL:
+            return None
+        self.store.preview_path(job_id).parent.mkdir(parents=True, exist_ok=True)
+        frame.film.write_png(self.store.preview_path(job_id))
+        frame.film.write_noise_png(self.store.noise_path(job_id))
+        frame.written, frame.dirty = time.monotonic(), False
+        return len(frame.added)
+
+    def _evict(self, keep: str) -> None:
+        """Drop frames beyond `PREVIEW_BYTES`, those with the fewest units added
+        first (the cheapest to rebuild), never `keep`'s."""
+        total = sum(f.nbytes for f in self._frames.values())
+        for job_id in sorted(self._frames, key=lambda j: len(self._frames[j].added)):
+            if total <= PREVIEW_BYTES:
+                break
+            if job_id != keep:
+                total -= self._frames.pop(job_id).nbytes
+
+    def publish(self, job_id: str, units: int) -> None:
+        """Announce that the job's preview and noise map were rewritten."""
+        version = next(self._versions)
+        self.events.publish("preview", job_id, {
+            "job_id": job_id, "version": version, "units": units,
+            "url": f"/jobs/{job_id}/preview.png?v={version}",
+            "noise_url": f"/jobs/{job_id}/noise.png?v={version}"})

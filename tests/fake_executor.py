@@ -1,0 +1,67 @@
+"""A fake `Executor` for scheduler logic: it runs nothing. Units stay queued
+until the test says they finished (`finish`), so what the scheduler chose to
+put in flight, and in which order, can be read exactly.
+
+    executor = FakeExecutor(slots=8)
+    scheduler = Scheduler(settings, sessions, store, executor)
+    scheduler.tick()
+    executor.submitted          # the tickets, in the order they were enqueued
+    executor.finish(job_id, 3)  # unit 3 lands at the next tick (an empty film)
+"""
+
+from __future__ import annotations
+
+import uuid
+from datetime import datetime
+from typing import Sequence
+
+from renderer import PartialFilm
+from service.executors import Executor, Flight, Observation, Ticket
+
+__all__ = ["FakeExecutor"]
+
+
+class FakeExecutor(Executor):
+    """Keeps at most `slots` units in flight, as the ledger counts them."""
+
+    name = "fake"
+
+    def __init__(self, slots: int):
+        self.slots = slots
+        self.submitted: list[Ticket] = []
+        self._tickets: dict[str, Ticket] = {}
+        self._films: dict[str, bytes] = {}  # task id -> film of a finished task
+        self.released: list[str] = []
+        self.canceled: list[str] = []
+
+    def submit(self, ticket: Ticket) -> str:
+        task_id = uuid.uuid4().hex
+        self._tickets[task_id] = ticket
+        self.submitted.append(ticket)
+        return task_id
+
+    def finish(self, job_id: str, index: int) -> None:
+        """Every task of the unit finishes with an empty film of its region."""
+        for task_id, ticket in self._tickets.items():
+            if (ticket.job_id, ticket.index) == (job_id, index):
+                unit = ticket.unit
+                film = PartialFilm.zeros(unit["x0"], unit["y0"], unit["x1"] - unit["x0"],
+                                         unit["y1"] - unit["y0"])
+                self._films[task_id] = film.to_bytes()
+
+    def observe(self, flights: Sequence[Flight], now: datetime) -> list[Observation]:
+        out = []
+        for flight in flights:
+            films = [self._films[t] for t in flight.task_ids if t in self._films]
+            out.append(Observation("done", film=films[0], worker="fake") if films
+                       else Observation("queued"))
+        return out
+
+    def release(self, task_ids: Sequence[str]) -> None:
+        self.released.extend(task_ids)
+
+    def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
+        self.canceled.extend(task_ids)
+
+    def capacity(self, in_flight: int) -> int:
+        return max(self.slots - in_flight, 0)

@@ -1,0 +1,201 @@
+"""Admission control (service.admission): per-role limits on one job, on an
+owner's active jobs, and sliding-window rates, with the 429's Retry-After."""
+
+from __future__ import annotations
+
+import threading
+from datetime import timedelta
+
+import pytest
+
+from renderer import RenderSpec
+from service import admission
+from service.access import Principal
+from service.admission import RateLimiter, check_job, count_active_jobs, limits_for
+from service.db import open_ledger
+from service.errors import Forbidden, InvalidRequest, RateLimited
+from service.models import Job, utcnow
+from service.settings import Settings
+
+ANA = Principal("ana", "artist", token_id="a1")
+ROOT = Principal("root", "admin", token_id="r1")
+VERA = Principal("vera", "viewer", token_id="v1")
+
+
+@pytest.fixture
+def settings(tmp_path, monkeypatch):
+    monkeypatch.setenv("RAYFARM_LIMITS_ARTIST__MAX_SAMPLES_PER_JOB", "100000")
+    monkeypatch.setenv("RAYFARM_LIMITS_ARTIST__MAX_UNITS_PER_JOB", "64")
+    monkeypatch.setenv("RAYFARM_LIMITS_ARTIST__MAX_ACTIVE_JOBS", "2")
+    monkeypatch.setenv("RAYFARM_LIMITS_ARTIST__SUBMISSIONS_PER_MINUTE", "3")
+    monkeypatch.setenv("RAYFARM_LIMITS_ARTIST__UPLOADS_PER_HOUR", "2")
+    return Settings(data_dir=tmp_path / "data")
+
+
+def spec(**fields) -> RenderSpec:
+    return RenderSpec(**{"method": "path", "spp": 16, "depth": 3, "width": 64, "height": 64,
+                         "tile_size": 16, **fields}).validate()
+
+
+def test01_limits_follow_the_role_and_a_viewer_submits_nothing(settings):
+    assert limits_for(settings, ANA).max_samples_per_job == 100000  # from the environment
+    assert limits_for(settings, ROOT) is settings.limits_admin
+    assert limits_for(settings, ROOT).max_active_jobs == 1000
+    with pytest.raises(Forbidden, match="viewer"):
+        limits_for(settings, VERA)
+    with pytest.raises(Forbidden):
+        check_job(settings, VERA, spec(), units=1, active_jobs=0)
+
+
+def test02_too_many_samples_names_spp_the_limit_and_its_setting(settings):
+    check_job(settings, ANA, spec(spp=24), units=16, active_jobs=0)  # 98304 samples: fine
+    with pytest.raises(InvalidRequest) as refused:
+        check_job(settings, ANA, spec(spp=25), units=16, active_jobs=0)  # 102400
+    assert refused.value.field == "spp"
+    message = str(refused.value)
+    assert "100000" in message and "102400" in message
+    assert "RAYFARM_LIMITS_ARTIST__MAX_SAMPLES_PER_JOB" in message
+    assert "spp <= 24" in message
+    check_job(settings, ROOT, spec(spp=25), units=16, active_jobs=0)  # an admin's cap is higher
+
+
+def test03_too_many_units_names_tile_size(settings):
+    body = spec(spp=4, tile_size=4)  # 16 x 16 tiles
+    units = admission.planned_units(body, progressive=False)
+    assert units == 256
+    assert admission.planned_units(body, progressive=True) == 256 * 3  # passes 1, 1, 2 spp
+    check_job(settings, ANA, spec(spp=4), units=admission.planned_units(spec(spp=4), False),
+              active_jobs=0)
+    with pytest.raises(InvalidRequest) as refused:
+        check_job(settings, ANA, body, units=units, active_jobs=0)
+    assert refused.value.field == "tile_size"
+    assert "256" in str(refused.value) and "RAYFARM_LIMITS_ARTIST__MAX_UNITS_PER_JOB" in str(
+        refused.value)
+
+
+def test04_too_many_active_jobs_is_rate_limited(settings):
+    check_job(settings, ANA, spec(), units=16, active_jobs=1)
+    with pytest.raises(RateLimited) as refused:
+        check_job(settings, ANA, spec(), units=16, active_jobs=2)
+    assert refused.value.retry_after == admission.ACTIVE_JOBS_RETRY_AFTER > 0
+    assert "RAYFARM_LIMITS_ARTIST__MAX_ACTIVE_JOBS" in str(refused.value)
+
+
+def test05_active_jobs_are_the_owners_queued_running_and_paused_ones(settings):
+    engine, sessions = open_ledger(settings)
+    try:
+        now = utcnow()
+        with sessions.begin() as session:
+            for i, (owner, status) in enumerate([("ana", "queued"), ("ana", "running"),
+                                                 ("ana", "paused"), ("ana", "done"),
+                                                 ("ana", "failed"), ("ana", "canceled"),
+                                                 ("ben", "running")]):
+                session.add(Job(id=f"job{i}", created=now + timedelta(seconds=i), status=status,
+                                owner=owner, scene="cornell-box", scene_hash="0" * 64, spec={},
+                                width=8, height=8))
+        with sessions() as session:
+            assert count_active_jobs(session, "ana") == 3
+            assert count_active_jobs(session, "ben") == 1
+            assert count_active_jobs(session, "cleo") == 0
+    finally:
+        engine.dispose()
+
+
+def test06_the_sliding_window_refuses_with_the_seconds_until_the_oldest_hit_leaves():
+    limiter = RateLimiter()
+    for t in (100.0, 110.0, 130.0):
+        limiter.hit("k", limit=3, window_seconds=60, now=t)
+    with pytest.raises(RateLimited) as refused:
+        limiter.hit("k", limit=3, window_seconds=60, now=135.0)
+    assert refused.value.retry_after == pytest.approx(25.0)  # the hit at 100 leaves at 160
+    with pytest.raises(RateLimited) as refused:  # a refused hit is not recorded
+        limiter.hit("k", limit=3, window_seconds=60, now=159.5)
+    assert refused.value.retry_after == pytest.approx(0.5)
+    limiter.hit("k", limit=3, window_seconds=60, now=160.0)  # exactly when it said
+    with pytest.raises(RateLimited) as refused:
+        limiter.hit("k", limit=3, window_seconds=60, now=161.0)
+    assert refused.value.retry_after == pytest.approx(9.0)  # next: the hit at 110
+    limiter.hit("other", limit=3, window_seconds=60, now=161.0)  # keys are apart
+    with pytest.raises(RateLimited) as refused:
+        limiter.hit("none", limit=0, window_seconds=60, now=0.0)
+    assert refused.value.retry_after == 60
+
+
+def test07_the_limiter_is_thread_safe():
+    limiter = RateLimiter()
+    admitted, refused = [], []
+    start = threading.Barrier(8)
+
+    def client():
+        start.wait()
+        for _ in range(50):
+            try:
+                limiter.hit("k", limit=100, window_seconds=3600)
+                admitted.append(1)
+            except RateLimited:
+                refused.append(1)
+    threads = [threading.Thread(target=client) for _ in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(admitted) == 100 and len(refused) == 300
+
+
+def test08_submissions_per_token_and_minute_uploads_per_owner_and_hour(settings):
+    limiter = RateLimiter()
+    for t in (0.0, 1.0, 2.0):
+        admission.check_submission_rate(limiter, settings, ANA, now=t)
+    with pytest.raises(RateLimited) as refused:
+        admission.check_submission_rate(limiter, settings, ANA, now=3.0)
+    assert refused.value.retry_after == pytest.approx(57.0)
+    # Another token of the same user has its own budget; an admin has 600 a minute.
+    admission.check_submission_rate(limiter, settings, Principal("ana", "artist", "a2"), now=3.0)
+    for t in range(10):
+        admission.check_submission_rate(limiter, settings, ROOT, now=float(t))
+    # Uploads count per owner, whatever the token, within an hour.
+    admission.check_upload_rate(limiter, settings, ANA, now=0.0)
+    admission.check_upload_rate(limiter, settings, Principal("ana", "artist", "a2"), now=600.0)
+    with pytest.raises(RateLimited) as refused:
+        admission.check_upload_rate(limiter, settings, ANA, now=1200.0)
+    assert refused.value.retry_after == pytest.approx(2400.0)
+    with pytest.raises(Forbidden):
+        admission.check_upload_rate(limiter, settings, VERA, now=0.0)
+
+
+def test09_the_429_carries_retry_after_rounded_up(settings):
+    from fastapi import FastAPI
+    from fastapi.testclient import TestClient
+
+    from service.api.errors import install_error_handlers
+
+    app = FastAPI()
+    install_error_handlers(app)
+    limiter, clock = RateLimiter(), {"now": 0.0}
+
+    @app.post("/jobs")
+    def post():
+        limiter.hit("k", limit=1, window_seconds=60, now=clock["now"])
+        return {}
+    with TestClient(app) as client:
+        assert client.post("/jobs").status_code == 200
+        clock["now"] = 12.5
+        response = client.post("/jobs")
+    assert response.status_code == 429
+    assert response.headers["retry-after"] == "48"  # 47.5 s, rounded up
+
+
+@pytest.mark.parametrize("progressive", [True, False])
+def test_unit_floor_is_a_lower_bound_of_every_methods_plan(progressive):
+    """The floor refuses before planning; above the real count it would refuse
+    jobs the limit admits (exact for tile plans)."""
+    from renderer import METHODS, RenderSpec
+    from service.admission import planned_units, unit_floor
+
+    for name in dict.fromkeys(m.name for m in METHODS.values()):
+        for spp, size in ((1, 8), (64, 48), (1000, 16)):
+            spec = RenderSpec(method=name, spp=spp, width=size, height=size, tile_size=16)
+            floor, units = unit_floor(spec, progressive), planned_units(spec, progressive)
+            assert 1 <= floor <= units, (name, spp, size, floor, units)
+            if METHODS[name].family == "tile":
+                assert floor == units, name

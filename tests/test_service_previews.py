@@ -1,0 +1,54 @@
+"""service.previews: a job's running preview is the plain sum (Film.add) of
+the films that landed, written at most once per PREVIEW_INTERVAL, rebuilt
+from the stored films after an eviction or restart."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from renderer import PartialFilm, merge
+from service.events import EventHub
+from service.previews import RunningPreviews
+from service.store import Store
+
+JOB = "0123456789ab"
+
+
+def tile(x0: int, value: float, samples: int = 4) -> PartialFilm:
+    film = PartialFilm.zeros(x0, 0, 4, 4)
+    film.sum[:] = value * samples
+    film.sum_sq[:] = value * value * samples
+    film.weight[:] = samples
+    return film
+
+
+def test01_the_frame_is_the_sum_of_what_landed_and_writes_are_throttled(tmp_path):
+    store = Store(tmp_path)
+    done: list[int] = []
+    previews = RunningPreviews(store, EventHub(), lambda job_id: done)
+    first = [(0, tile(0, 0.25)), (1, tile(4, 0.5))]
+    assert previews.refresh(JOB, 8, 4, first) == 2  # the first landing is written at once
+    assert store.preview_path(JOB).is_file() and store.noise_path(JOB).is_file()
+    frame = previews._frames[JOB].film
+    expected = merge(8, 4, [f for _, f in first])
+    np.testing.assert_allclose(frame.mean(), expected.mean(), rtol=1e-6)
+    # Within PREVIEW_INTERVAL: added, not written; the scheduler visits it again.
+    assert previews.refresh(JOB, 8, 4, [(2, tile(0, 1.0))]) is None
+    assert previews.dirty(JOB)
+    # The same unit twice (a duplicate landing) is added once.
+    previews.refresh(JOB, 8, 4, [(2, tile(0, 1.0))])
+    assert previews._frames[JOB].film.weight[0, 0] == 8
+
+
+def test02_an_evicted_frame_is_rebuilt_from_the_stored_films(tmp_path):
+    store = Store(tmp_path)
+    films = {0: tile(0, 0.25), 1: tile(4, 0.5)}
+    for index, film in films.items():
+        store.put_unit_film(JOB, index, film.to_bytes())
+    previews = RunningPreviews(store, EventHub(), lambda job_id: [0, 1, 2])
+    landed = tile(0, 1.0)
+    assert previews.refresh(JOB, 8, 4, [(2, landed)]) == 3
+    expected = merge(8, 4, [*films.values(), landed])
+    np.testing.assert_allclose(previews._frames[JOB].film.mean(), expected.mean(), rtol=1e-6)
+    previews.keep_only(set())
+    assert not previews.dirty(JOB) and JOB not in previews._frames
