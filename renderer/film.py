@@ -31,6 +31,15 @@ Artefacts. A prepass unit's result (a photon map, a radiosity solution, a
 bootstrap estimate, per-pixel statistics carried to the next iteration) is a
 film with named arrays in `artefact`, often over an empty region; the units
 that need it receive it as input (renderer/plan.py) and the merge ignores it.
+
+Wire format. `to_bytes` writes a JSON header (origin, stats, splat counts, and
+each array's name, dtype and shape) followed by the arrays' raw bytes. Not
+npz: numpy reads every .npy header with `ast.literal_eval`, and CPython 3.11
+keeps the AST constructor's recursion depth in per-interpreter state, so two
+threads parsing at once can raise a spurious "SystemError: AST constructor
+recursion depth mismatch" (CPython gh-106905). The service reads films on its
+scheduler and executor threads while others log tracebacks (which parse too),
+so a unit's good result could fail as "unreadable". JSON has no such state.
 """
 
 from __future__ import annotations
@@ -112,27 +121,83 @@ class PartialFilm:
         return self
 
     def to_bytes(self) -> bytes:
-        """Serialize losslessly (npz) for the store and the result backend."""
-        buf = io.BytesIO()
-        arrays = {"origin": np.array([self.x0, self.y0]), "sum": self.sum, "sum_sq": self.sum_sq,
-                  "weight": self.weight,
-                  "stats": np.frombuffer(json.dumps(self.stats).encode(), np.uint8)}
+        """Serialize losslessly for the store and the result backend (module
+        doc, "Wire format"); equal films give equal bytes."""
+        arrays = {"sum": self.sum, "sum_sq": self.sum_sq, "weight": self.weight}
         if self.splat is not None:
-            arrays.update(splat=self.splat, splat_sq=self.splat_sq,
-                          splat_count=np.array([self.splat_paths, float(self.splat_batches)]))
+            arrays.update(splat=self.splat, splat_sq=self.splat_sq)
         for name, value in self.artefact.items():
-            arrays[f"artefact.{name}"] = np.asarray(value)
-        np.savez(buf, **arrays)
-        return buf.getvalue()
+            arrays[f"artefact.{name}"] = value
+        header = {"origin": [int(self.x0), int(self.y0)], "stats": self.stats,
+                  "splat_count": ([float(self.splat_paths), int(self.splat_batches)]
+                                  if self.splat is not None else None),
+                  "arrays": []}
+        blobs = []
+        for name, value in arrays.items():
+            a = np.asarray(value)
+            if a.dtype.kind not in _WIRE_KINDS:
+                raise TypeError(f"film array {name!r} has dtype {a.dtype}, not a number type")
+            a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+            header["arrays"].append([name, a.dtype.str, list(a.shape)])
+            blobs.append(a.tobytes())
+        head = json.dumps(header, allow_nan=True).encode()
+        out = [_WIRE_MAGIC, len(head).to_bytes(4, "little"), head, b"\0" * _pad(len(head) + 12)]
+        for blob in blobs:
+            out += [blob, b"\0" * _pad(len(blob))]
+        return b"".join(out)
+
+    @staticmethod
+    def _wire_header(data: bytes) -> tuple[dict, int]:
+        """The header of film bytes and the offset of its first array."""
+        if data[:8] != _WIRE_MAGIC:
+            raise ValueError("not rayfarm film bytes (bad magic)")
+        size = int.from_bytes(data[8:12], "little")
+        if 12 + size > len(data):
+            raise ValueError("film bytes cut short in the header")
+        header = json.loads(data[12:12 + size].decode())
+        if not isinstance(header, dict) or not isinstance(header.get("arrays"), list):
+            raise ValueError("film header is not a rayfarm film header")
+        return header, 12 + size + _pad(12 + size)
 
     @staticmethod
     def stats_from_bytes(data: bytes) -> dict:
         """Just the stats of serialized film bytes (reads no pixel array)."""
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            return json.loads(z["stats"].tobytes().decode())
+        if data[:2] == b"PK":
+            return PartialFilm._from_npz(data).stats
+        return PartialFilm._wire_header(data)[0]["stats"]
 
     @classmethod
     def from_bytes(cls, data: bytes) -> "PartialFilm":
+        """The film `to_bytes` wrote (or the npz of rayfarm before the wire
+        format, so a store written by it still merges). Raises ValueError on
+        bytes that are not a whole film."""
+        if data[:2] == b"PK":
+            return cls._from_npz(data)
+        header, offset = cls._wire_header(data)
+        view = memoryview(data)
+        arrays = {}
+        for name, dtype, shape in header["arrays"]:
+            dt = np.dtype(dtype)
+            if dt.kind not in _WIRE_KINDS or not all(isinstance(n, int) and n >= 0 for n in shape):
+                raise ValueError(f"film array {name!r}: bad dtype {dtype!r} or shape {shape!r}")
+            nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
+            if offset + nbytes > len(data):
+                raise ValueError(f"film bytes cut short in array {name!r}")
+            arrays[name] = np.frombuffer(view[offset:offset + nbytes], dt).reshape(shape).copy()
+            offset += nbytes + _pad(nbytes)
+        x0, y0 = (int(v) for v in header["origin"])
+        film = cls(x0, y0, arrays["sum"], arrays["sum_sq"], arrays["weight"], header["stats"])
+        if header.get("splat_count") is not None:
+            film.splat, film.splat_sq = arrays["splat"], arrays["splat_sq"]
+            paths, batches = header["splat_count"]
+            film.splat_paths, film.splat_batches = float(paths), int(batches)
+        film.artefact = {name[len("artefact."):]: value
+                         for name, value in arrays.items() if name.startswith("artefact.")}
+        return film
+
+    @classmethod
+    def _from_npz(cls, data: bytes) -> "PartialFilm":
+        """A film in the npz layout rayfarm stored before the wire format."""
         with np.load(io.BytesIO(data), allow_pickle=False) as z:
             x0, y0 = (int(v) for v in z["origin"])
             film = cls(x0, y0, z["sum"].copy(), z["sum_sq"].copy(), z["weight"].copy(),
@@ -144,6 +209,16 @@ class PartialFilm:
             film.artefact = {name[len("artefact."):]: z[name].copy()
                              for name in z.files if name.startswith("artefact.")}
             return film
+
+
+# Wire format (module doc): magic, a little-endian u32 header length, a JSON
+# header, then each array's raw little-endian bytes, all 8-byte aligned.
+_WIRE_MAGIC = b"RFFILM1\n"
+_WIRE_KINDS = "biuf"  # bool, signed, unsigned, float: nothing that needs pickle
+
+
+def _pad(n: int) -> int:
+    return -n % 8
 
 
 @dataclass

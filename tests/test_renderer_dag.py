@@ -106,3 +106,48 @@ def test04_merge_scales_splats_by_the_jobs_total_paths_not_a_units():
     # X = (2, 4) weighted by n = (3, 1): mean 10/4; sigma^2 = (3*0.25 + 2.25)/1 = 3; Var = 3/4.
     np.testing.assert_allclose(film.mean(), 2.5 * ones)
     np.testing.assert_allclose(film.variance_of_mean(), 0.75 * ones)
+
+
+def test05_film_bytes_round_trip_without_parsing_python(monkeypatch):
+    """The wire format (film.py): every field survives, equal films give equal
+    bytes, truncated bytes are a ValueError, and reading never goes through
+    `ast` (whose per-interpreter state races between threads on 3.11), while
+    a film stored as npz by an earlier rayfarm still reads."""
+    import ast
+    import io
+
+    from renderer import PartialFilm
+
+    rng = np.random.default_rng(5)
+    film = PartialFilm(2, 3, rng.random((4, 5, 3)), rng.random((4, 5, 3)), rng.random((4, 5)),
+                       {"samples": 7, "rays": 11, "seconds": 0.25})
+    film.splat, film.splat_sq = rng.random((6, 6, 3)), rng.random((6, 6, 3))
+    film.splat_paths, film.splat_batches = 9.0, 1
+    film.artefact = {"scalar": np.float64(1.5), "ints": np.arange(6, dtype=np.int32).reshape(2, 3)}
+    data = film.to_bytes()
+
+    def no_parsing(*args, **kwargs):
+        raise AssertionError("film bytes were read through ast")
+    monkeypatch.setattr(ast, "parse", no_parsing)
+    back = PartialFilm.from_bytes(data)
+    assert PartialFilm.stats_from_bytes(data) == film.stats
+    monkeypatch.undo()
+
+    assert back.to_bytes() == data
+    assert (back.x0, back.y0, back.stats) == (2, 3, film.stats)
+    for name in ("sum", "sum_sq", "weight", "splat", "splat_sq"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(film, name))
+    assert (back.splat_paths, back.splat_batches) == (9.0, 1)
+    assert back.artefact["scalar"].shape == () and back.artefact["scalar"] == 1.5
+    assert back.artefact["ints"].dtype == np.int32
+    np.testing.assert_array_equal(back.artefact["ints"], film.artefact["ints"])
+    for cut in (0, 11, 40, len(data) - 8):
+        with pytest.raises(ValueError):
+            PartialFilm.from_bytes(data[:cut])
+
+    legacy = io.BytesIO()
+    np.savez(legacy, origin=np.array([2, 3]), sum=film.sum, sum_sq=film.sum_sq, weight=film.weight,
+             stats=np.frombuffer(b'{"samples": 7, "rays": 11, "seconds": 0.25}', np.uint8))
+    old = PartialFilm.from_bytes(legacy.getvalue())
+    np.testing.assert_array_equal(old.sum, film.sum)
+    assert old.stats == film.stats and old.splat is None
