@@ -135,13 +135,19 @@ class _Process:
         self.process.start()
         child_conn.close()
 
-    def wait_ready(self) -> bool:
-        """Wait for the warm-up; False if the process died instead."""
-        if self.conn in wait_ready([self.conn, self.process.sentinel]):
-            try:
-                return self.conn.recv() == "ready"
-            except EOFError:
-                pass
+    def wait_ready(self, give_up: Callable[[], bool]) -> bool:
+        """Wait for the warm-up; False if the process died instead or
+        `give_up()` (the pool is closing: no need to wait seconds for it)."""
+        while not give_up():
+            ready = wait_ready([self.conn, self.process.sentinel], timeout=0.2)
+            if self.conn in ready:
+                try:
+                    return self.conn.recv() == "ready"
+                except EOFError:
+                    break
+            if ready:  # the process died
+                break
+        self.process.kill()
         self.process.join()
         return False
 
@@ -276,9 +282,11 @@ class LocalPool:
             dead.stop()
         while not self._closed:
             process = _Process(self._context, self._cache)
-            if process.wait_ready():
+            if process.wait_ready(lambda: self._closed):
                 return process
             process.stop()
+            if self._closed:
+                return None
             item = self._next()
             if item is None:
                 return None
