@@ -1,12 +1,22 @@
 """The local executor: a process pool that runs units, and `render()` on top.
 
-Used by `rayfarm render` and by the service's embedded mode. Each child
+Used by `rayfarm render` and by the service's embedded mode. Each render
 process is single-threaded Numba (one unit per process, one process per core,
 the same shape as the Celery prefork pool) and warms its kernels at start.
-Each child claims a slot in a small shared array and writes there the tag of
-the unit it is rendering (0 when idle), so the parent knows exactly which
-units are being rendered (`LocalPool.rendering`), not just which were handed
-to the pool's queue.
+
+Every process is owned by one thread of the pool (its *slot*), which hands it
+one unit at a time over a pipe and waits for the film or for the process's
+death. So the pool knows exactly which unit each process is rendering
+(`LocalPool.rendering`), and a process that dies (a segfault in a kernel, a
+SIGKILL, `os._exit`) costs only the unit it was rendering: that unit's future
+fails with `RenderProcessDied` (its exit signal or code), the slot starts a
+new process, and the other processes never notice. (A `ProcessPoolExecutor`
+breaks as a whole on one death and fails every unit in flight.)
+
+Render processes die with the process that started them: each asks the
+kernel for SIGKILL when its parent thread (the slot) exits (Linux
+PR_SET_PDEATHSIG; a watchdog thread elsewhere), so a SIGKILLed service leaves
+no renderer behind.
 
     >>> film = render("cornell-box", RenderSpec(spp=4, depth=3))
     >>> film.write_exr("out.exr")
@@ -16,9 +26,13 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
+import sys
 import threading
+import time
 from collections import deque
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Future, wait
+from multiprocessing.connection import wait as wait_ready
 from typing import Callable
 
 from .cache import cache_root
@@ -29,134 +43,283 @@ from .runtime import execute_unit, scene_text, warm_up
 from .scene_format import resolve_document
 from .spec import RenderSpec
 
-__all__ = ["LocalPool", "render"]
+__all__ = ["LocalPool", "RenderProcessDied", "process_death", "render"]
 
 
-_slot: int | None = None  # this child's index into the shared `rendering` array
-_rendering = None
+def process_death(exitcode: int) -> str:
+    """How a render process ended, in words: ``render process died with
+    SIGSEGV`` (a negative exit code is the signal) or ``... exited with code 3``."""
+    if exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        return f"render process died with {name}"
+    return f"render process exited with code {exitcode}"
 
 
-def _init_child(claimed, rendering, cache=None) -> None:
-    global _slot, _rendering
-    import signal
+class RenderProcessDied(RuntimeError):
+    """The process rendering a unit died before it returned the unit's film."""
 
+    def __init__(self, exitcode: int):
+        self.exitcode = exitcode
+        super().__init__(process_death(exitcode))
+
+
+# -- the render process ---------------------------------------------------------------
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """SIGKILL this process when the thread that started it exits (the pool's
+    slot, or the whole service with it). Linux does it in the kernel, even
+    while a kernel holds the GIL; elsewhere a thread polls the parent."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    else:
+        def watch() -> None:
+            while os.getppid() == parent_pid:
+                time.sleep(1.0)
+            os._exit(1)
+        threading.Thread(target=watch, name="rayfarm-parent-watchdog", daemon=True).start()
+    if os.getppid() != parent_pid:  # the parent died before we asked
+        os._exit(1)
+
+
+def _child_main(conn, parent_pid: int, cache) -> None:
+    """A render process: warm up, say so, then render units until told to stop
+    (None) or until the pool's end of the pipe closes."""
+    _die_with_parent(parent_pid)
     import numba
 
     from . import cache as disk_caches
 
     if cache is not None:  # the parent's cache directory (or None) and cap, whatever our env
         disk_caches.configure(*cache)
-
     # Ctrl-C in a terminal reaches the whole process group: let the parent
     # shut the pool down in order instead of every child dying mid-unit.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-    with claimed.get_lock():
-        _slot = claimed.value % len(rendering)
-        claimed.value += 1
-    _rendering = rendering
     numba.set_num_threads(1)
     warm_up()
+    conn.send("ready")
+    while True:
+        try:
+            args = conn.recv()
+        except EOFError:
+            return
+        if args is None:
+            return
+        scene_key, text, spec, unit, inputs = args
+        try:
+            outcome = (True, execute_unit(scene_key, lambda: text, spec, unit, inputs))
+        except BaseException as exc:  # noqa: BLE001 - reported to the unit's future
+            outcome = (False, exc)
+        try:
+            conn.send(outcome)
+        except Exception as exc:  # e.g. an exception that does not pickle
+            conn.send((False, RuntimeError(f"{type(outcome[1]).__name__}: {outcome[1]} "
+                                           f"(not sent whole: {exc})")))
 
 
-def _run(scene_key: str, text: str, spec: dict, unit: dict, tag: int,
-         inputs: dict[int, bytes] | None = None) -> bytes:
-    if _rendering is not None:
-        _rendering[_slot] = tag
-    try:
-        return execute_unit(scene_key, lambda: text, spec, unit, inputs)
-    finally:
-        if _rendering is not None:
-            _rendering[_slot] = 0
+class _Process:
+    """One render process of a slot and the pool's end of its pipe."""
 
+    def __init__(self, context, cache):
+        self.conn, child_conn = context.Pipe()
+        self.process = context.Process(target=_child_main, name="rayfarm-render",
+                                       args=(child_conn, os.getpid(), cache), daemon=True)
+        self.process.start()
+        child_conn.close()
+
+    def wait_ready(self, give_up: Callable[[], bool]) -> bool:
+        """Wait for the warm-up; False if the process died instead or
+        `give_up()` (the pool is closing: no need to wait seconds for it)."""
+        while not give_up():
+            ready = wait_ready([self.conn, self.process.sentinel], timeout=0.2)
+            if self.conn in ready:
+                try:
+                    return self.conn.recv() == "ready"
+                except EOFError:
+                    break
+            if ready:  # the process died
+                break
+        self.process.kill()
+        self.process.join()
+        return False
+
+    def run(self, args: tuple) -> tuple[bool, object] | None:
+        """Render one unit: (True, film), (False, exception) or None if the
+        process died first."""
+        try:
+            self.conn.send(args)
+        except OSError:  # the process is gone (a broken pipe)
+            pass
+        else:
+            # A result sent just before dying still counts: read the pipe first.
+            if self.conn in wait_ready([self.conn, self.process.sentinel]) or self.conn.poll():
+                try:
+                    return self.conn.recv()
+                except EOFError:
+                    pass
+        self.process.join()
+        return None
+
+    @property
+    def exitcode(self) -> int:
+        return self.process.exitcode if self.process.exitcode is not None else -signal.SIGKILL
+
+    def stop(self) -> None:
+        try:
+            self.conn.send(None)
+        except OSError:
+            pass
+        self.process.join(10)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join()
+        self.conn.close()
+
+
+# -- the pool ----------------------------------------------------------------------------
 
 class LocalPool:
     """A pool of single-threaded render processes (default: one per core).
 
-    Units wait in the pool's own queue and are handed to the process pool only
-    when a process is about to be free (at most one waiting per process), by a
-    feeder thread. So a future canceled while it waits is simply dropped here:
-    the process pool never holds canceled work. (Python 3.11's process pool
-    raises InvalidStateError from its manager thread if a child dies, for
-    example from a Ctrl-C or a SIGTERM to the process group, while canceled
-    futures are still in its queue.)
+    Units wait in the pool's own queue until a process is free, so a future
+    canceled while it waits is simply dropped. Each process renders one unit
+    at a time; a process that dies fails only its unit, with
+    `RenderProcessDied`, and is replaced (see the module doc).
     """
+
+    RESTART_PAUSE = 1.0  # seconds between attempts to start a process that dies in warm-up
 
     def __init__(self, workers: int | None = None):
         self.workers = workers or os.cpu_count() or 1
-        warm_up()  # compile here once, so the children only load Numba's cache
-        context = multiprocessing.get_context("forkserver")
-        self._rendering = context.Array("q", self.workers, lock=False)
-        self._executor = ProcessPoolExecutor(
-            max_workers=self.workers, mp_context=context, initializer=_init_child,
-            initargs=(context.Value("i", 0), self._rendering, cache_root()))
-        self._waiting: deque[tuple[Future, tuple]] = deque()
-        self._handed = 0  # units in the process pool (rendering or next in line)
+        warm_up()  # compile here once, so the processes only load Numba's cache
+        # Spawned, not forked from a forkserver: the parent of every render
+        # process is this process (its slot thread), which PR_SET_PDEATHSIG needs.
+        self._context = multiprocessing.get_context("spawn")
+        self._cache = cache_root()
+        self._rendering = [0] * self.workers  # per slot: the tag of the unit it renders
+        self._processes: list[_Process | None] = [None] * self.workers  # per slot
+        self._waiting: deque[tuple[Future, tuple, int]] = deque()
+        self._busy = 0  # slots rendering a unit
         self._closed = False
         self._changed = threading.Condition()
-        self._feeder = threading.Thread(target=self._feed, name="rayfarm-pool-feeder", daemon=True)
-        self._feeder.start()
+        self._slots = [threading.Thread(target=self._serve, args=(slot,), daemon=True,
+                                        name=f"rayfarm-pool-slot-{slot}")
+                       for slot in range(self.workers)]
+        for thread in self._slots:
+            thread.start()
 
     def submit(self, scene_key: str, text: str, spec: dict, unit: dict, tag: int = 0,
                inputs: dict[int, bytes] | None = None) -> Future:
         """Run one unit; the future's result is the partial film's bytes. A
         nonzero `tag` shows in `rendering()` while a process renders the unit;
         `inputs` are the film bytes of the units it needs. Canceling the
-        future works until a process is about to take it."""
+        future works until a process takes it."""
         future: Future = Future()
         with self._changed:
             if self._closed:
                 raise RuntimeError("the pool is shut down")
-            self._waiting.append((future, (scene_key, text, spec, unit, tag, inputs)))
+            self._waiting.append((future, (scene_key, text, spec, unit, inputs), tag))
             self._changed.notify()
         return future
 
-    def _feed(self) -> None:
-        while True:
-            with self._changed:
-                while not self._closed and (not self._waiting or self._handed > self.workers):
+    def _next(self) -> tuple[Future, tuple, int] | None:
+        """The next unit for a free slot (counted busy), or None once closed."""
+        with self._changed:
+            while True:
+                while not self._closed and not self._waiting:
                     self._changed.wait()
                 if self._closed:
-                    return
-                future, args = self._waiting.popleft()
-                if not future.set_running_or_notify_cancel():
-                    continue  # canceled while it waited
-                self._handed += 1
-            try:
-                inner = self._executor.submit(_run, *args)
-            except Exception as exc:  # a broken pool: the unit fails, its executor decides
-                self._settle(future, None, exc)
-                continue
-            inner.add_done_callback(lambda done, outer=future: self._settle(outer, done))
+                    return None
+                future, args, tag = self._waiting.popleft()
+                if future.set_running_or_notify_cancel():  # else canceled while it waited
+                    self._busy += 1
+                    return future, args, tag
 
-    def _settle(self, outer: Future, inner: Future | None, error: BaseException | None = None):
-        if inner is not None:
-            error = inner.exception() if not inner.cancelled() else RuntimeError("canceled")
-        if error is None:
-            outer.set_result(inner.result())
-        else:
-            outer.set_exception(error)
-        with self._changed:
-            self._handed -= 1
-            self._changed.notify()
+    def _serve(self, slot: int) -> None:
+        """A slot: keep one render process, feed it units one at a time."""
+        process: _Process | None = None
+        try:
+            while True:
+                if process is None or not process.process.is_alive():
+                    process = self._processes[slot] = self._start(process)
+                    if process is None:
+                        return
+                item = self._next()
+                if item is None:
+                    return
+                future, args, tag = item
+                self._rendering[slot] = tag
+                try:
+                    outcome = process.run(args)
+                finally:
+                    self._rendering[slot] = 0
+                if outcome is None:
+                    future.set_exception(RenderProcessDied(process.exitcode))
+                elif outcome[0]:
+                    future.set_result(outcome[1])
+                else:
+                    future.set_exception(outcome[1])
+                with self._changed:
+                    self._busy -= 1
+                    self._changed.notify_all()
+        finally:
+            if process is not None:
+                process.stop()
+
+    def _start(self, dead: _Process | None) -> _Process | None:
+        """A new, warmed-up render process (None once the pool is closed). One
+        that dies while warming up fails the next waiting unit with its exit,
+        so a renderer that cannot start shows up as failed units, not a hang."""
+        if dead is not None:
+            dead.stop()
+        while not self._closed:
+            process = _Process(self._context, self._cache)
+            if process.wait_ready(lambda: self._closed):
+                return process
+            process.stop()
+            if self._closed:
+                return None
+            item = self._next()
+            if item is None:
+                return None
+            future, _args, _tag = item
+            future.set_exception(RuntimeError(
+                f"{process_death(process.exitcode)} while starting (warming up its kernels)"))
+            with self._changed:
+                self._busy -= 1
+                self._changed.notify_all()
+            time.sleep(self.RESTART_PAUSE)
+        return None
 
     def rendering(self) -> list[int]:
         """Tags of the units the processes are rendering right now."""
-        return [tag for tag in self._rendering[:] if tag]
+        return [tag for tag in self._rendering if tag]
+
+    def pids(self) -> list[int]:
+        """The process ids of the live render processes."""
+        return [p.process.pid for p in self._processes if p is not None and p.process.is_alive()]
 
     def shutdown(self, cancel: bool = True) -> None:
         """Stop the pool: units still waiting are canceled (or, with `cancel`
         False, all work is finished first); units in the processes finish."""
         with self._changed:
-            while not cancel and (self._waiting or self._handed):
+            while not cancel and (self._waiting or self._busy):
                 self._changed.wait()
             self._closed = True
             waiting, self._waiting = list(self._waiting), deque()
             self._changed.notify_all()
-        self._feeder.join()
-        for future, _args in waiting:
+        for future, _args, _tag in waiting:
             future.cancel()
-        self._executor.shutdown(wait=True, cancel_futures=cancel)
+        for thread in self._slots:
+            thread.join()
 
     def __enter__(self) -> "LocalPool":
         return self

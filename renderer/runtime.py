@@ -8,6 +8,8 @@ per process by content hash, so a worker builds each scene once.
 
 from __future__ import annotations
 
+import os
+import signal
 import time
 from collections import OrderedDict
 from typing import Callable
@@ -71,9 +73,27 @@ def execute_unit(scene_key: str, load_scene_text: Callable[[], str], spec: dict,
     scene `scene_key` yet (the farm fetches it from the broker by hash).
     `inputs` are the film bytes of the units it needs, by index.
     """
+    _crash_if_asked(spec)
     scene = _CACHE.get(scene_key, load_scene_text)
     films = {int(i): PartialFilm.from_bytes(b) for i, b in (inputs or {}).items()}
     return run_unit(scene, RenderSpec.from_dict(spec), Unit.from_dict(unit), films).to_bytes()
+
+
+# A render process whose environment holds this variable kills itself with
+# SIGSEGV on every unit of a job whose seed it names: the farm's tests use it to
+# crash render processes on purpose (tests/test_service_crashes.py), now that
+# every scene that used to crash a kernel is refused at submission. Only the
+# processes a test starts have it; nothing a request sends can set it.
+CRASH_SEED_ENV = "RAYFARM_TEST_CRASH_SEED"
+
+
+def _crash_if_asked(spec: dict) -> None:
+    seed = os.environ.get(CRASH_SEED_ENV)
+    if seed and str(spec.get("seed")) == seed.strip():
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_CORE, (0, 0))  # no core file for a deliberate crash
+        os.kill(os.getpid(), signal.SIGSEGV)
 
 
 def warm_up() -> None:

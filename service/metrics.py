@@ -40,7 +40,7 @@ __all__ = ["FarmMetrics", "PrometheusMetrics", "HTTPMetrics", "CONTENT_TYPE_LATE
 
 log = logging.getLogger(__name__)
 
-REQUEUE_REASONS = ("lost", "failed")
+REQUEUE_REASONS = ("lost", "failed", "crash")
 UNMATCHED = "unmatched"  # the route label of a request no route answered (404 of an unknown path)
 _HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 # Render seconds of one unit: from a small tile to a long MLT chain.
@@ -76,8 +76,8 @@ class PrometheusMetrics(FarmMetrics):
         self.rays = PromCounter("rayfarm_rays", "Rays traced by the units collected done "
                                 "(rate() is rays per second)", registry=r)
         self.requeues = PromCounter(
-            "rayfarm_units_requeued", "Units enqueued again: lost (no task will report) or "
-            "failed (an attempt retried)", ["reason"], registry=r)
+            "rayfarm_units_requeued", "Units enqueued again: lost (no task will report), "
+            "failed (an attempt retried) or crash (its render process died: an attempt retried)", ["reason"], registry=r)
         self.tick_seconds = Histogram("rayfarm_scheduler_tick_seconds",
                                       "Duration of one scheduler tick",
                                       buckets=_TICK_BUCKETS, registry=r)

@@ -9,8 +9,8 @@ Each tick:
    progressive or not, or a small DAG of prepass -> units, renderer/plan.py)
    and mark it running; observe its units in flight: store a finished
    unit's film (atomically) *before* marking the unit done, exactly once;
-   re-enqueue lost units; retry failed ones up to `max_attempts`, then fail
-   the job; refresh its `preview.png` and `noise.png` from the units landed
+   re-enqueue lost units; retry failed ones and ones whose render process
+   crashed (each spends an attempt) up to `max_attempts`, then fail the job; refresh its `preview.png` and `noise.png` from the units landed
    so far and publish a `preview` event; when every unit is done, merge the
    stored films in unit order into `result.exr` + `preview.png` +
    `noise.png`, then mark the job done;
@@ -86,6 +86,14 @@ class _JobRow(NamedTuple):
     created: datetime
     units_total: int
     units_done: int
+
+
+def _attempts_error(unit: WorkUnit, obs: Observation) -> str:
+    """A unit's last attempt failed: its job's error. A crash reads as what
+    happened, `unit 5: render process died with SIGSEGV on 3 attempts`."""
+    if obs.state == "crashed":
+        return f"unit {unit.index}: {obs.error} on {unit.attempts} attempts"
+    return f"unit {unit.index} failed after {unit.attempts} attempts: {obs.error}"
 
 
 class Scheduler:
@@ -406,20 +414,19 @@ class Scheduler:
                         job.id, unit.index, unit.task_ids[-1] if unit.task_ids else None)
             self._enqueue(job, unit, now)
             self.metrics.requeued("lost")
-        elif obs.state == "failed":
+        elif obs.state in ("failed", "crashed"):  # an attempt spent (a crash too)
             unit.error = obs.error
             if unit.attempts >= self.settings.max_attempts:
                 states.change_unit(unit, "failed", now)
-                self._fail_job(session, job, now, f"unit {unit.index} failed after "
-                                                  f"{unit.attempts} attempts: {obs.error}")
+                self._fail_job(session, job, now, _attempts_error(unit, obs))
                 released.append(tuple(unit.task_ids))
                 self._tracked.pop((job.id, unit.index), None)
                 return True
-            log.warning("unit %s/%d attempt %d failed: %s", job.id, unit.index, unit.attempts,
-                        obs.error)
+            log.warning("unit %s/%d attempt %d %s: %s", job.id, unit.index, unit.attempts,
+                        obs.state, obs.error)
             unit.attempts += 1
             self._enqueue(job, unit, now)
-            self.metrics.requeued("failed")
+            self.metrics.requeued("crash" if obs.state == "crashed" else "failed")
         return False
 
     def _store_failed(self, job: Job, unit: WorkUnit, exc: OSError) -> None:

@@ -3,11 +3,18 @@
     app = create_celery_app(Settings(broker_url="redis://localhost:6379/0"))
     app.send_task(TASK_RENDER_UNIT, args=[payload], queue=QUEUE)
 
-Redis is both broker and result backend. Delivery is at-least-once
-(`task_acks_late` + `task_reject_on_worker_lost`): a unit whose worker dies is
-delivered again, and since a unit's result is deterministic a second delivery
-changes nothing. A message that Redis itself loses is the service's business:
-it watches heartbeats and enqueues the unit again (see service/executors).
+Redis is both broker and result backend. Messages are acknowledged late
+(`task_acks_late`): a worker killed as a whole leaves its unit's message
+unacknowledged, and since a unit's result is deterministic a second delivery
+changes nothing. But a render process that dies under its unit (a segfault,
+a SIGKILL of that process) is *not* redelivered by the broker
+(`task_reject_on_worker_lost` off): the worker acknowledges the message and
+records a FAILURE with billiard's `WorkerLostError` ("Worker exited
+prematurely: signal 11 (SIGSEGV)"), the service counts that as a crashed
+attempt, and the ledger's attempt count decides whether it runs again. (With
+redelivery on, a unit that crashes every process looped forever.) A message
+that Redis itself loses is the service's business: it watches heartbeats and
+enqueues the unit again (see service/executors).
 """
 
 from __future__ import annotations
@@ -15,7 +22,7 @@ from __future__ import annotations
 import logging
 
 from celery import Celery
-from celery.signals import worker_process_init, worker_ready, worker_shutdown
+from celery.signals import task_failure, worker_process_init, worker_ready, worker_shutdown
 
 from .keys import QUEUE
 from .settings import Settings
@@ -36,7 +43,9 @@ def create_celery_app(settings: Settings) -> Celery:
         result_serializer="json",
         accept_content=["json"],
         task_acks_late=True,
-        task_reject_on_worker_lost=True,
+        # A dead render process is a FAILURE the service counts, not a redelivery
+        # behind the ledger's back (see the module doc).
+        task_reject_on_worker_lost=False,
         worker_prefetch_multiplier=1,
         task_track_started=True,
         task_default_queue=QUEUE,
@@ -96,3 +105,22 @@ def _start_presence(sender=None, **_kwargs) -> None:
 def _stop_presence(**_kwargs) -> None:
     if _presence is not None:
         _presence.stop()
+
+
+@task_failure.connect
+def _forget_dead_render_process(sender=None, exception=None, args=None, **_kwargs) -> None:
+    # In the main process, when a render process died under a unit: it never
+    # said it finished, so drop what it left (its unit's heartbeat and its
+    # "running" entry), or the unit would show running until they expire.
+    from billiard.exceptions import WorkerLostError
+
+    if _presence is None or not isinstance(exception, WorkerLostError):
+        return
+    from .presence import forget_dead_processes
+
+    payload = args[0] if args else None
+    try:
+        forget_dead_processes(_presence.client, _presence.name,
+                              payload if isinstance(payload, dict) else None)
+    except Exception:  # presence is for the dashboard; never stop the worker for it
+        log.exception("could not clear a dead render process's presence")

@@ -25,9 +25,10 @@ import threading
 
 import redis
 
-from .keys import WORKERS, worker_key, worker_running_key
+from .keys import WORKERS, heartbeat_key, worker_key, worker_running_key
 
-__all__ = ["Presence", "unit_started", "unit_finished", "read_workers", "redis_now"]
+__all__ = ["Presence", "unit_started", "unit_finished", "forget_dead_processes", "read_workers",
+           "redis_now"]
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +107,23 @@ def unit_finished(client: redis.Redis, name: str, stats: dict | None) -> None:
         pipe.execute()
     except redis.RedisError as exc:
         log.warning("presence: unit end not recorded: %s", exc)
+
+
+def forget_dead_processes(client: redis.Redis, name: str, payload: dict | None) -> None:
+    """In worker `name`'s main process, after one of its render processes died
+    under a unit (`payload`, the task's): delete that unit's heartbeat and the
+    "running" entries of render processes of this host that no longer exist."""
+    pipe = client.pipeline()
+    if payload and "job_id" in payload and "index" in payload:
+        pipe.delete(heartbeat_key(payload["job_id"], int(payload["index"])))
+    for pid in client.hkeys(worker_running_key(name)):
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            pipe.hdel(worker_running_key(name), pid)
+        except (PermissionError, ValueError):
+            pass
+    pipe.execute()
 
 
 def read_workers(client: redis.Redis) -> tuple[float, list[dict]]:

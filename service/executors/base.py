@@ -46,9 +46,13 @@ class Observation:
 
     `lost`: no task of the unit will ever report (worker died, message gone);
     the scheduler enqueues it again without counting an attempt.
+    `crashed`: the process rendering the unit died under it (a segfault in a
+    kernel, a SIGKILL of that process); `error` says how, in
+    `renderer.process_death`'s words. It spends an attempt, like `failed`: a
+    unit that kills every process it runs in fails after `max_attempts`.
     """
 
-    state: Literal["queued", "running", "done", "failed", "lost"]
+    state: Literal["queued", "running", "done", "failed", "crashed", "lost"]
     film: bytes | None = None
     worker: str | None = None
     error: str | None = None

@@ -1,6 +1,9 @@
 """The farm executor: units go to Celery workers through Redis.
 
-Redis is transport, not truth. A unit is *lost*, and enqueued again under a
+Redis is transport, not truth. A unit is *crashed* (an attempt spent) when
+its render process died under it: the worker records billiard's
+WorkerLostError as the task's FAILURE and does not redeliver it
+(worker/celery_app.py). A unit is *lost*, and enqueued again under a
 new task id (its attempt count unchanged), when
 - it started but its heartbeat key has been absent for a lease: the worker
   died (a SIGKILL leaves the message unacknowledged for Redis's visibility
@@ -22,6 +25,7 @@ import base64
 import hashlib
 import logging
 import math
+import re
 import time
 import uuid
 from datetime import datetime, timedelta, timezone
@@ -29,7 +33,7 @@ from typing import Any, Callable, Sequence
 
 import redis
 
-from renderer import PartialFilm
+from renderer import PartialFilm, process_death
 from worker.celery_app import create_celery_app
 from worker.keys import QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key
 from worker.presence import read_workers
@@ -160,6 +164,9 @@ class CeleryExecutor(Executor):
         latest = metas[-1] if metas else None
         status = latest.get("status") if latest else None
         if status == "FAILURE":
+            crash = _process_death(latest)
+            if crash is not None:
+                return Observation("crashed", error=crash)
             return Observation("failed", error=_error_text(latest))
         if beat is not None:
             return Observation("running", worker=beat.decode(errors="replace"))
@@ -273,3 +280,22 @@ def _error_text(meta: dict[str, Any]) -> str:
             message = " ".join(map(str, message))
         return f"{result['exc_type']}: {message}"
     return str(result)
+
+
+# billiard's words for a render process that died under its task.
+_WORKER_LOST = re.compile(r"exited prematurely: (?:signal (\d+)|exitcode (\d+))")
+
+
+def _process_death(meta: dict[str, Any]) -> str | None:
+    """A FAILURE that is a dead render process (billiard's WorkerLostError), in
+    `renderer.process_death`'s words, or None for any other failure."""
+    result = meta.get("result")
+    if not (isinstance(result, dict) and result.get("exc_type") == "WorkerLostError"):
+        return None
+    message = result.get("exc_message")
+    if isinstance(message, (list, tuple)):
+        message = " ".join(map(str, message))
+    found = _WORKER_LOST.search(str(message))
+    if found is None:
+        return f"render process died ({message})"
+    return process_death(-int(found[1]) if found[1] else int(found[2]))

@@ -1,9 +1,11 @@
 """The embedded executor: units run on `renderer.LocalPool` in this machine.
 
 It reports a unit `running` only while a pool process renders it (the pool's
-shared `rendering` slots), not while it waits in the pool's call queue, and
-counts the units, samples and render seconds the pool has done: the one
-worker of the embedded mode, as `workers()` shows it.
+`rendering` slots), not while it waits in the pool's queue, and counts the
+units, samples and render seconds the pool has done: the one worker of the
+embedded mode, as `workers()` shows it. A unit whose render process died is
+`crashed` (an attempt spent); the pool replaced that process, and the other
+units in flight never noticed.
 """
 
 from __future__ import annotations
@@ -15,11 +17,10 @@ import socket
 import threading
 import uuid
 from concurrent.futures import Future
-from concurrent.futures.process import BrokenProcessPool
 from datetime import datetime, timezone
 from typing import Callable, Sequence
 
-from renderer import LocalPool, PartialFilm
+from renderer import LocalPool, PartialFilm, RenderProcessDied
 
 from ..settings import Settings
 from .base import Executor, Flight, Observation, RunningUnit, Ticket, WorkerInfo
@@ -41,7 +42,6 @@ class LocalExecutor(Executor):
         self._scene_texts: dict[str, str] = {}
         self._futures: dict[str, Future] = {}
         self._pool = LocalPool(self.processes)
-        self._broken = False
         self.host = socket.gethostname()
         self.worker_name = f"local@{self.host}"
         self.started = datetime.now(timezone.utc)
@@ -65,10 +65,6 @@ class LocalExecutor(Executor):
         return self._scene_texts[scene_hash]
 
     def submit(self, ticket: Ticket) -> str:
-        if self._broken:  # a child died; its futures are reported lost, start afresh
-            self._pool.shutdown(cancel=True)
-            self._pool = LocalPool(self.processes)
-            self._broken = False
         task_id = uuid.uuid4().hex
         tag = next(self._tags)
         future = self._pool.submit(ticket.scene_hash, self._scene(ticket.scene_hash), ticket.spec,
@@ -110,9 +106,8 @@ class LocalExecutor(Executor):
             return Observation("lost")  # e.g. the service restarted: the pool is new
         if latest.done():
             exc = latest.exception()
-            if isinstance(exc, BrokenProcessPool):
-                self._broken = True
-                return Observation("lost")
+            if isinstance(exc, RenderProcessDied):
+                return Observation("crashed", error=str(exc), worker=self.worker_name)
             return Observation("failed", error=f"{type(exc).__name__}: {exc}")
         if self._tag_of.get(flight.task_ids[-1]) in rendering or flight.state == "running":
             return Observation("running", worker=self.worker_name)
