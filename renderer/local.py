@@ -28,6 +28,7 @@ from .registry import METHODS
 from .runtime import execute_unit, scene_text, warm_up
 from .scene_format import resolve_document
 from .spec import RenderSpec
+from .unitlog import capture_unit_log
 
 __all__ = ["LocalPool", "render"]
 
@@ -60,11 +61,20 @@ def _init_child(claimed, rendering, cache=None) -> None:
 
 
 def _run(scene_key: str, text: str, spec: dict, unit: dict, tag: int,
-         inputs: dict[int, bytes] | None = None) -> bytes:
+         inputs: dict[int, bytes] | None = None, job_id: str | None = None
+         ) -> tuple[bytes, dict]:
+    """Render one unit in a child: (film bytes, its captured log). A failure
+    carries its log as the exception's `unit_log` (pickled with it)."""
     if _rendering is not None:
         _rendering[_slot] = tag
+    captured = None
     try:
-        return execute_unit(scene_key, lambda: text, spec, unit, inputs)
+        with capture_unit_log(job_id, unit.get("index")) as captured:
+            film = execute_unit(scene_key, lambda: text, spec, unit, inputs)
+        return film, captured.to_dict()
+    except Exception as exc:
+        exc.unit_log = captured.to_dict() if captured is not None else None
+        raise
     finally:
         if _rendering is not None:
             _rendering[_slot] = 0
@@ -98,16 +108,19 @@ class LocalPool:
         self._feeder.start()
 
     def submit(self, scene_key: str, text: str, spec: dict, unit: dict, tag: int = 0,
-               inputs: dict[int, bytes] | None = None) -> Future:
+               inputs: dict[int, bytes] | None = None, job_id: str | None = None) -> Future:
         """Run one unit; the future's result is the partial film's bytes. A
         nonzero `tag` shows in `rendering()` while a process renders the unit;
-        `inputs` are the film bytes of the units it needs. Canceling the
-        future works until a process is about to take it."""
+        `inputs` are the film bytes of the units it needs; `job_id` names the
+        job in its log records. Canceling the future works until a process is
+        about to take it. Once the future is done, `future.unit_log` is the
+        unit's captured log (renderer.unitlog), or None if the process died."""
         future: Future = Future()
+        future.unit_log = None
         with self._changed:
             if self._closed:
                 raise RuntimeError("the pool is shut down")
-            self._waiting.append((future, (scene_key, text, spec, unit, tag, inputs)))
+            self._waiting.append((future, (scene_key, text, spec, unit, tag, inputs, job_id)))
             self._changed.notify()
         return future
 
@@ -133,8 +146,10 @@ class LocalPool:
         if inner is not None:
             error = inner.exception() if not inner.cancelled() else RuntimeError("canceled")
         if error is None:
-            outer.set_result(inner.result())
+            film, outer.unit_log = inner.result()
+            outer.set_result(film)
         else:
+            outer.unit_log = getattr(error, "unit_log", None)
             outer.set_exception(error)
         with self._changed:
             self._handed -= 1
