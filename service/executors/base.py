@@ -46,12 +46,15 @@ class Observation:
 
     `lost`: no task of the unit will ever report (worker died, message gone);
     the scheduler enqueues it again without counting an attempt.
+    `log`: with done or failed, the unit's own log as its render process
+    captured it (renderer.unitlog: lines, traceback, dropped), if any.
     """
 
     state: Literal["queued", "running", "done", "failed", "lost"]
     film: bytes | None = None
     worker: str | None = None
     error: str | None = None
+    log: dict | None = None
 
 
 @dataclass(frozen=True)
