@@ -146,11 +146,12 @@ def test04_celery_logs_reach_the_service_the_cli_prints_them_json_logs(
         return subprocess.run([*rayfarm_command(), "logs", "--server", base, *args],
                               capture_output=True, text=True, timeout=60)
 
-    printed = logs(failed["id"])  # the units worth reading: the failed one
+    # The units worth reading: the failed one, and those that failed an attempt too.
+    printed = logs(failed["id"])
     assert printed.returncode == 0, printed.stderr
-    assert f"== unit {bad} (failed)" in printed.stdout
-    assert printed.stdout.count("Traceback (most recent call last)") == 3
-    assert "-- task 3, attempt 3: failed" in printed.stdout
+    section = printed.stdout.split(f"== unit {bad} (failed)", 1)[1].split("\n== unit", 1)[0]
+    assert section.count("Traceback (most recent call last)") == 3, printed.stdout
+    assert "-- task 3, attempt 3: failed" in section and HASH_ERROR in section
     one = logs(done["id"], "0")
     assert one.returncode == 0 and UNIT_LINE in one.stdout and "Traceback" not in one.stdout
     quiet = logs(done["id"])
