@@ -11,7 +11,7 @@ A registry of its own per app, never prometheus_client's global one: tests
 build many apps in one process, and each counts only its own farm.
 
 Every label is a small fixed set (states, methods, routes, reasons): no job
-id, user or raw path ever becomes a label (see the README's "Metrics").
+id, user or raw path ever becomes a label (see docs/operations.md, "Metrics").
 """
 
 from __future__ import annotations
