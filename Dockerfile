@@ -12,7 +12,7 @@ COPY pyproject.toml README.md ./
 COPY renderer ./renderer
 COPY worker ./worker
 COPY service ./service
-RUN pip install . \
+RUN pip install .[postgres] \
  # Compile the Numba kernels into the image's cache, so workers start warm.
  && python -c "from renderer import warm_up; warm_up()"
 

@@ -42,6 +42,7 @@ from .registry import METHODS
 from .runtime import execute_unit, scene_text, warm_up
 from .scene_format import resolve_document
 from .spec import RenderSpec
+from .unitlog import capture_unit_log
 
 __all__ = ["LocalPool", "RenderProcessDied", "process_death", "render"]
 
@@ -113,16 +114,19 @@ def _child_main(conn, parent_pid: int, cache) -> None:
             return
         if args is None:
             return
-        scene_key, text, spec, unit, inputs = args
-        try:
-            outcome = (True, execute_unit(scene_key, lambda: text, spec, unit, inputs))
+        scene_key, text, spec, unit, inputs, job_id = args
+        captured = None
+        try:  # the unit's own log lines and traceback travel with its outcome
+            with capture_unit_log(job_id, unit.get("index")) as captured:
+                film = execute_unit(scene_key, lambda: text, spec, unit, inputs)
+            outcome = (True, film, captured.to_dict())
         except BaseException as exc:  # noqa: BLE001 - reported to the unit's future
-            outcome = (False, exc)
+            outcome = (False, exc, captured.to_dict() if captured is not None else None)
         try:
             conn.send(outcome)
         except Exception as exc:  # e.g. an exception that does not pickle
             conn.send((False, RuntimeError(f"{type(outcome[1]).__name__}: {outcome[1]} "
-                                           f"(not sent whole: {exc})")))
+                                           f"(not sent whole: {exc})"), outcome[2]))
 
 
 class _Process:
@@ -151,9 +155,9 @@ class _Process:
         self.process.join()
         return False
 
-    def run(self, args: tuple) -> tuple[bool, object] | None:
-        """Render one unit: (True, film), (False, exception) or None if the
-        process died first."""
+    def run(self, args: tuple) -> tuple[bool, object, dict | None] | None:
+        """Render one unit: (True, film, log), (False, exception, log) or None
+        if the process died first."""
         try:
             self.conn.send(args)
         except OSError:  # the process is gone (a broken pipe)
@@ -217,16 +221,19 @@ class LocalPool:
             thread.start()
 
     def submit(self, scene_key: str, text: str, spec: dict, unit: dict, tag: int = 0,
-               inputs: dict[int, bytes] | None = None) -> Future:
+               inputs: dict[int, bytes] | None = None, job_id: str | None = None) -> Future:
         """Run one unit; the future's result is the partial film's bytes. A
         nonzero `tag` shows in `rendering()` while a process renders the unit;
-        `inputs` are the film bytes of the units it needs. Canceling the
-        future works until a process takes it."""
+        `inputs` are the film bytes of the units it needs; `job_id` names the
+        job in its log records. Canceling the future works until a process
+        takes it. Once the future is done, `future.unit_log` is the unit's
+        captured log (renderer.unitlog), or None if the process died."""
         future: Future = Future()
+        future.unit_log = None
         with self._changed:
             if self._closed:
                 raise RuntimeError("the pool is shut down")
-            self._waiting.append((future, (scene_key, text, spec, unit, inputs), tag))
+            self._waiting.append((future, (scene_key, text, spec, unit, inputs, job_id), tag))
             self._changed.notify()
         return future
 
@@ -263,10 +270,12 @@ class LocalPool:
                     self._rendering[slot] = 0
                 if outcome is None:
                     future.set_exception(RenderProcessDied(process.exitcode))
-                elif outcome[0]:
-                    future.set_result(outcome[1])
                 else:
-                    future.set_exception(outcome[1])
+                    future.unit_log = outcome[2]
+                    if outcome[0]:
+                        future.set_result(outcome[1])
+                    else:
+                        future.set_exception(outcome[1])
                 with self._changed:
                     self._busy -= 1
                     self._changed.notify_all()

@@ -8,6 +8,7 @@ per process by content hash, so a worker builds each scene once.
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import time
@@ -22,6 +23,8 @@ from .scene_format import canonical_json, resolve_document, scene_hash
 from .spec import RenderSpec
 
 __all__ = ["run_unit", "run_plan", "render_serial", "execute_unit", "SceneCache", "warm_up"]
+
+log = logging.getLogger(__name__)
 
 
 class SceneCache:
@@ -39,7 +42,9 @@ class SceneCache:
             doc = json.loads(load_text())
             if scene_hash(doc) != key:
                 raise ValueError(f"scene text does not match its hash {key[:12]}")
+            t0 = time.perf_counter()
             scene = build_scene(doc)
+            log.info("scene %s built in %.3f s", key[:12], time.perf_counter() - t0)
             self._scenes[key] = scene
             while len(self._scenes) > self.capacity:
                 self._scenes.popitem(last=False)
@@ -62,6 +67,9 @@ def run_unit(scene: Scene, spec: RenderSpec, unit: Unit,
     t0 = time.perf_counter()
     film = METHODS[spec.method].run(scene, spec, unit, inputs)
     film.stats["seconds"] = time.perf_counter() - t0
+    log.info("unit %d (%s, stage %d) of %s: %d samples, %d rays in %.3f s", unit.index,
+             unit.kind, unit.stage, spec.method, int(film.stats.get("samples", 0)),
+             int(film.stats.get("rays", 0)), film.stats["seconds"])
     return film
 
 

@@ -8,7 +8,7 @@
 
     rayfarm submit SCENE --spp 64 ...             the client commands (service/client_cli.py):
     rayfarm watch|fetch|cancel ID                 they talk to a service over HTTP (--server URL
-    rayfarm jobs | workers                        or RAYFARM_SERVER)
+    rayfarm jobs | workers | logs JOB [UNIT]      or RAYFARM_SERVER)
 
 Configuration comes from the environment (`RAYFARM_*`, see worker/settings.py).
 """
@@ -16,6 +16,7 @@ Configuration comes from the environment (`RAYFARM_*`, see worker/settings.py).
 from __future__ import annotations
 
 import argparse
+import logging.config
 import os
 import sys
 
@@ -67,9 +68,29 @@ def _serve(args: argparse.Namespace) -> int:
               "`rayfarm tokens create admin`\n", flush=True)
     import logging
 
+    log_config = uvicorn.config.LOGGING_CONFIG
+    if settings.log_format == "json":
+        log_config = json_log_config(args.loglevel)
+        logging.config.dictConfig(log_config)  # the app's own loggers, from here on
     logging.getLogger("uvicorn.access").addFilter(_RedactTokens())
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.loglevel)
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.loglevel,
+                log_config=log_config)
     return 0
+
+
+def json_log_config(level: str = "info") -> dict:
+    """A logging config (dictConfig) for `rayfarm serve` with RAYFARM_LOG_FORMAT=json:
+    uvicorn's loggers and every other one write JSON lines to stderr."""
+    handler = {"class": "logging.StreamHandler", "formatter": "json",
+               "stream": "ext://sys.stderr"}
+    return {
+        "version": 1, "disable_existing_loggers": False,
+        "formatters": {"json": {"()": "renderer.unitlog.JsonLogFormatter"}},
+        "handlers": {"stderr": handler},
+        "loggers": {name: {"handlers": ["stderr"], "level": level.upper(), "propagate": False}
+                    for name in ("uvicorn", "uvicorn.access")},
+        "root": {"handlers": ["stderr"], "level": level.upper()},
+    }
 
 
 def _worker(args: argparse.Namespace) -> int:

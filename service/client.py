@@ -373,6 +373,11 @@ class RayfarmClient:
     def units(self, job_id: str) -> list[dict]:
         return self._json("GET", f"/jobs/{job_id}/units")
 
+    def unit_log(self, job_id: str, index: int) -> dict:
+        """What unit `index`'s tasks logged: ``attempts``, one per task, each with
+        ``lines``, ``traceback``, ``outcome``, ``worker``."""
+        return self._json("GET", f"/jobs/{job_id}/units/{int(index)}/log")
+
     def set_priority(self, job_id: str, priority: int) -> dict:
         return self._json("PATCH", f"/jobs/{job_id}", json={"priority": priority})
 

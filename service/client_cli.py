@@ -5,6 +5,7 @@
     rayfarm fetch $ID -o cornell.exr   # --png: the preview; --wait: wait for the job first
     rayfarm jobs --status running      # a table of jobs, newest first
     rayfarm cancel $ID
+    rayfarm logs $ID [UNIT]            # what units logged (default: those that failed or retried)
     rayfarm workers
 
 Every command takes `--server URL` (default: $RAYFARM_SERVER, else
@@ -304,6 +305,42 @@ def _cancel(args: argparse.Namespace, client: RayfarmClient) -> int:
     return code
 
 
+def _print_unit_log(entry: dict) -> None:
+    print(f"== unit {entry['index']} ({entry['state']})"
+          + (f": {entry['error']}" if entry.get("error") else ""))
+    if not entry["attempts"]:
+        print("   (no task has reported yet)")
+    for attempt in entry["attempts"]:
+        print(f"-- task {attempt['task']}, attempt {attempt['attempt']}: {attempt['outcome']}"
+              + (f" on {attempt['worker']}" if attempt.get("worker") else ""))
+        if attempt.get("dropped"):
+            print(f"   ({attempt['dropped']} earlier lines dropped)")
+        for line in attempt["lines"]:
+            print(line)
+        if attempt.get("traceback"):
+            print(attempt["traceback"].rstrip("\n"))
+
+
+def _logs(args: argparse.Namespace, client: RayfarmClient) -> int:
+    if args.unit is not None:
+        indices = [args.unit]
+    else:  # the units worth reading: failed, or retried (more than one task)
+        units = client.units(args.job_id)
+        indices = [u["index"] for u in units
+                   if args.all or u["state"] == "failed" or u["tasks"] > 1 or u.get("error")]
+        if not indices:
+            _say("logs", f"no unit of {args.job_id} failed or was retried "
+                         f"({len(units)} units; --all prints every one, or name a UNIT)")
+            return 0
+    entries = [client.unit_log(args.job_id, i) for i in indices]
+    if args.json:
+        print(json.dumps(entries, indent=2))
+        return 0
+    for entry in entries:
+        _print_unit_log(entry)
+    return 0
+
+
 def _workers(args: argparse.Namespace, client: RayfarmClient) -> int:
     workers = client.workers()
     if args.json:
@@ -335,7 +372,7 @@ def _server_options() -> argparse.ArgumentParser:
 
 
 def add_client_commands(sub: argparse._SubParsersAction) -> None:
-    """Add submit, watch, fetch, jobs, cancel and workers to `rayfarm`'s subcommands."""
+    """Add submit, watch, fetch, jobs, cancel, logs and workers to `rayfarm`'s subcommands."""
     server = [_server_options()]
 
     submit = sub.add_parser("submit", parents=server, help="submit a render job; prints its id",
@@ -391,6 +428,16 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
     cancel = sub.add_parser("cancel", parents=server, help="cancel jobs")
     cancel.add_argument("job_ids", nargs="+", metavar="ID")
     cancel.set_defaults(run=_run("cancel", _cancel))
+
+    logs = sub.add_parser("logs", parents=server, help="print what a job's units logged",
+                          description="Print the log lines and tracebacks a job's units left, "
+                                      "per task: of UNIT, or of the units that failed or were "
+                                      "retried.")
+    logs.add_argument("job_id", metavar="JOB")
+    logs.add_argument("unit", metavar="UNIT", type=int, nargs="?", help="a unit's index")
+    logs.add_argument("--all", action="store_true", help="every unit (without UNIT)")
+    logs.add_argument("--json", action="store_true", help="as JSON")
+    logs.set_defaults(run=_run("logs", _logs))
 
     workers = sub.add_parser("workers", parents=server, help="list the render workers")
     workers.add_argument("--json", action="store_true", help="as JSON instead of a table")

@@ -31,7 +31,7 @@ from .schemas import JobCreate
 from .settings import Settings
 from .store import Store
 
-__all__ = ["create_job", "get_job", "list_jobs", "visible_job_ids", "list_units", "cancel_job", "cancel_job_retrying",
+__all__ = ["create_job", "get_job", "list_jobs", "visible_job_ids", "list_units", "unit_logs", "cancel_job", "cancel_job_retrying",
            "pause_job", "resume_job", "retry_job", "requeue_job", "set_priority", "delete_job",
            "retrying", "result_file", "new_job_id"]
 
@@ -145,6 +145,18 @@ def list_units(session: Session, actor: Principal, job_id: str) -> list[WorkUnit
     job = get_job(session, actor, job_id)
     return list(session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)
                                 .order_by(WorkUnit.index)))
+
+
+def unit_logs(session: Session, store: Store, actor: Principal, job_id: str,
+              index: int) -> tuple[WorkUnit, list[dict]]:
+    """Unit `index` of a job `actor` may see, and the logs its tasks left
+    (oldest first); NotFound if there is no such job or unit."""
+    job = get_job(session, actor, job_id)
+    unit = session.get(WorkUnit, (job.id, index))
+    if unit is None:
+        raise NotFound(f"job '{job_id}' has no unit {index}"
+                       + ("" if job.units_total else " (it is not planned yet)"))
+    return unit, store.unit_logs(job.id, index)
 
 
 def cancel_job(session: Session, actor: Principal, job_id: str, now: datetime) -> Job:

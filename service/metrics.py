@@ -11,7 +11,7 @@ A registry of its own per app, never prometheus_client's global one: tests
 build many apps in one process, and each counts only its own farm.
 
 Every label is a small fixed set (states, methods, routes, reasons): no job
-id, user or raw path ever becomes a label (see the README's "Metrics").
+id, user or raw path ever becomes a label (see docs/operations.md, "Metrics").
 """
 
 from __future__ import annotations
@@ -40,7 +40,10 @@ __all__ = ["FarmMetrics", "PrometheusMetrics", "HTTPMetrics", "CONTENT_TYPE_LATE
 
 log = logging.getLogger(__name__)
 
-REQUEUE_REASONS = ("lost", "failed", "crash")
+# Why a unit was enqueued again: its task is gone (lost: the broker lost it, or
+# its worker's presence says lost), its lease lapsed without a heartbeat
+# (lease), its render process died (crash), or its attempt failed (failed).
+REQUEUE_REASONS = ("lost", "lease", "crash", "failed")
 UNMATCHED = "unmatched"  # the route label of a request no route answered (404 of an unknown path)
 _HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 # Render seconds of one unit: from a small tile to a long MLT chain.
@@ -55,7 +58,7 @@ class FarmMetrics:
         """A unit's film was stored and the unit marked done (committed)."""
 
     def requeued(self, reason: str) -> None:
-        """A unit was enqueued again: "lost" (no task will report) or "failed" (a retry)."""
+        """A unit was enqueued again, for one of `REQUEUE_REASONS`."""
 
     def tick(self, seconds: float) -> None:
         """One scheduler tick took this long."""
@@ -76,8 +79,9 @@ class PrometheusMetrics(FarmMetrics):
         self.rays = PromCounter("rayfarm_rays", "Rays traced by the units collected done "
                                 "(rate() is rays per second)", registry=r)
         self.requeues = PromCounter(
-            "rayfarm_units_requeued", "Units enqueued again: lost (no task will report), "
-            "failed (an attempt retried) or crash (its render process died: an attempt retried)", ["reason"], registry=r)
+            "rayfarm_units_requeued", "Units enqueued again, by reason: lost (the task is "
+            "gone or its worker lost), lease (no heartbeat for a lease), crash (the render "
+            "process died), failed (an attempt raised; retried)", ["reason"], registry=r)
         self.tick_seconds = Histogram("rayfarm_scheduler_tick_seconds",
                                       "Duration of one scheduler tick",
                                       buckets=_TICK_BUCKETS, registry=r)

@@ -393,6 +393,7 @@ class Scheduler:
                     events.note(job)
                 states.change_unit(unit, "done", now)
                 unit.worker = obs.worker or unit.worker
+                self._keep_log(job, unit, obs, now)
                 unit.seconds = float(film.stats.get("seconds", 0.0))
                 job.units_done += 1
                 job.samples += int(film.stats.get("samples", 0))
@@ -416,6 +417,7 @@ class Scheduler:
             self.metrics.requeued("lost")
         elif obs.state in ("failed", "crashed"):  # an attempt spent (a crash too)
             unit.error = obs.error
+            self._keep_log(job, unit, obs, now)
             if unit.attempts >= self.settings.max_attempts:
                 states.change_unit(unit, "failed", now)
                 self._fail_job(session, job, now, _attempts_error(unit, obs))
@@ -428,6 +430,17 @@ class Scheduler:
             self._enqueue(job, unit, now)
             self.metrics.requeued("crash" if obs.state == "crashed" else "failed")
         return False
+
+    def _keep_log(self, job: Job, unit: WorkUnit, obs: Observation, now: datetime) -> None:
+        """Keep what the unit's latest task logged (GET /jobs/{id}/units/{i}/log).
+        A log is a courtesy: a full disk loses it, never the unit."""
+        entry = {"task": len(unit.task_ids), "attempt": unit.attempts, "outcome": obs.state,
+                 "worker": obs.worker, "error": obs.error if obs.state == "failed" else None,
+                 "at": now.isoformat(), **(obs.log or {"lines": [], "traceback": None})}
+        try:
+            self.store.put_unit_log(job.id, unit.index, len(unit.task_ids), entry)
+        except OSError as exc:
+            log.warning("the log of unit %s/%d was not kept: %s", job.id, unit.index, exc)
 
     def _store_failed(self, job: Job, unit: WorkUnit, exc: OSError) -> None:
         """A finished unit whose film could not be stored (ENOSPC, EIO, ...): it is

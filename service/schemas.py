@@ -29,7 +29,7 @@ from renderer import BOUNDS, METHODS, SAMPLERS, RenderSpec
 from .executors import WorkerInfo
 from .models import ApiToken, Job, User, WorkUnit
 
-__all__ = ["RequestModel", "JobCreate", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS",
+__all__ = ["RequestModel", "UnitLogPublic", "UnitAttemptLog", "JobCreate", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS",
            "Progress", "ScenePublic", "UnitPublic", "WorkerPublic", "LoginRequest", "Me", "UserCreate",
            "UserUpdate", "UserPublic", "TokenCreate", "TokenPublic", "TokenCreated"]
 
@@ -281,6 +281,35 @@ class UnitPublic(BaseModel):
                    needs=list(u.get("needs") or ()), attempts=unit.attempts, tasks=len(unit.task_ids), worker=unit.worker,
                    enqueued_at=unit.enqueued_at, started_at=unit.started_at,
                    finished_at=unit.finished_at, seconds=unit.seconds, error=unit.error)
+
+
+class UnitAttemptLog(BaseModel):
+    """What one task of a unit logged in its render process (renderer.unitlog)."""
+
+    task: int = Field(description="the task's number among the unit's tasks (1 = first)")
+    attempt: int = Field(description="the unit's attempt count when the task reported")
+    outcome: str = Field(description="done or failed")
+    worker: str | None
+    error: str | None
+    at: datetime | None = Field(None, description="when the service collected it")
+    lines: list[str] = Field(description="the last log lines (INFO and above), oldest first")
+    dropped: int = Field(0, description="earlier lines dropped to keep the log bounded")
+    traceback: str | None = Field(description="the exception's traceback, if the task failed")
+
+
+class UnitLogPublic(BaseModel):
+    """A unit's logs, one per task that reported (GET /jobs/{id}/units/{i}/log)."""
+
+    job_id: str
+    index: int
+    state: str
+    error: str | None
+    attempts: list[UnitAttemptLog]
+
+    @classmethod
+    def from_unit(cls, unit: WorkUnit, logs: list[dict]) -> "UnitLogPublic":
+        return cls(job_id=unit.job_id, index=unit.index, state=unit.state, error=unit.error,
+                   attempts=[UnitAttemptLog.model_validate(entry) for entry in logs])
 
 
 class RunningUnitPublic(BaseModel):

@@ -4,6 +4,7 @@
     <data_dir>/store/scenes/<hash>.png         its thumbnail
     <data_dir>/uploads/<random>/               an upload while it is checked (then deleted)
     <data_dir>/jobs/<job_id>/units/<i>.film    a unit's PartialFilm bytes
+    <data_dir>/jobs/<job_id>/logs/<i>/<n>.json  unit i's log from its n-th task (JSON)
     <data_dir>/jobs/<job_id>/result.exr        the merged image
     <data_dir>/jobs/<job_id>/preview.png       its tonemapped preview
     <data_dir>/jobs/<job_id>/noise.png         its noise heatmap
@@ -15,6 +16,7 @@ written outside the data directory.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -57,6 +59,9 @@ class Store:
 
     def unit_path(self, job_id: str, index: int) -> Path:
         return self.job_dir(job_id) / "units" / f"{int(index)}.film"
+
+    def unit_log_dir(self, job_id: str, index: int) -> Path:
+        return self.job_dir(job_id) / "logs" / str(int(index))
 
     def result_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "result.exr"
@@ -105,9 +110,28 @@ class Store:
     def unit_film(self, job_id: str, index: int) -> bytes:
         return self.unit_path(job_id, index).read_bytes()
 
+    def put_unit_log(self, job_id: str, index: int, task: int, entry: dict) -> None:
+        """Keep what unit `index`'s `task`-th task logged (one file per task, so
+        a retry never overwrites the attempt before it)."""
+        self._write_atomic(self.unit_log_dir(job_id, index) / f"{int(task)}.json",
+                           json.dumps(entry).encode())
+
+    def unit_logs(self, job_id: str, index: int) -> list[dict]:
+        """Unit `index`'s kept logs, oldest task first (none: an empty list)."""
+        directory = self.unit_log_dir(job_id, index)
+        found = []
+        for path in directory.glob("*.json") if directory.is_dir() else ():
+            if path.stem.isdigit():
+                try:
+                    found.append((int(path.stem), json.loads(path.read_text())))
+                except (OSError, ValueError):  # removed meanwhile (requeued), or cut short
+                    continue
+        return [entry for _, entry in sorted(found, key=lambda pair: pair[0])]
+
     def clear_results(self, job_id: str) -> None:
-        """Forget a job's unit films and images (it is requeued)."""
+        """Forget a job's unit films, logs and images (it is requeued)."""
         shutil.rmtree(self.job_dir(job_id) / "units", ignore_errors=True)
+        shutil.rmtree(self.job_dir(job_id) / "logs", ignore_errors=True)
         self.result_path(job_id).unlink(missing_ok=True)
         self.preview_path(job_id).unlink(missing_ok=True)
         self.noise_path(job_id).unlink(missing_ok=True)

@@ -566,3 +566,39 @@ def test15_a_viewer_sees_everything_and_changes_nothing_an_artist_its_own(anon_p
     assert page.is_enabled("button[data-action='requeue']") and page.is_enabled("button[data-action='delete']")
     assert not page.is_visible("#read-only-note")
     shot(page, "21-artist-job")
+
+
+def test16_a_units_row_opens_its_log_with_lines_and_tracebacks(page, embedded_serve):
+    """Clicking a unit's row shows what its tasks logged: a done unit's line from
+    the renderer, a failed unit's three tracebacks (its scene text tampered with,
+    as tests/test_service_unitlogs.py does)."""
+    from test_service_unitlogs import HASH_ERROR, UNIT_LINE, poisoned_scene
+
+    scenes = embedded_serve[0].log_path.parent / "data" / "store" / "scenes"
+    poison = poisoned_scene(lambda key: scenes / f"{key}.json")
+    with api(page.base) as client:
+        done = client.post("/jobs", json=dict(TINY, seed=1601)).json()
+        failed = client.post("/jobs", json=dict(TINY, scene=poison, progressive=False)).json()
+    assert wait_done(page.base, done["id"])["status"] == "done"
+    assert wait_done(page.base, failed["id"])["status"] == "failed"
+
+    page.goto(f"{page.base}/#/jobs/{done['id']}")
+    page.wait_for_selector("#units-table tbody tr[data-unit='0']")
+    assert page.is_hidden("#unit-log")
+    page.click("#units-table tbody tr[data-unit='0']")
+    page.wait_for_selector("#unit-log .unit-attempt[data-task='1'] pre.log-lines")
+    assert UNIT_LINE in page.text_content("#unit-log pre.log-lines")
+    assert page.query_selector("#unit-log pre.log-traceback") is None
+    assert "selected" in page.get_attribute("#units-table tbody tr[data-unit='0']", "class")
+
+    page.goto(f"{page.base}/#/jobs/{failed['id']}")
+    row = "#units-table tbody tr:has(.badge[data-state='failed'])"
+    page.wait_for_selector(row)
+    page.click(row)
+    page.wait_for_selector("#unit-log .unit-attempt[data-task='3'] pre.log-traceback")
+    tracebacks = page.eval_on_selector_all("#unit-log pre.log-traceback",
+                                           "els => els.map(e => e.textContent)")
+    assert len(tracebacks) == 3 and all(HASH_ERROR in t for t in tracebacks), tracebacks
+    shot(page, "16-unit-log")
+    page.click("#unit-log-close")
+    assert page.is_hidden("#unit-log")

@@ -75,8 +75,32 @@ def test01_metrics_is_public_and_parses(client):
     assert sum(value(samples, "rayfarm_workers", state=s) for s in ("busy", "idle")) == 1
     assert value(samples, "rayfarm_disk_free_bytes") > 0
     assert value(samples, "rayfarm_scheduler_tick_seconds_count") > 0  # the scheduler ticks
-    for reason in ("lost", "failed"):
+    for reason in ("lost", "lease", "crash", "failed"):
         assert ("rayfarm_units_requeued_total", (("reason", reason),)) in samples
+
+
+# Issue 12, point 7: every metric by name, with its Prometheus type and labels.
+TYPES = {"rayfarm_jobs": ("gauge", {"state"}), "rayfarm_units": ("gauge", {"state"}),
+         "rayfarm_queue_depth": ("gauge", set()), "rayfarm_workers": ("gauge", {"state"}),
+         "rayfarm_disk_free_bytes": ("gauge", set()), "rayfarm_samples": ("counter", set()),
+         "rayfarm_rays": ("counter", set()),
+         "rayfarm_unit_render_seconds": ("histogram", {"method"}),
+         "rayfarm_units_requeued": ("counter", {"reason"}),
+         "rayfarm_scheduler_tick_seconds": ("histogram", set()),
+         "rayfarm_http_request_seconds": ("histogram", {"method", "route"})}
+
+
+def test01b_every_metric_has_its_type_and_labels(client):
+    poll_job(get_json(client), submit(client, TINY)["id"])  # a render-seconds sample by method
+    text, _ = scrape(client)
+    families = {f.name: f for f in text_string_to_metric_families(text)}
+    assert set(TYPES) == set(FAMILIES)
+    for name, (kind, labels) in TYPES.items():
+        family = families[name]
+        assert family.type == kind, (name, family.type)
+        assert family.samples, name
+        for sample in family.samples:
+            assert set(sample.labels) - {"le"} == labels, (name, sample.labels)
 
 
 def test02_a_tiny_job_moves_the_counters_by_exactly_its_own(client):

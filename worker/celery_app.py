@@ -22,7 +22,8 @@ from __future__ import annotations
 import logging
 
 from celery import Celery
-from celery.signals import task_failure, worker_process_init, worker_ready, worker_shutdown
+from celery.signals import (after_setup_logger, after_setup_task_logger, task_failure,
+                            worker_process_init, worker_ready, worker_shutdown)
 
 from .keys import QUEUE
 from .settings import Settings
@@ -58,12 +59,29 @@ def create_celery_app(settings: Settings) -> Celery:
         broker_connection_retry_on_startup=True,
     )
     app.conf.rayfarm_heartbeat_seconds = settings.worker_heartbeat_seconds
+    global _log_format
+    _log_format = settings.log_format
     # The render processes are forked from here: they inherit the cache directory.
     settings.configure_renderer()
     from .tasks import register_tasks
 
     register_tasks(app)
     return app
+
+
+_log_format = "text"  # of the last app built: a `rayfarm worker` builds one
+
+
+@after_setup_logger.connect
+@after_setup_task_logger.connect
+def _json_logs(logger=None, **_kwargs) -> None:
+    # RAYFARM_LOG_FORMAT=json: Celery's handlers (the render processes inherit
+    # them) write one JSON object per line, with the unit's ids while it renders.
+    if _log_format == "json" and logger is not None:
+        from renderer.unitlog import JsonLogFormatter
+
+        for handler in logger.handlers:
+            handler.setFormatter(JsonLogFormatter())
 
 
 @worker_process_init.connect

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 __all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "scene_key", "heartbeat_key", "cancel_key",
-           "worker_key", "worker_running_key", "input_key"]
+           "worker_key", "worker_running_key", "input_key", "unit_log_key"]
 
 TASK_RENDER_UNIT = "rayfarm.render_unit"
 QUEUE = "rayfarm.units"
@@ -39,3 +39,9 @@ def worker_key(name: str) -> str:
 def worker_running_key(name: str) -> str:
     """The units a worker's processes render now (a hash: process id -> unit)."""
     return f"rayfarm:worker:{name}:running"
+
+
+def unit_log_key(task_id: str) -> str:
+    """A failed task's captured log (JSON, renderer.unitlog), for the service to
+    keep: Celery's result keeps the exception's type, message and traceback only."""
+    return f"rayfarm:unitlog:{task_id}"

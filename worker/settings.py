@@ -10,6 +10,7 @@ tests construct it and hand it down::
 from __future__ import annotations
 
 import os
+from typing import Literal
 from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -87,6 +88,9 @@ class Settings(BaseSettings):
     cache_max_bytes: int = Field(1 << 30, gt=0,
                                  description="size cap of each on-disk cache; the least "
                                              "recently used entries are evicted above it")
+    log_format: Literal["text", "json"] = Field(
+        "text", description="json: `rayfarm serve` and workers log one JSON object per line "
+                            "(time, level, logger, message, job_id and unit when known)")
     min_free_bytes: int = Field(256 * 1024 * 1024, ge=0,
                                 description="/healthz reports degraded when the data dir's "
                                             "file system has less free space than this")
@@ -120,6 +124,11 @@ class Settings(BaseSettings):
         from renderer import cache
 
         cache.configure(self.cache_dir, self.cache_max_bytes)
+
+    @field_validator("log_format", mode="before")
+    @classmethod
+    def _lower_log_format(cls, value):
+        return value.strip().lower() if isinstance(value, str) else value
 
     @field_validator("broker_url", "database_url", "admin_token")
     @classmethod

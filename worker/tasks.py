@@ -3,7 +3,10 @@
 The task takes ids and parameters only; the scene's canonical text travels by
 content hash (`rayfarm:scene:<hash>` in Redis, read only when this process
 has not built that scene yet). It returns the partial film's bytes, base64
-encoded for the JSON result backend, and the worker's name. While it runs, a
+encoded for the JSON result backend, the worker's name and the unit's own log
+(renderer.unitlog: its log lines; a failed unit's log, with its traceback,
+goes to `unit_log_key(task id)` with a TTL, since Celery's failure result
+holds only the exception). While it runs, a
 heartbeat key with a TTL of one lease tells the service the unit is alive,
 and the worker's presence record (worker/presence.py) shows the unit and,
 once it is done, counts it.
@@ -12,6 +15,7 @@ once it is done, counts it.
 from __future__ import annotations
 
 import base64
+import json
 import logging
 import os
 import threading
@@ -21,9 +25,11 @@ import redis
 from celery import Celery
 
 from renderer import PartialFilm, execute_unit
+from renderer.unitlog import capture_unit_log
 
 from . import presence
-from .keys import TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key
+from .keys import (TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key,
+                   unit_log_key)
 
 __all__ = ["register_tasks", "render_unit", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
 
@@ -94,6 +100,8 @@ class Heartbeat:
             pass
 
 
+UNIT_LOG_TTL = 24 * 3600  # the service reads it on its next tick; a day covers an outage
+
 _clients: dict[tuple[int, str], redis.Redis] = {}
 
 
@@ -105,8 +113,11 @@ def _redis(url: str) -> redis.Redis:
     return _clients[key]
 
 
-def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> dict[str, Any]:
-    """Run one unit described by `payload` and return ``{"film": b64, "worker": name}``.
+def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
+                task_id: str | None = None) -> dict[str, Any]:
+    """Run one unit described by `payload` and return ``{"film": b64, "worker":
+    name, "log": captured}``; if it raises, its captured log is left under
+    `unit_log_key(task_id)` first.
 
     `payload`: ``job_id``, ``index``, ``scene_hash``, ``spec`` (a RenderSpec
     dict), ``unit`` (a Unit dict), ``lease_seconds`` (the heartbeat's TTL)
@@ -125,16 +136,29 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> di
 
     presence.unit_started(client, worker, job_id, index)
     stats = None
+    captured = None
     try:
         with Heartbeat(client, heartbeat_key(job_id, index), float(payload["lease_seconds"]),
-                       worker):
+                       worker), capture_unit_log(job_id, index) as captured:
             inputs = {int(i): _fetch_input(client, digest)
                       for i, digest in (payload.get("inputs") or {}).items()}
             film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs)
         stats = PartialFilm.stats_from_bytes(film)
+    except Exception:
+        if captured is not None and task_id:
+            _leave_log(client, task_id, captured.to_dict())
+        raise
     finally:
         presence.unit_finished(client, worker, stats)
-    return {"film": base64.b64encode(film).decode("ascii"), "worker": worker}
+    return {"film": base64.b64encode(film).decode("ascii"), "worker": worker,
+            "log": captured.to_dict()}
+
+
+def _leave_log(client: redis.Redis, task_id: str, log_data: dict) -> None:
+    try:
+        client.set(unit_log_key(task_id), json.dumps(log_data), ex=UNIT_LOG_TTL)
+    except redis.RedisError as exc:  # the failure itself still reaches the service
+        log.warning("the log of task %s was not kept: %s", task_id, exc)
 
 
 def register_tasks(app: Celery) -> None:
@@ -144,4 +168,4 @@ def register_tasks(app: Celery) -> None:
     def _render_unit_task(self, payload: dict[str, Any]) -> dict[str, Any]:
         client = _redis(self.app.conf.broker_url)
         worker = self.request.hostname or f"pid-{os.getpid()}"
-        return render_unit(client, worker, payload)
+        return render_unit(client, worker, payload, task_id=self.request.id)

@@ -50,12 +50,15 @@ class Observation:
     kernel, a SIGKILL of that process); `error` says how, in
     `renderer.process_death`'s words. It spends an attempt, like `failed`: a
     unit that kills every process it runs in fails after `max_attempts`.
+    `log`: with done or failed, the unit's own log as its render process
+    captured it (renderer.unitlog: lines, traceback, dropped), if any.
     """
 
     state: Literal["queued", "running", "done", "failed", "crashed", "lost"]
     film: bytes | None = None
     worker: str | None = None
     error: str | None = None
+    log: dict | None = None
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import json
 import logging
 import math
 import re
@@ -35,7 +36,8 @@ import redis
 
 from renderer import PartialFilm, process_death
 from worker.celery_app import create_celery_app
-from worker.keys import QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key
+from worker.keys import (QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key,
+                         scene_key, unit_log_key)
 from worker.presence import read_workers
 
 from ..settings import Settings
@@ -160,14 +162,17 @@ class CeleryExecutor(Executor):
                     return Observation("failed", error=f"task returned no film: {sorted(result)}")
                 film = base64.b64decode(result["film"])
                 self._note_seconds(film)
-                return Observation("done", film=film, worker=result.get("worker"))
+                return Observation("done", film=film, worker=result.get("worker"),
+                                   log=result.get("log"))
         latest = metas[-1] if metas else None
         status = latest.get("status") if latest else None
         if status == "FAILURE":
             crash = _process_death(latest)
             if crash is not None:
-                return Observation("crashed", error=crash)
-            return Observation("failed", error=_error_text(latest))
+                return Observation("crashed", error=crash,
+                                   log=self._failure_log(flight.task_ids[-1], latest))
+            return Observation("failed", error=_error_text(latest),
+                               log=self._failure_log(flight.task_ids[-1], latest))
         if beat is not None:
             return Observation("running", worker=beat.decode(errors="replace"))
         if status == "STARTED" or flight.state == "running":
@@ -180,6 +185,20 @@ class CeleryExecutor(Executor):
             return None
         return Observation("queued")
 
+    def _failure_log(self, task_id: str, meta: dict) -> dict:
+        """A failed task's captured log (left in Redis by the worker), with the
+        traceback of the result backend if the worker left none."""
+        try:
+            raw = self.redis.get(unit_log_key(task_id))
+            captured = json.loads(raw) if raw else {}
+        except (redis.RedisError, ValueError) as exc:
+            log.warning("the log of task %s is unreadable: %s", task_id, exc)
+            captured = {}
+        if not captured.get("traceback") and meta.get("traceback"):
+            captured["traceback"] = str(meta["traceback"])
+        return {"lines": list(captured.get("lines") or ()), "dropped": captured.get("dropped", 0),
+                "traceback": captured.get("traceback")}
+
     def _note_seconds(self, film: bytes) -> None:
         try:
             seconds = float(PartialFilm.stats_from_bytes(film).get("seconds", 0.0))
@@ -191,6 +210,8 @@ class CeleryExecutor(Executor):
     def release(self, task_ids: Sequence[str]) -> None:
         for task_id in task_ids:
             self.app.backend.forget(task_id)
+        if task_ids:
+            self.redis.delete(*[unit_log_key(t) for t in task_ids])
 
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
         # The marker makes any worker skip the job's units still queued (also

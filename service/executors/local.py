@@ -68,7 +68,8 @@ class LocalExecutor(Executor):
         task_id = uuid.uuid4().hex
         tag = next(self._tags)
         future = self._pool.submit(ticket.scene_hash, self._scene(ticket.scene_hash), ticket.spec,
-                                   ticket.unit, tag=tag, inputs=ticket.inputs or None)
+                                   ticket.unit, tag=tag, inputs=ticket.inputs or None,
+                                   job_id=ticket.job_id)
         future.add_done_callback(lambda _future: self._progress())
         with self._lock:
             self._futures[task_id] = future
@@ -100,15 +101,18 @@ class LocalExecutor(Executor):
             fut = self._futures.get(task_id)
             if fut is not None and fut.done() and not fut.cancelled() and fut.exception() is None:
                 self._count(task_id, fut.result())
-                return Observation("done", film=fut.result(), worker=self.worker_name)
+                return Observation("done", film=fut.result(), worker=self.worker_name,
+                                   log=getattr(fut, "unit_log", None))
         latest = self._futures.get(flight.task_ids[-1]) if flight.task_ids else None
         if latest is None or latest.cancelled():
             return Observation("lost")  # e.g. the service restarted: the pool is new
         if latest.done():
             exc = latest.exception()
             if isinstance(exc, RenderProcessDied):
-                return Observation("crashed", error=str(exc), worker=self.worker_name)
-            return Observation("failed", error=f"{type(exc).__name__}: {exc}")
+                return Observation("crashed", error=str(exc), worker=self.worker_name,
+                                   log=getattr(latest, "unit_log", None))
+            return Observation("failed", error=f"{type(exc).__name__}: {exc}",
+                               worker=self.worker_name, log=getattr(latest, "unit_log", None))
         if self._tag_of.get(flight.task_ids[-1]) in rendering or flight.state == "running":
             return Observation("running", worker=self.worker_name)
         return Observation("queued")

@@ -1,16 +1,16 @@
-"""/jobs: submit, list, inspect, reprioritize, pause, resume, retry, requeue,
+"""/jobs: submit, list, inspect (units and their logs), reprioritize, pause, resume, retry, requeue,
 cancel, delete, download (EXR, preview, noise map)."""
 
 from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Query, Response, status
+from fastapi import APIRouter, Path, Query, Response, status
 from fastapi.responses import FileResponse
 
 from ... import admission, jobs
 from ...models import utcnow
-from ...schemas import JobCreate, JobPublic, JobUpdate, UnitPublic
+from ...schemas import JobCreate, JobPublic, JobUpdate, UnitLogPublic, UnitPublic
 from ..auth import ActorDep
 from ..deps import FarmDep, SessionDep
 from ..errors import responses
@@ -57,6 +57,16 @@ def get_job(job_id: str, session: SessionDep, actor: ActorDep) -> JobPublic:
 def list_units(job_id: str, session: SessionDep, actor: ActorDep) -> list[UnitPublic]:
     """A job's work units: state, attempts, worker, timings."""
     return [UnitPublic.from_unit(u) for u in jobs.list_units(session, actor, job_id)]
+
+
+@router.get("/{job_id}/units/{index}/log", response_model=UnitLogPublic,
+            responses=responses(404, 422))
+def unit_log(job_id: str, index: Annotated[int, Path(ge=0, le=MAX_OFFSET)],
+             session: SessionDep, farm: FarmDep, actor: ActorDep) -> UnitLogPublic:
+    """What a unit's tasks logged while they rendered: per task, the last log
+    lines and, if it failed, the exception's traceback (oldest task first)."""
+    unit, logs = jobs.unit_logs(session, farm.store, actor, job_id, index)
+    return UnitLogPublic.from_unit(unit, logs)
 
 
 @router.post("/{job_id}/cancel", response_model=JobPublic, responses=_CHANGE)

@@ -1,5 +1,6 @@
 // One job: its image sharpening as passes land, the tile map, the noise map,
-// progress and throughput, its units, and what can be done to it.
+// progress and throughput, its units (a row opens the unit's log), and what
+// can be done to it.
 // Live from GET /jobs/{id}/events: job, units (snapshot), unit, preview, end.
 
 import { ApiError, api, stream } from "../api.js";
@@ -56,6 +57,11 @@ export function jobView(root, jobId) {
   const workersBox = h("div.panel-body");
   const unitsHead = h("div.viewer-bar");
   const unitsBody = h("tbody");
+  const logTitle = h("h2", {}, "Unit log");
+  const logBody = h("div.panel-body#unit-log-body");
+  const logPanel = h("div.panel#unit-log", { hidden: true }, logTitle, logBody);
+  let logUnit = null; // the index whose log is shown
+  let logSeen = ""; // that unit's state and tasks when its log was fetched
 
   replace(root,
     h("div.page-head", {},
@@ -71,7 +77,8 @@ export function jobView(root, jobId) {
           h("div.panel-body", {}, unitsHead,
             h("div.unit-table", {}, h("table.grid#units-table", {},
               h("thead", {}, h("tr", {}, ["#", "Phase", "Region", "Samples", "State", "Worker", "Attempts",
-                "Render time", "Error"].map((t) => h("th", {}, t)))), unitsBody))))),
+                "Render time", "Error"].map((t) => h("th", {}, t)))), unitsBody)))),
+        logPanel),
       h("div.side", {},
         h("div.panel", {}, h("h2", {}, "Progress"), progressBox),
         h("div.panel", {}, h("h2", {}, "Throughput"), statsBox),
@@ -370,7 +377,10 @@ export function jobView(root, jobId) {
         s, h("span.count", {}, s === "all" ? units.size : counts[s])))));
     const shown = [...units.values()].filter((u) => unitFilter === "all" || u.state === unitFilter)
       .sort((a, b) => a.index - b.index).slice(0, 1000);
-    replace(unitsBody, shown.length ? shown.map((u) => h("tr", { "data-unit": u.index },
+    replace(unitsBody, shown.length ? shown.map((u) => h(`tr.clickable${u.index === logUnit ? ".selected" : ""}`, {
+      "data-unit": u.index, tabindex: 0, title: "show this unit's log",
+      onclick: () => showLog(u.index),
+      onkeydown: (e) => { if (e.key === "Enter") showLog(u.index); } },
       h("td.num", {}, u.index),
       h("td", {}, u.kind === "tile" ? `pass ${u.region.pass}` : `${u.kind} (stage ${u.stage})`),
       h("td.mono", {}, `${u.region.x0},${u.region.y0}–${u.region.x1},${u.region.y1}`),
@@ -381,6 +391,36 @@ export function jobView(root, jobId) {
       h("td.wrap", {}, u.error || "")))
       : h("tr", {}, h("td.empty", { colspan: 9 }, job && job.progress.units_total ? "No such units."
         : "The job is not planned yet.")));
+  }
+
+  // -- a unit's log (GET /jobs/{id}/units/{i}/log): per task, its lines and traceback ----
+  async function showLog(index) {
+    logUnit = index;
+    const unit = units.get(index);
+    logSeen = unit ? `${unit.state}/${unit.tasks}` : "";
+    logPanel.hidden = false;
+    replace(logTitle, `Unit ${index} log`, h("button.close#unit-log-close", { title: "close",
+      onclick: () => { logUnit = null; logPanel.hidden = true; renderUnits(); } }, "×"));
+    renderUnits();
+    try {
+      const log = await api.get(`/jobs/${jobId}/units/${index}/log`);
+      if (logUnit !== index) return; // another row was chosen meanwhile
+      replace(logBody,
+        h("div.muted", {}, `${log.state}${log.error ? ` · ${log.error}` : ""}`),
+        log.attempts.length ? log.attempts.map((a) => h("div.unit-attempt", { "data-task": a.task },
+          h("h3", {}, `task ${a.task} · attempt ${a.attempt} · ${a.outcome}${a.worker ? ` on ${a.worker}` : ""}`),
+          a.dropped ? h("div.muted", {}, `${a.dropped} earlier lines dropped`) : null,
+          h("pre.log-lines", {}, a.lines.length ? a.lines.join("\n") : "(no log lines)"),
+          a.traceback ? h("pre.log-traceback", {}, a.traceback) : null))
+          : h("div.muted#unit-log-empty", {}, "No task of this unit has reported yet."));
+    } catch (err) {
+      if (logUnit === index) replace(logBody, h("div.error-box", {}, `Could not load the log: ${err.message}`));
+    }
+  }
+
+  function refreshLog() { // the shown unit finished or ran again: its log grew
+    const unit = logUnit === null ? null : units.get(logUnit);
+    if (unit && `${unit.state}/${unit.tasks}` !== logSeen) showLog(logUnit);
   }
 
   // -- state ----------------------------------------------------------------------------
@@ -407,7 +447,7 @@ export function jobView(root, jobId) {
     unitsDirty = true;
     requestAnimationFrame(() => {
       unitsDirty = false;
-      renderTiles(); renderUnits(); renderWorkers(); renderActions();
+      renderTiles(); renderUnits(); renderWorkers(); renderActions(); refreshLog();
       if (job) renderProgress(); // the phases
     });
   }
