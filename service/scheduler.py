@@ -34,6 +34,11 @@ pending units are its planned units minus those done and in flight (its
 counters change in the same transactions as its units'), an upper bound
 that `_ready_units` makes exact for the few jobs fair share asks about.
 
+Only the replica that leads ticks (`service.leader`): the thread checks the
+leadership before each tick and runs the tick fenced, so a replica that lost
+its lease mid-tick cannot commit. On becoming the leader it forgets what it
+tracked before: the ledger says what is in flight.
+
 Every committed status change and progress step is published to the event
 streams (`service.events`). The scheduler only schedules: the running
 previews of the jobs in flight are `service.previews`' (fed the films that
@@ -42,6 +47,7 @@ land), the final merge and its images `service.results`'.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import threading
@@ -61,6 +67,7 @@ from . import events, states
 from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
 from .fairshare import Contender, fair_share
+from .leader import Leadership, LeadershipLost
 from .metrics import FarmMetrics
 from .models import Job, User, WorkUnit, utcnow
 from .previews import RunningPreviews
@@ -69,6 +76,11 @@ from .settings import Settings
 from .store import Store
 
 __all__ = ["Scheduler"]
+
+
+@contextlib.contextmanager
+def _unfenced():
+    yield
 
 log = logging.getLogger(__name__)
 
@@ -93,8 +105,12 @@ class Scheduler:
 
     def __init__(self, settings: Settings, sessions: sessionmaker[Session], store: Store,
                  executor: Executor, clock: Callable[[], datetime] = utcnow,
-                 hub: EventHub | None = None, metrics: FarmMetrics | None = None):
+                 hub: EventHub | None = None, metrics: FarmMetrics | None = None,
+                 leadership: Leadership | None = None):
         self.settings, self.sessions, self.store, self.executor = settings, sessions, store, executor
+        # None: this scheduler alone drives the ledger (tests that call tick()).
+        self.leadership = leadership
+        self.leading = leadership is None
         self.clock = clock
         self.events = hub if hub is not None else EventHub()
         self.metrics = metrics if metrics is not None else FarmMetrics()  # service.metrics
@@ -112,6 +128,9 @@ class Scheduler:
         # read once and the tickets share one bytes object each.
         self._inputs: dict[tuple[str, int], bytes] = {}
         self.ticks = 0
+        self.ticks_as_leader = 0
+        self.became_leader_at: float | None = None  # time.time() of the last takeover
+        self.first_tick_as_leader_at: float | None = None
         self.last_error: str | None = None
 
     # -- the thread --------------------------------------------------------------
@@ -134,8 +153,13 @@ class Scheduler:
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                self.tick()
+                if self._lead():
+                    with self.leadership.fenced() if self.leadership else _unfenced():
+                        self.tick()
                 self.last_error = None
+            except LeadershipLost as exc:  # another replica leads now; stand by
+                log.warning("scheduler stopped mid-tick: %s", exc)
+                self._lead()
             except Exception as exc:  # keep scheduling; the next tick retries
                 error = f"{type(exc).__name__}: {exc}"
                 if error != self.last_error:  # once per distinct error, not every tick
@@ -143,6 +167,23 @@ class Scheduler:
                 self.last_error = error
             self._wake.wait(self.settings.poll_interval)
             self._wake.clear()
+
+    def _lead(self) -> bool:
+        """Does this replica lead now? On a change, start afresh or let go."""
+        leading = self.leadership is None or self.leadership.leading()
+        if leading and not self.leading:
+            self.ticks_as_leader = 0
+            self.became_leader_at = time.time()
+        if leading != self.leading:
+            # Units another leader (or this one, before) put in flight: the ledger
+            # has them; the executor reports those it does not run as lost.
+            for key, task_ids in self._tracked.items():
+                if not leading:
+                    self.executor.cancel(key[0], task_ids)
+            self._tracked = {}
+            self.previews = RunningPreviews(self.store, self.events, self._done_units)
+            self.leading = leading
+        return leading
 
     # -- one tick ------------------------------------------------------------------
     def tick(self) -> None:
@@ -180,6 +221,9 @@ class Scheduler:
         finally:
             self._inputs = {}
             self.ticks += 1
+            if self.ticks_as_leader == 0:
+                self.first_tick_as_leader_at = time.time()
+            self.ticks_as_leader += 1
 
     def _census(self) -> tuple[dict[str, _JobRow], Counter[str]]:
         """The scheduled jobs (higher priority first, then oldest) and their
