@@ -66,7 +66,7 @@ class Farm:
         publish_commits(sessions, hub)
         relay = None
         if engine.dialect.name == "postgresql":
-            relay = hub.relay = PostgresRelay(engine, sessions, hub)
+            relay = PostgresRelay(engine, sessions, hub)  # attached by start()
         leadership = open_leadership(settings, engine)
         leadership.guard(sessions)
         scheduler = Scheduler(settings, sessions, store, executor, hub=hub, metrics=metrics,
@@ -80,6 +80,7 @@ class Farm:
         only while this replica leads) and the thumbnailer."""
         if self.relay is not None:
             self.relay.start()
+            self.events.relay = self.relay
         self.leadership.start()
         if not self.leadership.leading():
             log.warning("%s", self.standby_message())
@@ -96,6 +97,7 @@ class Farm:
         self.scheduler.stop()
         self.leadership.stop()  # after the scheduler: a standby may start at once
         if self.relay is not None:
+            self.events.relay = None
             self.relay.stop()
         self.executor.close()
         self.engine.dispose()

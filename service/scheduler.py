@@ -127,10 +127,7 @@ class Scheduler:
         # gather tile of a photon round needs the same photon maps, so they are
         # read once and the tickets share one bytes object each.
         self._inputs: dict[tuple[str, int], bytes] = {}
-        self.ticks = 0
-        self.ticks_as_leader = 0
-        self.became_leader_at: float | None = None  # time.time() of the last takeover
-        self.first_tick_as_leader_at: float | None = None
+        self.ticks = 0  # a standby's stay 0
         self.last_error: str | None = None
 
     # -- the thread --------------------------------------------------------------
@@ -169,17 +166,14 @@ class Scheduler:
             self._wake.clear()
 
     def _lead(self) -> bool:
-        """Does this replica lead now? On a change, start afresh or let go."""
+        """Does this replica lead now? On a change, forget what it tracked: the
+        ledger has the units in flight, and the executor reports those it does
+        not run (another leader's) as lost, so they are enqueued again."""
         leading = self.leadership is None or self.leadership.leading()
-        if leading and not self.leading:
-            self.ticks_as_leader = 0
-            self.became_leader_at = time.time()
         if leading != self.leading:
-            # Units another leader (or this one, before) put in flight: the ledger
-            # has them; the executor reports those it does not run as lost.
-            for key, task_ids in self._tracked.items():
-                if not leading:
-                    self.executor.cancel(key[0], task_ids)
+            if not leading:  # the new leader enqueues them again; free our slots
+                for (job_id, _index), task_ids in self._tracked.items():
+                    self.executor.cancel(job_id, task_ids)
             self._tracked = {}
             self.previews = RunningPreviews(self.store, self.events, self._done_units)
             self.leading = leading
@@ -221,9 +215,6 @@ class Scheduler:
         finally:
             self._inputs = {}
             self.ticks += 1
-            if self.ticks_as_leader == 0:
-                self.first_tick_as_leader_at = time.time()
-            self.ticks_as_leader += 1
 
     def _census(self) -> tuple[dict[str, _JobRow], Counter[str]]:
         """The scheduled jobs (higher priority first, then oldest) and their
