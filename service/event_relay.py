@@ -92,8 +92,8 @@ class PostgresRelay:
 
     def _listen(self, resync: bool) -> None:
         raw = self.engine.raw_connection()  # the engine's URL and connect arguments
-        raw.detach()  # ours alone, closed here, never back in the pool
         conn = raw.driver_connection
+        raw.detach()  # ours alone, closed here, never back in the pool
         try:
             conn.autocommit = True
             conn.execute(f"LISTEN {CHANNEL}")

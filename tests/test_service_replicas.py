@@ -177,56 +177,63 @@ def _replica_pair(spawn_replica, postgres_url: str):
     """Two replicas on one PostgreSQL ledger and one data dir; the first leads."""
     leader, a = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
     standby, b = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
-    assert health(a)["leadership"]["role"] == "leader"
-    assert health(b)["leadership"] | {"role": "standby"} == health(b)["leadership"]
-    assert health(b)["leadership"]["holder"] == health(a)["leadership"]["replica"]
+    first, second = health(a)["leadership"], health(b)["leadership"]
+    assert first["role"] == "leader" and second["role"] == "standby", (first, second)
+    assert second["holder"] == first["replica"] and second["epoch"] == 1
     return (leader, a), (standby, b)
 
 
-def test05_an_event_stream_on_one_replica_sees_a_job_run_by_the_other(spawn_replica,
-                                                                      postgres_url):
-    (_, a), (_, b) = _replica_pair(spawn_replica, postgres_url)
-    job = api(a, "POST", "/jobs", json=TINY)
-    seen: list[tuple[str, dict]] = []
+class EventReader(threading.Thread):
+    """Reads a job's event stream (`GET /jobs/{id}/events`) into `seen`."""
 
-    def follow():  # B's stream of a job A submitted and A's scheduler runs
-        with httpx.stream("GET", f"{b}/jobs/{job['id']}/events", headers=ADMIN_HEADERS,
-                          timeout=120) as response:
+    def __init__(self, url: str):
+        super().__init__(daemon=True)
+        self.url, self.seen = url, []
+
+    def run(self) -> None:
+        with httpx.stream("GET", self.url, headers=ADMIN_HEADERS, timeout=240) as response:
             kind = None
             for line in response.iter_lines():
                 if line.startswith("event: "):
                     kind = line[7:]
                 elif line.startswith("data: ") and kind:
-                    seen.append((kind, json.loads(line[6:])))
+                    self.seen.append((kind, json.loads(line[6:])))
                     if kind == "end":
                         return
-    reader = threading.Thread(target=follow, daemon=True)
-    reader.start()
-    reader.join(150)
-    assert not reader.is_alive(), f"B's stream did not end: {seen[-3:]}"
-    kinds = [kind for kind, _ in seen]
-    assert seen[-1] == ("end", {"job_id": job["id"], "status": "done"}), seen[-3:]
-    assert "unit" in kinds and kinds.count("job") >= 2, kinds  # events, not just a snapshot
-    assert health(b)["scheduler_ticks"] == 0
+
+    def kinds(self) -> list[str]:
+        return [kind for kind, _ in self.seen]
 
 
-def test06_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
-        spawn_replica, postgres_url, reference_channels, tmp_path):
+def test05_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
+        postgres_url, spawn_replica, reference_channels, tmp_path):
+    """Two replicas on PostgreSQL: a stream on B follows a job submitted to A
+    and run by A's scheduler (events relayed); A is SIGKILLed mid-job; B takes
+    over, renders again only the units A had in flight, and the result is
+    bit-identical to an undisturbed render."""
     (leader, a), (_, b) = _replica_pair(spawn_replica, postgres_url)
-    body = dict(TINY, tile_size=4, progressive=False)  # 64 units
+    body = dict(TINY, width=64, height=64, tile_size=8, spp=32, progressive=False)  # 64 units
     job = api(a, "POST", "/jobs", json=body)
+    stream = EventReader(f"{b}/jobs/{job['id']}/events")
+    stream.start()
     wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["progress"]["units_done"] >= 16, 120,
              "a quarter of the units to be done")
     leader.kill_group(signal.SIGKILL)  # the service and its render process
     killed = time.monotonic()
+    # What B's stream had from A's scheduler: it came through the relay.
+    relayed = [data for kind, data in stream.seen if kind == "unit" and data["state"] == "done"]
+    assert relayed, f"no unit event from the leader reached the standby's stream: {stream.kinds()}"
     # The ledger at the kill (the dead leader writes nothing more): what was
     # done must never be rendered again; what was in flight may be, once.
     at_kill = {u["index"]: u for u in api(b, "GET", f"/jobs/{job['id']}/units")}
+    assert health(b)["scheduler_ticks"] == 0, "the standby scheduled while the leader lived"
     wait_for(lambda: health(b)["scheduler_ticks"] > 0, 15, "the standby's first tick",
              interval=0.02)
     failover = time.monotonic() - killed
-    done = wait_for(lambda: (j := api(b, "GET", f"/jobs/{job['id']}"))["status"] in
-                    ("done", "failed") and j, 180, "the job to finish")
+    assert health(b)["leadership"]["epoch"] == 2
+    stream.join(180)
+    assert stream.seen[-1] == ("end", {"job_id": job["id"], "status": "done"}), stream.seen[-3:]
+    done = api(b, "GET", f"/jobs/{job['id']}")
     assert done["status"] == "done", done["error"]
     units = {u["index"]: u for u in api(b, "GET", f"/jobs/{job['id']}/units")}
     finished_before = [i for i, u in at_kill.items() if u["state"] == "done"]
@@ -235,9 +242,10 @@ def test06_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
     assert not rendered_again, f"units done before the kill ran again: {rendered_again}"
     retried = [i for i, u in units.items() if u["tasks"] > 1]
     assert set(retried) <= set(in_flight), (retried, in_flight)
+    assert done["progress"]["samples_done"] == 64 * 64 * 32, "a unit was counted twice"
     print(f"\nfailover (SIGKILL of the leader -> the standby's first tick): {failover:.2f} s "
-          f"with a 2 s lease; {len(finished_before)} units done before, {len(in_flight)} in "
-          f"flight, {len(retried)} rendered again")
+          f"with a 2 s lease; {len(finished_before)} units done before the kill, "
+          f"{len(in_flight)} in flight, {len(retried)} rendered again")
     exr = tmp_path / "result.exr"
     exr.write_bytes(httpx.get(f"{b}/jobs/{job['id']}/result.exr", headers=ADMIN_HEADERS,
                               timeout=30).content)
