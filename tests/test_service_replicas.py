@@ -9,6 +9,7 @@ first tick) is printed (`pytest -s`) for the record.
 from __future__ import annotations
 
 import json
+from collections import Counter
 import signal
 import threading
 import time
@@ -212,7 +213,8 @@ def test05_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
     over, renders again only the units A had in flight, and the result is
     bit-identical to an undisturbed render."""
     (leader, a), (_, b) = _replica_pair(spawn_replica, postgres_url)
-    body = dict(TINY, width=64, height=64, tile_size=8, spp=32, progressive=False)  # 64 units
+    # 64 units, long enough (8192 samples each) that some are in flight at the kill
+    body = dict(TINY, width=64, height=64, tile_size=8, spp=128, progressive=False)
     job = api(a, "POST", "/jobs", json=body)
     stream = EventReader(f"{b}/jobs/{job['id']}/events")
     stream.start()
@@ -242,10 +244,11 @@ def test05_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
     assert not rendered_again, f"units done before the kill ran again: {rendered_again}"
     retried = [i for i, u in units.items() if u["tasks"] > 1]
     assert set(retried) <= set(in_flight), (retried, in_flight)
-    assert done["progress"]["samples_done"] == 64 * 64 * 32, "a unit was counted twice"
+    assert done["progress"]["samples_done"] == 64 * 64 * 128, "a unit was counted twice"
     print(f"\nfailover (SIGKILL of the leader -> the standby's first tick): {failover:.2f} s "
           f"with a 2 s lease; {len(finished_before)} units done before the kill, "
-          f"{len(in_flight)} in flight, {len(retried)} rendered again")
+          f"{len(in_flight)} in flight, {len(retried)} rendered again; states at the kill: "
+          f"{dict(Counter(u['state'] for u in at_kill.values()))}")
     exr = tmp_path / "result.exr"
     exr.write_bytes(httpx.get(f"{b}/jobs/{job['id']}/result.exr", headers=ADMIN_HEADERS,
                               timeout=30).content)
