@@ -20,8 +20,10 @@ Event kinds (the SSE `event:` names) and their data:
               preview and noise map were rewritten
     deleted   {"job_id"}
 
-Streams are in-process: the service that owns the ledger publishes, its HTTP
-handlers subscribe. Every job and deletion event carries its job's `owner`; a
+Streams are in-process on SQLite: the service that owns the ledger publishes,
+its HTTP handlers subscribe. On PostgreSQL, with several service replicas,
+the hub's `relay` (`service.event_relay`) carries every event to every
+replica, which delivers it to its own streams. Every job and deletion event carries its job's `owner`; a
 subscription made for someone who may see only their own jobs names that
 owner and receives only events that carry it (an event without an owner
 reaches only subscriptions without that filter: those of one job, opened
@@ -109,6 +111,9 @@ class EventHub:
         self._lock = threading.Lock()
         self._subscriptions: set[Subscription] = set()
         self._ids = itertools.count(1)
+        # Carries events to every replica, whose relays `deliver` them (this
+        # one's too); None: delivered here only.
+        self.relay = None
 
     def subscribe(self, job_id: str | None, loop: asyncio.AbstractEventLoop,
                   kinds: frozenset[str] | None = None, owner: str | None = None) -> Subscription:
@@ -126,7 +131,14 @@ class EventHub:
         with self._lock:
             return len(self._subscriptions)
 
-    def publish(self, kind: str, job_id: str, data: dict, owner: str | None = None) -> Event:
+    def publish(self, kind: str, job_id: str, data: dict, owner: str | None = None) -> None:
+        """Send an event to the streams of every replica (of this one, without a relay)."""
+        if self.relay is not None and self.relay.send(kind, job_id, data, owner):
+            return
+        self.deliver(kind, job_id, data, owner)
+
+    def deliver(self, kind: str, job_id: str, data: dict, owner: str | None = None) -> Event:
+        """Put an event on this replica's matching subscriptions."""
         with self._lock:
             event = Event(next(self._ids), kind, job_id, data, owner)
             targets = [s for s in self._subscriptions if s.wants(event)]
@@ -136,6 +148,14 @@ class EventHub:
             except RuntimeError:  # its loop is closed: the stream is gone
                 self.unsubscribe(sub)
         return event
+
+
+    def resync_all(self) -> None:
+        """Events may have been missed: every stream reloads from a snapshot."""
+        with self._lock:
+            targets = list(self._subscriptions)
+        for sub in targets:
+            sub.overflowed = True
 
 
 def note(obj) -> None:

@@ -1,12 +1,15 @@
 """The running service's parts, assembled from settings: ledger, store,
-executor, scheduler, event hub and thumbnailer. Built by the app's lifespan, closed with it.
+executor, scheduler, leadership, event hub (and its relay between replicas)
+and thumbnailer. Built by the app's lifespan, closed with it.
 
     with Farm.open(Settings(data_dir="/tmp/farm")) as farm:
-        farm.scheduler.tick()
+        farm.scheduler.tick()       # a test drives it by hand
+        farm.start()                # or: lead (or stand by), relay, schedule
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 from sqlalchemy import Engine
@@ -15,8 +18,10 @@ from sqlalchemy.orm import Session, sessionmaker
 from .admission import RateLimiter
 from .auth import bootstrap_admin
 from .db import open_ledger
+from .event_relay import PostgresRelay
 from .events import EventHub, publish_commits
 from .executors import Executor, make_executor
+from .leader import Leadership, open_leadership
 from .metrics import FarmMetrics
 from .scenes import scene_hashes
 from .scheduler import Scheduler
@@ -25,6 +30,8 @@ from .store import Store
 from .thumbnails import Thumbnailer
 
 __all__ = ["Farm"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -38,6 +45,8 @@ class Farm:
     events: EventHub
     thumbnails: Thumbnailer
     limiter: RateLimiter  # submissions per token, uploads per owner (service.admission)
+    leadership: Leadership  # whether this replica runs the scheduler (service.leader)
+    relay: PostgresRelay | None  # events to and from other replicas (PostgreSQL only)
 
     @classmethod
     def open(cls, settings: Settings, metrics: FarmMetrics | None = None) -> "Farm":
@@ -55,13 +64,41 @@ class Farm:
             raise
         hub = EventHub()
         publish_commits(sessions, hub)
-        return cls(settings, engine, sessions, store, executor,
-                   Scheduler(settings, sessions, store, executor, hub=hub, metrics=metrics), hub,
-                   Thumbnailer(store, lambda: scene_hashes(sessions, store)), RateLimiter())
+        relay = None
+        if engine.dialect.name == "postgresql":
+            relay = PostgresRelay(engine, sessions, hub)  # attached by start()
+        leadership = open_leadership(settings, engine)
+        leadership.guard(sessions)
+        scheduler = Scheduler(settings, sessions, store, executor, hub=hub, metrics=metrics,
+                              leadership=leadership)
+        return cls(settings, engine, sessions, store, executor, scheduler, hub,
+                   Thumbnailer(store, lambda: scene_hashes(sessions, store)), RateLimiter(),
+                   leadership, relay)
+
+    def start(self) -> None:
+        """Relay events, try to lead, and run the scheduler's thread (which ticks
+        only while this replica leads) and the thumbnailer."""
+        if self.relay is not None:
+            self.relay.start()
+            self.events.relay = self.relay
+        self.leadership.start()
+        if not self.leadership.leading():
+            log.warning("%s", self.standby_message())
+        self.scheduler.start()
+        self.thumbnails.start()
+
+    def standby_message(self) -> str:
+        status = self.leadership.status()
+        return (f"another service runs the scheduler on this ledger ({status.get('holder')}); "
+                f"this one serves HTTP and stands by to take over when it stops")
 
     def close(self) -> None:
         self.thumbnails.stop()
         self.scheduler.stop()
+        self.leadership.stop()  # after the scheduler: a standby may start at once
+        if self.relay is not None:
+            self.events.relay = None
+            self.relay.stop()
         self.executor.close()
         self.engine.dispose()
 

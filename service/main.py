@@ -37,8 +37,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         farm = await run_in_threadpool(Farm.open, settings, farm_metrics)
         app.state.farm = farm
         farm_metrics.watch(farm)
-        farm.scheduler.start()
-        farm.thumbnails.start()
+        await run_in_threadpool(farm.start)  # leads, or stands by for another replica
         try:
             yield
         finally:

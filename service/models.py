@@ -1,5 +1,6 @@
 """The job ledger's tables: `jobs` and their work `units` (SQLAlchemy 2), the
-uploaded `scenes` and who claims them, and the farm's `users` and their `tokens`.
+uploaded `scenes` and who claims them, the farm's `users` and their `tokens`,
+and the `scheduler_lease` that says which service replica schedules.
 
 Both carry a version counter (optimistic locking): the API (cancel) and the
 scheduler (progress) change the same rows from different threads or
@@ -17,7 +18,8 @@ from sqlalchemy import (JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, 
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
-__all__ = ["ApiToken", "Base", "Job", "SceneClaim", "SceneRecord", "User", "WorkUnit", "utcnow"]
+__all__ = ["ApiToken", "Base", "Job", "SceneClaim", "SceneRecord", "SchedulerLease", "User",
+           "WorkUnit", "utcnow"]
 
 
 def utcnow() -> datetime:
@@ -207,3 +209,17 @@ class ApiToken(Base):
     expires: Mapped[datetime | None] = mapped_column(UTCDateTime)
     revoked: Mapped[datetime | None] = mapped_column(UTCDateTime)
     last_used: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class SchedulerLease(Base):
+    """Which service replica runs the scheduler (on PostgreSQL; `service.leader`).
+    Its times are the database's clock; `epoch` grows with every new holder."""
+
+    __tablename__ = "scheduler_lease"
+
+    name: Mapped[str] = mapped_column(String(32), primary_key=True)
+    holder: Mapped[str] = mapped_column(String(200))
+    epoch: Mapped[int] = mapped_column(BigInteger)
+    expires_at: Mapped[datetime] = mapped_column(UTCDateTime)
+    acquired_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    renewed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)

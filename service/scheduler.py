@@ -34,6 +34,11 @@ pending units are its planned units minus those done and in flight (its
 counters change in the same transactions as its units'), an upper bound
 that `_ready_units` makes exact for the few jobs fair share asks about.
 
+Only the replica that leads ticks (`service.leader`): the thread checks the
+leadership before each tick and runs the tick fenced, so a replica that lost
+its lease mid-tick cannot commit. On becoming the leader it forgets what it
+tracked before: the ledger says what is in flight.
+
 Every committed status change and progress step is published to the event
 streams (`service.events`). The scheduler only schedules: the running
 previews of the jobs in flight are `service.previews`' (fed the films that
@@ -42,6 +47,7 @@ land), the final merge and its images `service.results`'.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import threading
@@ -61,6 +67,7 @@ from . import events, states
 from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
 from .fairshare import Contender, fair_share
+from .leader import Leadership, LeadershipLost
 from .metrics import FarmMetrics
 from .models import Job, User, WorkUnit, utcnow
 from .previews import RunningPreviews
@@ -69,6 +76,11 @@ from .settings import Settings
 from .store import Store
 
 __all__ = ["Scheduler"]
+
+
+@contextlib.contextmanager
+def _unfenced():
+    yield
 
 log = logging.getLogger(__name__)
 
@@ -101,8 +113,12 @@ class Scheduler:
 
     def __init__(self, settings: Settings, sessions: sessionmaker[Session], store: Store,
                  executor: Executor, clock: Callable[[], datetime] = utcnow,
-                 hub: EventHub | None = None, metrics: FarmMetrics | None = None):
+                 hub: EventHub | None = None, metrics: FarmMetrics | None = None,
+                 leadership: Leadership | None = None):
         self.settings, self.sessions, self.store, self.executor = settings, sessions, store, executor
+        # None: this scheduler alone drives the ledger (tests that call tick()).
+        self.leadership = leadership
+        self.leading = leadership is None
         self.clock = clock
         self.events = hub if hub is not None else EventHub()
         self.metrics = metrics if metrics is not None else FarmMetrics()  # service.metrics
@@ -119,7 +135,7 @@ class Scheduler:
         # gather tile of a photon round needs the same photon maps, so they are
         # read once and the tickets share one bytes object each.
         self._inputs: dict[tuple[str, int], bytes] = {}
-        self.ticks = 0
+        self.ticks = 0  # a standby's stay 0
         self.last_error: str | None = None
 
     # -- the thread --------------------------------------------------------------
@@ -142,8 +158,13 @@ class Scheduler:
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
-                self.tick()
+                if self._lead():
+                    with self.leadership.fenced() if self.leadership else _unfenced():
+                        self.tick()
                 self.last_error = None
+            except LeadershipLost as exc:  # another replica leads now; stand by
+                log.warning("scheduler stopped mid-tick: %s", exc)
+                self._lead()
             except Exception as exc:  # keep scheduling; the next tick retries
                 error = f"{type(exc).__name__}: {exc}"
                 if error != self.last_error:  # once per distinct error, not every tick
@@ -151,6 +172,20 @@ class Scheduler:
                 self.last_error = error
             self._wake.wait(self.settings.poll_interval)
             self._wake.clear()
+
+    def _lead(self) -> bool:
+        """Does this replica lead now? On a change, forget what it tracked: the
+        ledger has the units in flight, and the executor reports those it does
+        not run (another leader's) as lost, so they are enqueued again."""
+        leading = self.leadership is None or self.leadership.leading()
+        if leading != self.leading:
+            if not leading:  # the new leader enqueues them again; free our slots
+                for (job_id, _index), task_ids in self._tracked.items():
+                    self.executor.cancel(job_id, task_ids)
+            self._tracked = {}
+            self.previews = RunningPreviews(self.store, self.events, self._done_units)
+            self.leading = leading
+        return leading
 
     # -- one tick ------------------------------------------------------------------
     def tick(self) -> None:

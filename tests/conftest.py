@@ -10,6 +10,10 @@
 - `embedded_serve`: one `rayfarm serve` child in embedded mode (no broker:
   SQLite, a local pool of 2) per test module; yields (child, base URL).
 - `reference_channels`: an undisturbed render of a job body, in this process.
+- `postgres_server` / `postgres_url`: a PostgreSQL cluster this test run
+  initialised and started itself (Debian's `initdb`/`pg_ctl`, a tmp data dir,
+  a free port, its socket in tmp), stopped at the end; `postgres_url` is a
+  fresh database per test. A server already running here is never touched.
 
 Authentication is on, as in production: every service a test starts has the
 admin token `TEST_ADMIN_TOKEN` (RAYFARM_ADMIN_TOKEN), the test process and its
@@ -266,6 +270,86 @@ def redis_url(redis_server):
     yield url
     client.flushdb()
     client.close()
+
+
+def _postgres_binaries() -> Path | None:
+    """The newest of Debian's PostgreSQL bin directories (initdb, pg_ctl), if any."""
+    found = sorted(Path("/usr/lib/postgresql").glob("*/bin/initdb"),
+                   key=lambda p: int(p.parent.parent.name) if p.parent.parent.name.isdigit() else 0)
+    if found:
+        return found[-1].parent
+    initdb = shutil.which("initdb")
+    return Path(initdb).parent if initdb else None
+
+
+@pytest.fixture(scope="session")
+def postgres_server():
+    """A PostgreSQL cluster of this test run on a free port of 127.0.0.1 (its
+    unix socket in a tmp dir too, fsync off), stopped at the end; yields the
+    URL of its `postgres` database (superuser `postgres`, trust auth)."""
+    bindir = _postgres_binaries()
+    if bindir is None:
+        message = "no PostgreSQL binaries (apt-get install postgresql; .ci/run does)"
+        if os.environ.get("CI"):  # .ci/run installs it: its absence is a failure there
+            pytest.fail(message)
+        pytest.skip(message)
+    import psycopg
+
+    import tempfile
+
+    # Not under pytest's tmp tree: that is private to root, and the cluster's
+    # owner (below) must reach its directory.
+    directory = Path(tempfile.mkdtemp(prefix="rayfarm-test-pg-"))
+    data, sockets, log = directory / "data", directory / "run", directory / "postgres.log"
+    sockets.mkdir()
+    # initdb refuses to run as root: then the cluster belongs to the `postgres` user.
+    as_owner: list[str] = []
+    if os.getuid() == 0:
+        import pwd
+
+        owner = pwd.getpwnam("postgres")
+        for path in (directory, sockets):
+            os.chown(path, owner.pw_uid, owner.pw_gid)
+        as_owner = ["setpriv", f"--reuid={owner.pw_uid}", f"--regid={owner.pw_gid}",
+                    "--init-groups", "--"]
+    subprocess.run([*as_owner, str(bindir / "initdb"), "-D", str(data), "-U", "postgres",
+                    "--auth=trust", "--no-sync", "-E", "UTF8", "--locale=C"],
+                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    port = free_port()
+    options = (f"-p {port} -h 127.0.0.1 -k {sockets} -c fsync=off -c synchronous_commit=off "
+               "-c full_page_writes=off -c max_connections=200")
+    subprocess.run([*as_owner, str(bindir / "pg_ctl"), "-D", str(data), "-l", str(log),
+                    "-o", options, "-w", "-t", "60", "start"],
+                   check=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    url = f"postgresql://postgres@127.0.0.1:{port}/postgres"
+    try:
+        def answers():
+            try:
+                with psycopg.connect(url, connect_timeout=2):
+                    return True
+            except psycopg.Error:
+                return False
+        wait_for(answers, 60, "postgres to answer", interval=0.2)
+        yield url
+    finally:
+        subprocess.run([*as_owner, str(bindir / "pg_ctl"), "-D", str(data), "-m", "immediate",
+                        "-w", "-t", "60", "stop"],
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        shutil.rmtree(directory, ignore_errors=True)
+
+
+@pytest.fixture
+def postgres_url(postgres_server):
+    """A fresh, empty database of this run's own PostgreSQL, dropped after the
+    test; its URL (plain `postgresql://`: Settings adds the driver)."""
+    import psycopg
+
+    name = f"rayfarm_test_{secrets.token_hex(5)}"
+    with psycopg.connect(postgres_server, autocommit=True) as admin:
+        admin.execute(f'CREATE DATABASE "{name}"')
+    yield postgres_server.rsplit("/", 1)[0] + f"/{name}"
+    with psycopg.connect(postgres_server, autocommit=True) as admin:
+        admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
 
 
 class Child:

@@ -3,7 +3,6 @@ exactly-once completion, restart recovery, cancel. Real pool, real ledger."""
 
 from __future__ import annotations
 
-import uuid
 from pathlib import Path
 
 import pytest
@@ -21,31 +20,15 @@ from service.settings import Settings
 from conftest import TINY, assert_bit_identical, channels_of, wait_for
 
 
-POSTGRES = "postgresql://127.0.0.1:5432/test"  # the driver is added by Settings
-
-
 @pytest.fixture(params=["sqlite", "postgresql"])
 def settings(request, tmp_path):
-    """The ledger on SQLite (the default) and on PostgreSQL (in a schema of
-    its own, dropped afterwards), when a server answers at 127.0.0.1:5432."""
+    """The ledger on SQLite (the default) and on PostgreSQL (a fresh database
+    of the test run's own server, `postgres_url`)."""
     common = dict(data_dir=tmp_path / "data", broker_url="", local_workers=2,
                   poll_interval=0.05)
     if request.param == "sqlite":
-        yield Settings(database_url="", **common)
-        return
-    psycopg = pytest.importorskip("psycopg")
-    schema = f"rayfarm_test_{uuid.uuid4().hex[:10]}"
-    try:
-        admin = psycopg.connect("postgresql://127.0.0.1:5432/test", autocommit=True,
-                                connect_timeout=3)
-    except psycopg.Error as exc:
-        pytest.skip(f"no PostgreSQL at 127.0.0.1:5432 ({exc})")
-    admin.execute(f'CREATE SCHEMA "{schema}"')
-    try:
-        yield Settings(database_url=f"{POSTGRES}?options=-csearch_path%3D{schema}", **common)
-    finally:
-        admin.execute(f'DROP SCHEMA "{schema}" CASCADE')
-        admin.close()
+        return Settings(database_url="", **common)
+    return Settings(database_url=request.getfixturevalue("postgres_url"), **common)
 
 
 def create(farm: Farm, body: dict) -> str:

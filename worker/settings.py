@@ -73,6 +73,10 @@ class Settings(BaseSettings):
     local_workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1,
                                description="processes of the embedded pool")
     poll_interval: float = Field(0.2, gt=0, description="seconds between scheduler ticks")
+    leader_lease_seconds: float = Field(
+        5.0, gt=0, description="the scheduler lease of service replicas on PostgreSQL: a "
+                               "standby takes over this long after the leader stopped "
+                               "renewing it; the leader stops scheduling after half of it")
     worker_heartbeat_seconds: float = Field(
         2.0, gt=0, description="how often a Celery worker reports that it is alive")
     worker_lost_seconds: float = Field(

@@ -18,10 +18,15 @@ def healthz(farm: FarmDep) -> JSONResponse:
     """200 with component states when the ledger answers and the scheduler
     runs (status "degraded" while the broker is unreachable, or while the data
     dir's file system has less than `min_free_bytes` free: unit films could
-    not be stored); 503 otherwise."""
+    not be stored); 503 otherwise. `leadership` says whether this replica runs
+    the scheduler ("leader") or serves HTTP only ("standby") and who holds
+    the scheduler lease (`service.leader`)."""
     report: dict = {"status": "ok", **farm.executor.health(),
                     "scheduler": "running" if farm.scheduler.alive else "stopped",
-                    "scheduler_ticks": farm.scheduler.ticks}
+                    "scheduler_ticks": farm.scheduler.ticks,
+                    "leadership": farm.leadership.status()}
+    if report["leadership"]["role"] == "standby":
+        report["scheduler"] = "standby" if farm.scheduler.alive else "stopped"
     if farm.scheduler.last_error:
         report["scheduler_error"] = farm.scheduler.last_error
     try:

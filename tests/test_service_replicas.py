@@ -1,0 +1,255 @@
+"""Several service replicas on one ledger: exactly one schedules.
+
+The lease on the test run's own PostgreSQL (service.leader), the lock file on
+SQLite, events relayed between replicas, and the leader SIGKILLed mid-job with
+real `rayfarm serve` processes. The failover time (the kill -> the standby's
+first tick) is printed (`pytest -s`) for the record.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+import signal
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+from sqlalchemy import update
+
+from service.db import open_ledger
+from service.leader import FileLockLeadership, LeadershipLost, LeaseLeadership
+from service.models import SchedulerLease, User, utcnow
+from service.settings import Settings
+
+from conftest import (ADMIN_HEADERS, TINY, Child, assert_bit_identical, channels_of, free_port,
+                      rayfarm_command, wait_for, wait_healthy)
+
+
+@pytest.fixture
+def pg_engine(postgres_url, tmp_path):
+    engine, sessions = open_ledger(Settings(database_url=postgres_url, data_dir=tmp_path))
+    yield engine, sessions
+    engine.dispose()
+
+
+def test01_one_holder_and_the_leader_stops_before_a_standby_may_start(pg_engine):
+    engine, _ = pg_engine
+    a, b = LeaseLeadership(engine, 3.0, "a"), LeaseLeadership(engine, 3.0, "b")
+    a._attempt()
+    b._attempt()
+    assert a.leading() and not b.leading()
+    assert a.status()["holder"] == "a" and b.status()["role"] == "standby"
+    # a stops renewing (cut off, hung): it stops leading after half the lease ...
+    wait_for(lambda: not a.leading(), 2.5, "the leader to stop leading")
+    b._attempt()
+    assert not b.leading(), "the standby took the lease before it expired"
+    # ... and b may take it only once it expired, by the database's clock.
+    wait_for(lambda: b._attempt() or b.leading(), 5.0, "the standby to take over",
+             interval=0.1)
+    assert b.epoch == a.epoch + 1
+    a._attempt()  # a renewal of a lease someone else took fails
+    assert a.epoch is None and not a.leading()
+    b.stop()  # a clean stop releases it at once
+    a._attempt()
+    assert a.leading() and a.epoch == 3
+
+
+def test02_a_commit_fenced_by_a_lost_lease_rolls_back(pg_engine):
+    engine, sessions = pg_engine
+    a, b = LeaseLeadership(engine, 5.0, "a"), LeaseLeadership(engine, 5.0, "b")
+    a.guard(sessions)
+    a._attempt()
+    assert a.leading()
+    with sessions.begin() as session:
+        session.add(User(name="probe", role="artist", share=1.0, created=utcnow()))
+    with a.fenced(), pytest.raises(LeadershipLost):
+        with sessions.begin() as session:
+            session.get(User, "probe").share = 2.0  # written by a leader about to be deposed
+            # meanwhile the lease expired (as after a long pause) and b took it
+            with engine.begin() as conn:
+                conn.execute(update(SchedulerLease.__table__)
+                             .where(SchedulerLease.name == "scheduler")
+                             .values(expires_at=_utc(0)))
+            b._attempt()
+            assert b.leading()
+    with sessions() as session:
+        assert session.get(User, "probe").share == 1.0, "the fenced write stood"
+    # Outside a fenced block (the API's commits) nothing is checked.
+    with sessions.begin() as session:
+        session.get(User, "probe").share = 3.0
+    with a.fenced(), sessions.begin() as session:  # nor while this replica leads
+        b.stop()
+        a._attempt()
+        session.get(User, "probe").share = 4.0
+    with sessions() as session:
+        assert session.get(User, "probe").share == 4.0
+
+
+def _utc(seconds: float):
+    from datetime import datetime, timezone
+
+    return datetime.fromtimestamp(seconds, timezone.utc)
+
+
+def test03_the_lock_file_has_one_holder_and_names_it(tmp_path):
+    path = tmp_path / "scheduler.lock"
+    a, b = FileLockLeadership(path, 0.05, "a"), FileLockLeadership(path, 0.05, "b")
+    a.start()
+    b.start()
+    try:
+        assert a.leading() and not b.leading()
+        assert b.status() == {"role": "standby", "replica": "b", "lease": "file-lock",
+                              "holder": "a"}
+        a.stop()
+        wait_for(b.leading, 5, "the standby to take the lock")
+        assert a.status()["holder"] == "b"
+    finally:
+        a.stop()
+        b.stop()
+
+
+# -- real `rayfarm serve` replicas ------------------------------------------------------
+
+def _serve_env(data_dir: Path, **extra: str) -> dict:
+    import os
+
+    from conftest import TEST_ADMIN_TOKEN
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
+    env.update(RAYFARM_DATA_DIR=str(data_dir), RAYFARM_POLL_INTERVAL="0.05",
+               RAYFARM_LOCAL_WORKERS="1", RAYFARM_LEADER_LEASE_SECONDS="2",
+               PYTHONUNBUFFERED="1", RAYFARM_ADMIN_TOKEN=TEST_ADMIN_TOKEN,
+               RAYFARM_TOKEN=TEST_ADMIN_TOKEN, **extra)
+    return env
+
+
+@pytest.fixture
+def spawn_replica(tmp_path):
+    """spawn_replica(**env) -> (child, base URL): `rayfarm serve` (embedded
+    executor, one render process) on a free port and the shared data dir."""
+    children: list[Child] = []
+
+    def spawn(**env: str) -> tuple[Child, str]:
+        port = free_port()
+        child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
+                      _serve_env(tmp_path / "data", **env),
+                      tmp_path / f"replica-{len(children)}.log")
+        children.append(child)
+        base = f"http://127.0.0.1:{port}"
+        wait_healthy(child, base)
+        return child, base
+
+    yield spawn
+    for child in children:
+        child.stop()
+
+
+def health(base: str) -> dict:
+    return httpx.get(f"{base}/healthz", timeout=5).json()
+
+
+def api(base: str, method: str, path: str, **kwargs):
+    response = httpx.request(method, f"{base}{path}", headers=ADMIN_HEADERS, timeout=10, **kwargs)
+    assert response.status_code < 300, response.text
+    return response.json()
+
+
+def test04_two_services_on_one_sqlite_file_never_both_schedule(spawn_replica):
+    first, a = spawn_replica()
+    second, b = spawn_replica()
+    assert health(a)["leadership"]["role"] == "leader"
+    standby = health(b)
+    assert standby["leadership"]["role"] == "standby" and standby["scheduler"] == "standby"
+    assert standby["leadership"]["holder"] == health(a)["leadership"]["replica"]
+    assert "another service runs the scheduler" in second.log()
+    job = api(b, "POST", "/jobs", json=TINY)  # submitted to the standby, run by the leader
+    wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["status"] == "done", 120,
+             "the job to be done")
+    assert health(b)["scheduler_ticks"] == 0, "the standby scheduled"
+    first.kill_group(signal.SIGKILL)  # the kernel drops its lock: the standby takes over
+    wait_for(lambda: health(b)["leadership"]["role"] == "leader", 10, "the standby to lead")
+    wait_for(lambda: health(b)["scheduler_ticks"] > 0, 10, "the new leader to tick")
+
+
+def _replica_pair(spawn_replica, postgres_url: str):
+    """Two replicas on one PostgreSQL ledger and one data dir; the first leads."""
+    leader, a = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
+    standby, b = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
+    first, second = health(a)["leadership"], health(b)["leadership"]
+    assert first["role"] == "leader" and second["role"] == "standby", (first, second)
+    assert second["holder"] == first["replica"] and second["epoch"] == 1
+    return (leader, a), (standby, b)
+
+
+class EventReader(threading.Thread):
+    """Reads a job's event stream (`GET /jobs/{id}/events`) into `seen`."""
+
+    def __init__(self, url: str):
+        super().__init__(daemon=True)
+        self.url, self.seen = url, []
+
+    def run(self) -> None:
+        with httpx.stream("GET", self.url, headers=ADMIN_HEADERS, timeout=240) as response:
+            kind = None
+            for line in response.iter_lines():
+                if line.startswith("event: "):
+                    kind = line[7:]
+                elif line.startswith("data: ") and kind:
+                    self.seen.append((kind, json.loads(line[6:])))
+                    if kind == "end":
+                        return
+
+    def kinds(self) -> list[str]:
+        return [kind for kind, _ in self.seen]
+
+
+def test05_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
+        postgres_url, spawn_replica, reference_channels, tmp_path):
+    """Two replicas on PostgreSQL: a stream on B follows a job submitted to A
+    and run by A's scheduler (events relayed); A is SIGKILLed mid-job; B takes
+    over, renders again only the units A had in flight, and the result is
+    bit-identical to an undisturbed render."""
+    (leader, a), (_, b) = _replica_pair(spawn_replica, postgres_url)
+    # 64 units, long enough (8192 samples each) that some are in flight at the kill
+    body = dict(TINY, width=64, height=64, tile_size=8, spp=128, progressive=False)
+    job = api(a, "POST", "/jobs", json=body)
+    stream = EventReader(f"{b}/jobs/{job['id']}/events")
+    stream.start()
+    wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["progress"]["units_done"] >= 16, 120,
+             "a quarter of the units to be done")
+    leader.kill_group(signal.SIGKILL)  # the service and its render process
+    killed = time.monotonic()
+    # What B's stream had from A's scheduler: it came through the relay.
+    relayed = [data for kind, data in stream.seen if kind == "unit" and data["state"] == "done"]
+    assert relayed, f"no unit event from the leader reached the standby's stream: {stream.kinds()}"
+    # The ledger at the kill (the dead leader writes nothing more): what was
+    # done must never be rendered again; what was in flight may be, once.
+    at_kill = {u["index"]: u for u in api(b, "GET", f"/jobs/{job['id']}/units")}
+    assert health(b)["scheduler_ticks"] == 0, "the standby scheduled while the leader lived"
+    wait_for(lambda: health(b)["scheduler_ticks"] > 0, 15, "the standby's first tick",
+             interval=0.02)
+    failover = time.monotonic() - killed
+    assert health(b)["leadership"]["epoch"] == 2
+    stream.join(180)
+    assert stream.seen[-1] == ("end", {"job_id": job["id"], "status": "done"}), stream.seen[-3:]
+    done = api(b, "GET", f"/jobs/{job['id']}")
+    assert done["status"] == "done", done["error"]
+    units = {u["index"]: u for u in api(b, "GET", f"/jobs/{job['id']}/units")}
+    finished_before = [i for i, u in at_kill.items() if u["state"] == "done"]
+    in_flight = [i for i, u in at_kill.items() if u["state"] in ("queued", "running")]
+    rendered_again = [i for i in finished_before if units[i]["tasks"] != at_kill[i]["tasks"]]
+    assert not rendered_again, f"units done before the kill ran again: {rendered_again}"
+    retried = [i for i, u in units.items() if u["tasks"] > 1]
+    assert set(retried) <= set(in_flight), (retried, in_flight)
+    assert done["progress"]["samples_done"] == 64 * 64 * 128, "a unit was counted twice"
+    print(f"\nfailover (SIGKILL of the leader -> the standby's first tick): {failover:.2f} s "
+          f"with a 2 s lease; {len(finished_before)} units done before the kill, "
+          f"{len(in_flight)} in flight, {len(retried)} rendered again; states at the kill: "
+          f"{dict(Counter(u['state'] for u in at_kill.values()))}")
+    exr = tmp_path / "result.exr"
+    exr.write_bytes(httpx.get(f"{b}/jobs/{job['id']}/result.exr", headers=ADMIN_HEADERS,
+                              timeout=30).content)
+    assert_bit_identical(channels_of(exr), reference_channels(body))
