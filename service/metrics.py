@@ -40,7 +40,10 @@ __all__ = ["FarmMetrics", "PrometheusMetrics", "HTTPMetrics", "CONTENT_TYPE_LATE
 
 log = logging.getLogger(__name__)
 
-REQUEUE_REASONS = ("lost", "failed")
+# lost: its worker lost by presence; lease: no unit heartbeat for a lease;
+# message: gone from the broker; declined: by a blocklisted or disabled worker;
+# failed: an attempt retried.
+REQUEUE_REASONS = ("lost", "lease", "message", "declined", "failed")
 UNMATCHED = "unmatched"  # the route label of a request no route answered (404 of an unknown path)
 _HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 # Render seconds of one unit: from a small tile to a long MLT chain.
@@ -55,7 +58,7 @@ class FarmMetrics:
         """A unit's film was stored and the unit marked done (committed)."""
 
     def requeued(self, reason: str) -> None:
-        """A unit was enqueued again: "lost" (no task will report) or "failed" (a retry)."""
+        """A unit was enqueued again: one of `REQUEUE_REASONS`."""
 
     def tick(self, seconds: float) -> None:
         """One scheduler tick took this long."""
@@ -76,8 +79,10 @@ class PrometheusMetrics(FarmMetrics):
         self.rays = PromCounter("rayfarm_rays", "Rays traced by the units collected done "
                                 "(rate() is rays per second)", registry=r)
         self.requeues = PromCounter(
-            "rayfarm_units_requeued", "Units enqueued again: lost (no task will report) or "
-            "failed (an attempt retried)", ["reason"], registry=r)
+            "rayfarm_units_requeued", "Units enqueued again: lost (worker lost), lease (no "
+            "heartbeat for a lease), message (gone from the broker), declined (by a "
+            "blocklisted or disabled worker), failed (an attempt retried)", ["reason"],
+            registry=r)
         self.tick_seconds = Histogram("rayfarm_scheduler_tick_seconds",
                                       "Duration of one scheduler tick",
                                       buckets=_TICK_BUCKETS, registry=r)

@@ -4,9 +4,16 @@ The task takes ids and parameters only; the scene's canonical text travels by
 content hash (`rayfarm:scene:<hash>` in Redis, read only when this process
 has not built that scene yet). It returns the partial film's bytes, base64
 encoded for the JSON result backend, and the worker's name. While it runs, a
-heartbeat key with a TTL of one lease tells the service the unit is alive,
-and the worker's presence record (worker/presence.py) shows the unit and,
-once it is done, counts it.
+heartbeat key with a short TTL (a few heartbeat intervals, refreshed three
+times per TTL however long the unit renders) tells the service the unit is
+alive, and the worker's presence record (worker/presence.py) shows the unit
+(with its task id) and, once it is done, counts it.
+
+A worker declines a unit, returning ``{"declined": reason, "worker": name}``
+at once without rendering, when it is blocklisted for the unit's job (the
+payload's ``blocked``) or an admin disabled it (a unit it had prefetched
+before the drain): the service enqueues the unit again without spending an
+attempt, for another worker.
 """
 
 from __future__ import annotations
@@ -105,17 +112,23 @@ def _redis(url: str) -> redis.Redis:
     return _clients[key]
 
 
-def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> dict[str, Any]:
+def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
+                task_id: str | None = None) -> dict[str, Any]:
     """Run one unit described by `payload` and return ``{"film": b64, "worker": name}``.
 
     `payload`: ``job_id``, ``index``, ``scene_hash``, ``spec`` (a RenderSpec
-    dict), ``unit`` (a Unit dict), ``lease_seconds`` (the heartbeat's TTL)
-    and ``inputs`` (unit index -> SHA-256 of the film bytes it needs, published
+    dict), ``unit`` (a Unit dict), ``heartbeat_seconds`` (the unit heartbeat's
+    TTL; older services sent ``lease_seconds``), ``blocked`` (workers that
+    decline it) and ``inputs`` (unit index -> SHA-256 of the film bytes it needs, published
     in Redis by the service).
     """
     job_id, index, scene = payload["job_id"], int(payload["index"]), payload["scene_hash"]
     if client.exists(cancel_key(job_id)):
         return {"canceled": True, "worker": worker}
+    if worker in (payload.get("blocked") or ()):
+        return {"declined": "blocklisted for the job", "worker": worker}
+    if presence.is_disabled(client, worker):
+        return {"declined": "disabled", "worker": worker}
 
     def load_scene_text() -> str:
         text = client.get(scene_key(scene))
@@ -123,11 +136,11 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> di
             raise SceneUnavailable(f"scene {scene[:12]} is not in the broker")
         return text.decode()
 
-    presence.unit_started(client, worker, job_id, index)
+    presence.unit_started(client, worker, job_id, index, task_id)
+    ttl = float(payload.get("heartbeat_seconds") or payload["lease_seconds"])
     stats = None
     try:
-        with Heartbeat(client, heartbeat_key(job_id, index), float(payload["lease_seconds"]),
-                       worker):
+        with Heartbeat(client, heartbeat_key(job_id, index), ttl, worker):
             inputs = {int(i): _fetch_input(client, digest)
                       for i, digest in (payload.get("inputs") or {}).items()}
             film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs)
@@ -144,4 +157,4 @@ def register_tasks(app: Celery) -> None:
     def _render_unit_task(self, payload: dict[str, Any]) -> dict[str, Any]:
         client = _redis(self.app.conf.broker_url)
         worker = self.request.hostname or f"pid-{os.getpid()}"
-        return render_unit(client, worker, payload)
+        return render_unit(client, worker, payload, self.request.id)

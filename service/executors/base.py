@@ -26,6 +26,8 @@ class Ticket:
     # The film bytes of the units this one needs (a DAG job's photon map,
     # bootstrap, radiosity solution...), by unit index; empty for tile units.
     inputs: dict[int, bytes] = field(default_factory=dict)
+    # Workers blocklisted for the job (too many failed units): they decline it.
+    blocked: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -45,13 +47,20 @@ class Observation:
     """What an executor knows about a unit in flight.
 
     `lost`: no task of the unit will ever report (worker died, message gone);
-    the scheduler enqueues it again without counting an attempt.
+    the scheduler enqueues it again without counting an attempt. `cause` says
+    why, for the metrics and the unit's `requeue_reason` (with `error` as the
+    sentence shown): "worker" (its worker's presence says lost), "lease" (no
+    heartbeat of the unit for a lease), "message" (queued, but gone from the
+    broker), "declined" (a blocklisted or disabled worker gave it back).
+    `worker` of a failed unit is the worker the attempt failed on, when known
+    (it counts towards that worker's blocklisting for the job).
     """
 
     state: Literal["queued", "running", "done", "failed", "lost"]
     film: bytes | None = None
     worker: str | None = None
     error: str | None = None
+    cause: str | None = None
 
 
 @dataclass(frozen=True)
@@ -59,6 +68,7 @@ class RunningUnit:
     job_id: str
     index: int
     since: datetime | None = None
+    task_id: str | None = None  # the task rendering it (Celery), when known
 
 
 @dataclass(frozen=True)
@@ -83,6 +93,7 @@ class WorkerInfo:
     started: datetime | None
     last_seen: datetime | None
     silent_seconds: float = 0.0  # since the last heartbeat, on the broker's clock
+    disabled: bool = False  # drained by an admin: finishes what it runs, takes nothing new
 
 
 class Executor(ABC):
@@ -126,6 +137,15 @@ class Executor(ABC):
     def workers(self) -> list[WorkerInfo]:
         """The workers this executor runs units on, as last seen."""
         return []
+
+    def set_worker_enabled(self, name: str, enabled: bool) -> None:
+        """Drain (`enabled=False`) or re-enable a worker: a disabled one finishes
+        the units it runs and takes no new ones. The name is one of `workers()`."""
+        raise NotImplementedError(f"the {self.name} executor cannot disable workers")
+
+    def remove_worker(self, name: str) -> None:
+        """Forget a lost or offline worker (one of `workers()`, not live)."""
+        raise NotImplementedError(f"the {self.name} executor cannot remove workers")
 
     def health(self) -> dict:
         return {"executor": self.name}
