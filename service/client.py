@@ -36,7 +36,6 @@ status where there was one.
 
 from __future__ import annotations
 
-from urllib.parse import quote
 import json
 import os
 import tempfile
@@ -44,6 +43,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
+from urllib.parse import quote
 
 import httpx
 
