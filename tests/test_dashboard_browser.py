@@ -566,3 +566,24 @@ def test15_a_viewer_sees_everything_and_changes_nothing_an_artist_its_own(anon_p
     assert page.is_enabled("button[data-action='requeue']") and page.is_enabled("button[data-action='delete']")
     assert not page.is_visible("#read-only-note")
     shot(page, "21-artist-job")
+
+
+def test16_an_admin_drains_and_enables_a_worker_from_the_workers_page(page):
+    page.goto(f"{page.base}/#/workers")
+    row = "#workers-table tr[data-worker^='local@']"
+    page.wait_for_selector(f"{row}[data-disabled='no']")
+    name = page.get_attribute(row, "data-worker")
+    with api(page.base) as client:
+        try:
+            page.click(f"{row} button[data-action='disable']")
+            page.wait_for_selector(f"{row}[data-disabled='yes'] button[data-action='enable']")
+            assert "disabled" in page.inner_text(row)
+            (worker,) = [w for w in client.get("/workers").json() if w["name"] == name]
+            assert worker["disabled"] is True  # the service's, not only the page's
+            shot(page, "22-worker-disabled")
+            page.click(f"{row} button[data-action='enable']")
+            page.wait_for_selector(f"{row}[data-disabled='no'] button[data-action='disable']")
+            (worker,) = [w for w in client.get("/workers").json() if w["name"] == name]
+            assert worker["disabled"] is False
+        finally:  # the module's other tests need the pool
+            client.post(f"/workers/{name}/enable")
