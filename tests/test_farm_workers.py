@@ -95,7 +95,8 @@ def test01_a_killed_workers_unit_is_enqueued_again_within_heartbeats_not_the_lea
 def test02_a_unit_longer_than_the_lease_is_never_rendered_again(redis_url, spawn_worker,
                                                                 tmp_path):
     spawn_worker(concurrency=1, **BEAT)
-    # One unit of about four seconds against a lease of 1.5 s.
+    # One unit of about four seconds against a lease of 1.5 s (a Numba kernel
+    # holds the render process's GIL: its own heartbeat thread cannot beat).
     body = dict(TINY, spp=2048, tile_size=32, progressive=False)
     with TestClient(create_app(_settings(tmp_path, redis_url, unit_lease_seconds=1.5)),
                     headers=ADMIN_HEADERS) as client:
@@ -112,8 +113,10 @@ def test03_a_disabled_worker_takes_no_new_unit_while_another_does(redis_url, spa
     drained, busy = spawn_worker(concurrency=1, **BEAT), spawn_worker(concurrency=1, **BEAT)
     with TestClient(create_app(_settings(tmp_path, redis_url)), headers=ADMIN_HEADERS) as client:
         get = get_json(client)
-        workers = wait_for(lambda: (w := get("/workers")) if _name(drained, w) and _name(busy, w)
-                           else None, 30, "both workers")
+        def both() -> list[dict] | None:
+            found = get("/workers")
+            return found if _name(drained, found) and _name(busy, found) else None
+        workers = wait_for(both, 30, "both workers")
         name = _name(drained, workers)
         answer = client.post(f"/workers/{name}/disable")
         assert answer.status_code == 200 and answer.json()["disabled"] is True

@@ -29,7 +29,7 @@ import redis
 
 from typing import Callable
 
-from .keys import DISABLED_WORKERS, WORKERS, worker_key, worker_running_key
+from .keys import DISABLED_WORKERS, WORKERS, heartbeat_key, worker_key, worker_running_key
 
 __all__ = ["Presence", "unit_started", "unit_finished", "read_workers", "redis_now",
            "set_disabled", "is_disabled", "forget_worker"]
@@ -78,10 +78,29 @@ class Presence:
             self._consume(wanted)
             self._consuming = wanted
 
+    def _beat_units(self) -> None:
+        """Refresh the heartbeat key of every unit a live render process of
+        this worker renders. The render process beats too, from a thread, but
+        a Numba kernel holds the GIL for as long as it runs: this process never
+        renders, so a long unit stays alive however long its kernels take. A
+        dead render process's record goes, so its unit's heartbeat lapses."""
+        key = worker_running_key(self.name)
+        pipe = self.client.pipeline()
+        for pid, raw in self.client.hgetall(key).items():
+            if not _process_alive(int(pid)):
+                pipe.hdel(key, pid)
+                continue
+            unit = json.loads(raw)
+            if unit.get("ttl"):
+                pipe.set(heartbeat_key(unit["job_id"], int(unit["index"])), self.name,
+                         px=max(int(float(unit["ttl"]) * 1000), 1000))
+        pipe.execute()
+
     def _run(self) -> None:
         while not self._stop.wait(self.interval):
             try:
                 self._beat(state="online")
+                self._beat_units()
                 self._follow_disabled()
             except redis.RedisError as exc:  # keep beating; the broker may come back
                 log.warning("presence heartbeat failed: %s", exc)
@@ -106,15 +125,26 @@ class Presence:
             log.warning("could not mark worker %s offline: %s", self.name, exc)
 
 
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def unit_started(client: redis.Redis, name: str, job_id: str, index: int,
-                 task_id: str | None = None) -> None:
+                 task_id: str | None = None, ttl: float | None = None) -> None:
     """A render process of worker `name` starts rendering unit `index` of
     `job_id` as task `task_id` (the service re-enqueues the unit at once if
-    this worker is lost while that task is still the unit's latest)."""
+    this worker is lost while that task is still the unit's latest); the
+    worker's main process keeps its heartbeat key (TTL `ttl`) alive meanwhile."""
     try:
         client.hset(worker_running_key(name), str(os.getpid()),
                     json.dumps({"job_id": job_id, "index": index, "since": redis_now(client),
-                                "task_id": task_id}))
+                                "task_id": task_id, "ttl": ttl}))
     except redis.RedisError as exc:
         log.warning("presence: unit start not recorded: %s", exc)
 

@@ -5,7 +5,8 @@ content hash (`rayfarm:scene:<hash>` in Redis, read only when this process
 has not built that scene yet). It returns the partial film's bytes, base64
 encoded for the JSON result backend, and the worker's name. While it runs, a
 heartbeat key with a short TTL (a few heartbeat intervals, refreshed three
-times per TTL however long the unit renders) tells the service the unit is
+times per TTL by this process and on every beat by the worker's main
+process, which never holds the GIL in a kernel) tells the service the unit is
 alive, and the worker's presence record (worker/presence.py) shows the unit
 (with its task id) and, once it is done, counts it.
 
@@ -136,8 +137,8 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
             raise SceneUnavailable(f"scene {scene[:12]} is not in the broker")
         return text.decode()
 
-    presence.unit_started(client, worker, job_id, index, task_id)
     ttl = float(payload.get("heartbeat_seconds") or payload["lease_seconds"])
+    presence.unit_started(client, worker, job_id, index, task_id, ttl)
     stats = None
     try:
         with Heartbeat(client, heartbeat_key(job_id, index), ttl, worker):
