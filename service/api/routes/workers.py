@@ -23,7 +23,7 @@ def _public(worker: WorkerInfo, visible: set[str]) -> WorkerPublic:
         r for r in worker.running if r.job_id in visible)))
 
 
-def _shown(farm, session, actor: Principal, worker: WorkerInfo) -> WorkerPublic:
+def _shown(session, actor: Principal, worker: WorkerInfo) -> WorkerPublic:
     return _public(worker, jobs.visible_job_ids(session, actor,
                                                 (r.job_id for r in worker.running)))
 
@@ -45,7 +45,7 @@ def disable_worker(name: str, farm: FarmDep, actor: ActorDep,
                    session: SessionDep) -> WorkerPublic:
     """Drain a worker (admins): it finishes the units it renders and takes no
     new ones, also after a restart, until it is enabled again."""
-    return _shown(farm, session, actor, workers.set_enabled(farm.executor, actor, name, False))
+    return _shown(session, actor, workers.set_enabled(farm.executor, actor, name, False))
 
 
 @router.post("/workers/{name}/enable", response_model=WorkerPublic,
@@ -53,7 +53,7 @@ def disable_worker(name: str, farm: FarmDep, actor: ActorDep,
 def enable_worker(name: str, farm: FarmDep, actor: ActorDep,
                   session: SessionDep) -> WorkerPublic:
     """Let a disabled worker take units again (admins)."""
-    return _shown(farm, session, actor, workers.set_enabled(farm.executor, actor, name, True))
+    return _shown(session, actor, workers.set_enabled(farm.executor, actor, name, True))
 
 
 @router.delete("/workers/{name}", status_code=status.HTTP_204_NO_CONTENT,
