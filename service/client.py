@@ -43,6 +43,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
+from urllib.parse import quote
 
 import httpx
 
@@ -534,6 +535,24 @@ class RayfarmClient:
     def workers(self) -> list[dict]:
         return self._json("GET", "/workers")
 
+    def disable_worker(self, name: str) -> dict:
+        """Drain a worker (admins): it finishes its units and takes no new ones."""
+        return self._json("POST", f"/workers/{_segment(name)}/disable")
+
+    def enable_worker(self, name: str) -> dict:
+        return self._json("POST", f"/workers/{_segment(name)}/enable")
+
+    def remove_worker(self, name: str) -> None:
+        """Forget a lost or offline worker (admins; `Conflict` for a live one)."""
+        self._request("DELETE", f"/workers/{_segment(name)}")
+
+    def blocklist(self, job_id: str) -> list[dict]:
+        """The workers that failed units of the job; `blocked` set: blocklisted for it."""
+        return self._json("GET", f"/jobs/{job_id}/blocklist")
+
+    def clear_blocklist(self, job_id: str, worker: str) -> None:
+        self._request("DELETE", f"/jobs/{job_id}/blocklist/{_segment(worker)}")
+
     def health(self) -> dict:
         """GET /healthz: the report, also when it says unhealthy (503)."""
         try:
@@ -543,6 +562,11 @@ class RayfarmClient:
         if response.status_code != 503:
             _raise_for(response)
         return self._parse(response)
+
+
+def _segment(name: str) -> str:
+    """A worker's name as one URL path segment (names look like rayfarm-12@host)."""
+    return quote(name, safe="@")
 
 
 def _decode(data: str) -> Any:

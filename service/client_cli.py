@@ -342,16 +342,41 @@ def _logs(args: argparse.Namespace, client: RayfarmClient) -> int:
 
 
 def _workers(args: argparse.Namespace, client: RayfarmClient) -> int:
+    if args.action is not None:
+        if not args.name:
+            _say("workers", f"workers {args.action}: name the worker (see `rayfarm workers`)")
+            return EXIT_INVALID
+        if args.action == "remove":
+            client.remove_worker(args.name)
+            print(f"{args.name} removed")
+        else:
+            worker = (client.disable_worker if args.action == "disable"
+                      else client.enable_worker)(args.name)
+            print(f"{worker['name']} {'disabled' if worker['disabled'] else 'enabled'} "
+                  f"({worker['state']})")
+        return 0
     workers = client.workers()
     if args.json:
         print(json.dumps(workers, indent=2))
         return 0
-    rows = [[w["name"], w["kind"], w["state"], str(w["concurrency"]),
+    rows = [[w["name"], w["kind"], w["state"] + (" (disabled)" if w.get("disabled") else ""),
+             str(w["concurrency"]),
              ", ".join(f"{r['job_id']}/{r['index']}" for r in w["running"]) or "-",
              str(w["units_done"]), _count(w["samples_per_second"]),
              _duration(w["silent_seconds"]) + " ago"] for w in workers]
     print(_table(["NAME", "KIND", "STATE", "PROCS", "RUNNING", "UNITS", "SAMPLES/S",
                   "LAST SEEN"], rows))
+    return 0
+
+
+def _blocklist(args: argparse.Namespace, client: RayfarmClient) -> int:
+    if args.clear:
+        client.clear_blocklist(args.job_id, args.clear)
+        print(f"{args.clear} cleared for job {args.job_id}")
+        return 0
+    rows = [[b["worker"], str(b["failures"]), "blocked" if b["blocked"] else "-",
+             (b["last_error"] or "")[:60]] for b in client.blocklist(args.job_id)]
+    print(_table(["WORKER", "FAILURES", "STATE", "LAST ERROR"], rows))
     return 0
 
 
@@ -439,6 +464,20 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
     logs.add_argument("--json", action="store_true", help="as JSON")
     logs.set_defaults(run=_run("logs", _logs))
 
-    workers = sub.add_parser("workers", parents=server, help="list the render workers")
+    workers = sub.add_parser("workers", parents=server, help="list, drain or remove render workers",
+                             description="List the render workers; admins disable (drain: "
+                                         "running units finish, no new ones), enable, or remove "
+                                         "a lost or offline one.")
+    workers.add_argument("action", nargs="?", choices=["disable", "enable", "remove"])
+    workers.add_argument("name", nargs="?", metavar="NAME", help="the worker (as listed)")
     workers.add_argument("--json", action="store_true", help="as JSON instead of a table")
     workers.set_defaults(run=_run("workers", _workers))
+
+    blocked = sub.add_parser("blocklist", parents=server,
+                             help="the workers blocklisted for a job; --clear one",
+                             description="The workers that failed units of a job (blocklisted "
+                                         "for it after worker_failures_per_job); --clear takes "
+                                         "one off (its owner or an admin).")
+    blocked.add_argument("job_id", metavar="ID")
+    blocked.add_argument("--clear", metavar="WORKER", help="take this worker off the blocklist")
+    blocked.set_defaults(run=_run("blocklist", _blocklist))

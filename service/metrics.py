@@ -40,10 +40,11 @@ __all__ = ["FarmMetrics", "PrometheusMetrics", "HTTPMetrics", "CONTENT_TYPE_LATE
 
 log = logging.getLogger(__name__)
 
-# Why a unit was enqueued again: its task is gone (lost: the broker lost it, or
-# its worker's presence says lost), its lease lapsed without a heartbeat
-# (lease), its render process died (crash), or its attempt failed (failed).
-REQUEUE_REASONS = ("lost", "lease", "crash", "failed")
+# Why a unit was enqueued again: lost (its worker lost by presence), lease (no
+# unit heartbeat for a lease), message (gone from the broker), declined (by a
+# blocklisted or disabled worker), crash (its render process died: an attempt
+# spent) or failed (an attempt raised and is retried).
+REQUEUE_REASONS = ("lost", "lease", "message", "declined", "crash", "failed")
 UNMATCHED = "unmatched"  # the route label of a request no route answered (404 of an unknown path)
 _HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 # Render seconds of one unit: from a small tile to a long MLT chain.
@@ -79,9 +80,10 @@ class PrometheusMetrics(FarmMetrics):
         self.rays = PromCounter("rayfarm_rays", "Rays traced by the units collected done "
                                 "(rate() is rays per second)", registry=r)
         self.requeues = PromCounter(
-            "rayfarm_units_requeued", "Units enqueued again, by reason: lost (the task is "
-            "gone or its worker lost), lease (no heartbeat for a lease), crash (the render "
-            "process died), failed (an attempt raised; retried)", ["reason"], registry=r)
+            "rayfarm_units_requeued", "Units enqueued again: lost (worker lost), lease (no "
+            "heartbeat for a lease), message (gone from the broker), declined (by a "
+            "blocklisted or disabled worker), crash (the render process died), failed "
+            "(an attempt retried)", ["reason"], registry=r)
         self.tick_seconds = Histogram("rayfarm_scheduler_tick_seconds",
                                       "Duration of one scheduler tick",
                                       buckets=_TICK_BUCKETS, registry=r)

@@ -19,7 +19,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
 __all__ = ["ApiToken", "Base", "Job", "SceneClaim", "SceneRecord", "SchedulerLease", "User",
-           "WorkUnit", "utcnow"]
+           "WorkUnit", "WorkerBlock", "utcnow"]
 
 
 def utcnow() -> datetime:
@@ -144,8 +144,27 @@ class WorkUnit(Base):
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     seconds: Mapped[float | None] = mapped_column(Float)
     error: Mapped[str | None] = mapped_column(Text)
+    # Why it was last enqueued again without spending an attempt (its worker
+    # lost, its lease lapsed, its message lost, declined by a worker); None if never.
+    requeue_reason: Mapped[str | None] = mapped_column(Text)
 
     __mapper_args__ = {"version_id_col": version}
+
+
+class WorkerBlock(Base):
+    """The failed units of one job on one worker (Deadline's and Flamenco's
+    habit): at `settings.worker_failures_per_job` the worker is blocklisted for
+    the job (`blocked`), its units go to other workers. The job's owner or an
+    admin clears it (the row goes). Rows go with their job."""
+
+    __tablename__ = "worker_blocks"
+
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"),
+                                        primary_key=True)
+    worker: Mapped[str] = mapped_column(String(200), primary_key=True)
+    failures: Mapped[int] = mapped_column(Integer, default=0)
+    last_error: Mapped[str | None] = mapped_column(Text)
+    blocked: Mapped[datetime | None] = mapped_column(UTCDateTime)
 
 
 class SceneRecord(Base):

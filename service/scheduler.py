@@ -57,13 +57,13 @@ from datetime import datetime
 from typing import Callable, NamedTuple
 
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session, object_session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
 
 from renderer import METHODS, PartialFilm, RenderSpec
 
-from . import events, states
+from . import blocklist, events, states
 from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
 from .fairshare import Contender, fair_share
@@ -135,6 +135,8 @@ class Scheduler:
         # gather tile of a photon round needs the same photon maps, so they are
         # read once and the tickets share one bytes object each.
         self._inputs: dict[tuple[str, int], bytes] = {}
+        # The workers blocklisted per job, read once per tick (service.blocklist).
+        self._blocked: dict[str, tuple[str, ...]] = {}
         self.ticks = 0  # a standby's stay 0
         self.last_error: str | None = None
 
@@ -201,6 +203,7 @@ class Scheduler:
         self._cancel_departed()
         self.previews.keep_only(jobs)
         self._inputs = {}
+        self._blocked = {}
         try:
             for job in jobs.values():
                 if self._stop.is_set():
@@ -398,9 +401,11 @@ class Scheduler:
             if key not in self._inputs:
                 self._inputs[key] = self.store.unit_film(job.id, int(i))
             inputs[int(i)] = self._inputs[key]
+        if job.id not in self._blocked:
+            self._blocked[job.id] = blocklist.blocked_workers(object_session(job), job.id)
         task_id = self.executor.submit(Ticket(job.id, unit.index, job.scene_hash, job.spec,
                                               unit.unit, priority=job.priority or 0,
-                                              inputs=inputs))
+                                              inputs=inputs, blocked=self._blocked[job.id]))
         unit.task_ids = [*unit.task_ids, task_id]
         states.change_unit(unit, "queued", now)
         self._tracked[(job.id, unit.index)] = tuple(unit.task_ids)
@@ -446,11 +451,9 @@ class Scheduler:
                 states.change_unit(unit, "running", now)
             unit.worker = obs.worker or unit.worker
         elif obs.state == "lost":
-            log.warning("unit %s/%d lost (task %s); enqueuing it again",
-                        job.id, unit.index, unit.task_ids[-1] if unit.task_ids else None)
-            self._enqueue(job, unit, now)
-            self.metrics.requeued("lost")
+            return self._requeue_lost(session, job, unit, obs, now)
         elif obs.state in ("failed", "crashed"):  # an attempt spent (a crash too)
+            newly_blocked = self._note_failure(session, job, unit, obs, now)
             unit.error = obs.error
             self._keep_log(job, unit, obs, now)
             if unit.attempts >= self.settings.max_attempts:
@@ -458,6 +461,8 @@ class Scheduler:
                 self._fail_job(session, job, now, _attempts_error(unit, obs))
                 released.append(tuple(unit.task_ids))
                 self._tracked.pop((job.id, unit.index), None)
+                return True
+            if newly_blocked and self._all_blocked(session, job, unit, now):
                 return True
             log.warning("unit %s/%d attempt %d %s: %s", job.id, unit.index, unit.attempts,
                         obs.state, obs.error)
@@ -476,6 +481,55 @@ class Scheduler:
             self.store.put_unit_log(job.id, unit.index, len(unit.task_ids), entry)
         except OSError as exc:
             log.warning("the log of unit %s/%d was not kept: %s", job.id, unit.index, exc)
+
+    # Observation.cause -> the metrics' requeue reason (service.metrics)
+    _REQUEUE_METRIC = {"worker": "lost", "lease": "lease", "message": "message",
+                       "declined": "declined"}
+
+    def _requeue_lost(self, session: Session, job: Job, unit: WorkUnit, obs: Observation,
+                      now: datetime) -> bool:
+        """Enqueue a lost unit again (no attempt spent), saying why on the unit;
+        returns True if the job failed instead (declined by a blocklisted
+        worker when no live worker may run it)."""
+        reason = obs.error or "lost (no task of it will report)"
+        log.warning("unit %s/%d lost (task %s): %s; enqueuing it again", job.id, unit.index,
+                    unit.task_ids[-1] if unit.task_ids else None, reason)
+        if obs.cause == "declined" and self._all_blocked(session, job, unit, now):
+            return True
+        unit.requeue_reason = reason
+        self._enqueue(job, unit, now)
+        self.metrics.requeued(self._REQUEUE_METRIC.get(obs.cause or "", "lost"))
+        return False
+
+    def _note_failure(self, session: Session, job: Job, unit: WorkUnit, obs: Observation,
+                      now: datetime) -> bool:
+        """Count a failed attempt against its worker (service.blocklist); returns
+        whether that blocklisted the worker for the job."""
+        # Only where workers are interchangeable: the embedded pool names its one
+        # worker (for the unit's log) but never blocklists it; max_attempts decides.
+        worker = obs.worker if self.executor.blocklists_workers else None
+        limit = self.settings.worker_failures_per_job
+        if not worker or not limit:
+            return False
+        if not blocklist.note_failure(session, job.id, worker, obs.error, now, limit):
+            return False
+        log.warning("worker %s blocklisted for job %s after %d failed units", worker, job.id,
+                    limit)
+        self._blocked.pop(job.id, None)  # the next tickets carry it
+        events.note(job)
+        return True
+
+    def _all_blocked(self, session: Session, job: Job, unit: WorkUnit, now: datetime) -> bool:
+        """Fail the job if every live worker is blocklisted for it (nothing could run it)."""
+        session.flush()
+        error = blocklist.all_blocked(blocklist.blocked_workers(session, job.id),
+                                      self.executor.workers())
+        if error is None:
+            return False
+        states.change_unit(unit, "failed", now)
+        # Its tasks stay tracked: the next tick cancels (and forgets) them.
+        self._fail_job(session, job, now, f"unit {unit.index}: {error}")
+        return True
 
     def _store_failed(self, job: Job, unit: WorkUnit, exc: OSError) -> None:
         """A finished unit whose film could not be stored (ENOSPC, EIO, ...): it is

@@ -138,8 +138,9 @@ class Progress(BaseModel):
     fraction: float = Field(description="samples_done / samples_total")
     elapsed: float | None = Field(description="seconds the job has been able to run: from its "
                                               "start, pauses excluded (null before the start)")
-    eta: float | None = Field(description="seconds left at the job's recent samples/s "
-                                          "(null unless running with samples done)")
+    eta: float | None = Field(description="seconds left at the job's recent samples/s, at "
+                                          "least a mean unit's render time while units are "
+                                          "left (null unless running with samples done)")
 
 
 class JobStats(BaseModel):
@@ -201,6 +202,10 @@ class JobPublic(BaseModel):
             eta = 0.0
         elif job.status == "running" and (job.recent_rate or rate):
             eta = max(total - job.samples, 0) / (job.recent_rate or rate)
+            if job.units_done < job.units_total and job.unit_seconds and job.units_done:
+                # Units left (say one lost and enqueued again) take at least a
+                # mean unit's render time, whatever few samples they hold.
+                eta = max(eta, job.unit_seconds / job.units_done)
         return cls(
             id=job.id, status=job.status, owner=job.owner, scene=job.scene, scene_hash=job.scene_hash,
             method=spec["method"], spp=spec["spp"], depth=spec["depth"],
@@ -269,6 +274,10 @@ class UnitPublic(BaseModel):
     finished_at: datetime | None
     seconds: float | None = Field(description="render time reported by the worker")
     error: str | None
+    requeue_reason: str | None = Field(
+        None, description="why it was last enqueued again without spending an attempt: its "
+                          "worker lost, no heartbeat for a lease, its message lost, declined "
+                          "by a worker (null if never)")
 
     @classmethod
     def from_unit(cls, unit: WorkUnit) -> "UnitPublic":
@@ -280,7 +289,8 @@ class UnitPublic(BaseModel):
                    stage=u.get("stage", 0), kind=u.get("kind", "tile"),
                    needs=list(u.get("needs") or ()), attempts=unit.attempts, tasks=len(unit.task_ids), worker=unit.worker,
                    enqueued_at=unit.enqueued_at, started_at=unit.started_at,
-                   finished_at=unit.finished_at, seconds=unit.seconds, error=unit.error)
+                   finished_at=unit.finished_at, seconds=unit.seconds, error=unit.error,
+                   requeue_reason=unit.requeue_reason)
 
 
 class UnitAttemptLog(BaseModel):
@@ -337,6 +347,8 @@ class WorkerPublic(BaseModel):
     started: datetime | None
     last_seen: datetime | None
     silent_seconds: float = Field(description="seconds since its last heartbeat")
+    disabled: bool = Field(False, description="drained by an admin: finishes the units it "
+                                              "runs, takes no new ones")
 
     @classmethod
     def from_info(cls, w: WorkerInfo) -> "WorkerPublic":
@@ -346,7 +358,23 @@ class WorkerPublic(BaseModel):
                             for r in w.running],
                    units_done=w.units_done, samples=w.samples, rays=w.rays, seconds=w.seconds,
                    samples_per_second=w.samples / w.seconds if w.seconds > 0 else None,
-                   started=w.started, last_seen=w.last_seen, silent_seconds=w.silent_seconds)
+                   started=w.started, last_seen=w.last_seen, silent_seconds=w.silent_seconds,
+                   disabled=w.disabled)
+
+
+class WorkerBlockPublic(BaseModel):
+    """A worker that failed units of a job (`service.blocklist`)."""
+
+    worker: str
+    failures: int = Field(description="units of the job that failed on it")
+    blocked: datetime | None = Field(description="when it was blocklisted for the job (it "
+                                                 "takes none of its units); null: not yet")
+    last_error: str | None
+
+    @classmethod
+    def from_row(cls, row) -> "WorkerBlockPublic":
+        return cls(worker=row.worker, failures=row.failures, blocked=row.blocked,
+                   last_error=row.last_error)
 
 
 # -- accounts ------------------------------------------------------------------------

@@ -7,6 +7,9 @@ put in flight, and in which order, can be read exactly.
     scheduler.tick()
     executor.submitted          # the tickets, in the order they were enqueued
     executor.finish(job_id, 3)  # unit 3 lands at the next tick (an empty film)
+    executor.fail(job_id, 4, "ValueError: x", worker="w1")  # its latest task failed on w1
+    executor.lose(job_id, 5, cause="worker", error="worker w1 lost")
+    executor.live = ["w1", "w2"]  # what workers() shows (idle Celery-like workers)
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from datetime import datetime
 from typing import Sequence
 
 from renderer import PartialFilm
-from service.executors import Executor, Flight, Observation, Ticket
+from service.executors import Executor, Flight, Observation, Ticket, WorkerInfo
 
 __all__ = ["FakeExecutor"]
 
@@ -33,6 +36,9 @@ class FakeExecutor(Executor):
         self._films: dict[str, bytes] = {}  # task id -> film of a finished task
         self.released: list[str] = []
         self.canceled: list[str] = []
+        self._outcomes: dict[str, Observation] = {}  # task id -> a scripted failure or loss
+        self.live: list[str] = []
+        self.disabled: set[str] = set()
 
     def submit(self, ticket: Ticket) -> str:
         task_id = uuid.uuid4().hex
@@ -49,13 +55,36 @@ class FakeExecutor(Executor):
                                          unit["y1"] - unit["y0"])
                 self._films[task_id] = film.to_bytes()
 
+    def _latest_task(self, job_id: str, index: int) -> str:
+        return [t for t, k in self._tickets.items() if (k.job_id, k.index) == (job_id, index)][-1]
+
+    def fail(self, job_id: str, index: int, error: str, worker: str | None = None) -> None:
+        """The unit's latest task fails (seen at the next tick), on `worker`."""
+        self._outcomes[self._latest_task(job_id, index)] = Observation("failed", error=error,
+                                                                       worker=worker)
+
+    def lose(self, job_id: str, index: int, cause: str, error: str) -> None:
+        """The unit's latest task is lost (seen at the next tick)."""
+        self._outcomes[self._latest_task(job_id, index)] = Observation("lost", cause=cause,
+                                                                       error=error)
+
+    def tickets_of(self, job_id: str, index: int) -> list[Ticket]:
+        return [t for t in self.submitted if (t.job_id, t.index) == (job_id, index)]
+
     def observe(self, flights: Sequence[Flight], now: datetime) -> list[Observation]:
         out = []
         for flight in flights:
             films = [self._films[t] for t in flight.task_ids if t in self._films]
+            scripted = self._outcomes.get(flight.task_ids[-1]) if flight.task_ids else None
             out.append(Observation("done", film=films[0], worker="fake") if films
-                       else Observation("queued"))
+                       else scripted or Observation("queued"))
         return out
+
+    def workers(self) -> list[WorkerInfo]:
+        return [WorkerInfo(name=n, kind="celery", host="fake", state="idle", concurrency=1,
+                           running=(), units_done=0, samples=0, rays=0, seconds=0.0,
+                           started=None, last_seen=None, disabled=n in self.disabled)
+                for n in self.live]
 
     def release(self, task_ids: Sequence[str]) -> None:
         self.released.extend(task_ids)

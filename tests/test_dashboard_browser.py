@@ -602,3 +602,24 @@ def test16_a_units_row_opens_its_log_with_lines_and_tracebacks(page, embedded_se
     shot(page, "16-unit-log")
     page.click("#unit-log-close")
     assert page.is_hidden("#unit-log")
+
+
+def test17_an_admin_drains_and_enables_a_worker_from_the_workers_page(page):
+    page.goto(f"{page.base}/#/workers")
+    row = "#workers-table tr[data-worker^='local@']"
+    page.wait_for_selector(f"{row}[data-disabled='no']")
+    name = page.get_attribute(row, "data-worker")
+    with api(page.base) as client:
+        try:
+            page.click(f"{row} button[data-action='disable']")
+            page.wait_for_selector(f"{row}[data-disabled='yes'] button[data-action='enable']")
+            assert "disabled" in page.inner_text(row)
+            (worker,) = [w for w in client.get("/workers").json() if w["name"] == name]
+            assert worker["disabled"] is True  # the service's, not only the page's
+            shot(page, "22-worker-disabled")
+            page.click(f"{row} button[data-action='enable']")
+            page.wait_for_selector(f"{row}[data-disabled='no'] button[data-action='disable']")
+            (worker,) = [w for w in client.get("/workers").json() if w["name"] == name]
+            assert worker["disabled"] is False
+        finally:  # the module's other tests need the pool
+            client.post(f"/workers/{name}/enable")

@@ -49,6 +49,9 @@ def create_celery_app(settings: Settings) -> Celery:
         task_reject_on_worker_lost=False,
         worker_prefetch_multiplier=1,
         task_track_started=True,
+        # A result (also a failure) names the worker it came from: the service
+        # counts failed units per worker and job (blocklisting, service.workers).
+        result_extended=True,
         task_default_queue=QUEUE,
         # Results are collected within seconds; don't keep stale films for a day.
         result_expires=3600,
@@ -110,9 +113,18 @@ def _start_presence(sender=None, **_kwargs) -> None:
     from .presence import Presence
 
     app = sender.app
+    hostname = sender.hostname
     concurrency = getattr(getattr(sender, "controller", None), "concurrency", None) or 1
-    _presence = Presence(redis.Redis.from_url(app.conf.broker_url), sender.hostname,
-                         int(concurrency), float(app.conf.rayfarm_heartbeat_seconds or 2.0))
+
+    def consume(on: bool) -> None:
+        # Through the remote control, as the service's own broadcast: handled in
+        # the worker's event loop, the only place its consumer may change.
+        control = app.control.add_consumer if on else app.control.cancel_consumer
+        control(QUEUE, destination=[hostname])
+
+    _presence = Presence(redis.Redis.from_url(app.conf.broker_url), hostname,
+                         int(concurrency), float(app.conf.rayfarm_heartbeat_seconds or 2.0),
+                         consume=consume)
     try:
         _presence.start()
     except Exception:  # presence is for the dashboard; never stop the worker for it

@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 __all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "scene_key", "heartbeat_key", "cancel_key",
-           "worker_key", "worker_running_key", "input_key", "unit_log_key"]
+           "worker_key", "worker_running_key", "input_key", "unit_log_key", "DISABLED_WORKERS"]
 
 TASK_RENDER_UNIT = "rayfarm.render_unit"
 QUEUE = "rayfarm.units"
 WORKERS = "rayfarm:workers"  # the set of worker names that ever reported
+# The names of the workers an admin disabled (drained): kept without expiry, so
+# a restarted worker stays disabled; its tasks decline units while it is in it.
+DISABLED_WORKERS = "rayfarm:workers:disabled"
 
 
 def scene_key(scene_hash: str) -> str:
@@ -22,7 +25,9 @@ def input_key(digest: str) -> str:
 
 
 def heartbeat_key(job_id: str, index: int) -> str:
-    """Present (with a TTL of one lease) while some worker renders the unit."""
+    """Present while some worker renders the unit: its value the worker's name,
+    its TTL a few heartbeat intervals (refreshed three times per TTL), so it
+    lapses soon after the render process stops."""
     return f"rayfarm:hb:{job_id}:{index}"
 
 

@@ -4,7 +4,9 @@
     rayfarm:worker:<name>            hash: host, pid, concurrency, started, last_seen,
                                      state (online | offline), units_done, samples,
                                      rays, seconds
-    rayfarm:worker:<name>:running    hash: render process id -> {"job_id", "index", "since"}
+    rayfarm:worker:<name>:running    hash: render process id -> {"job_id", "index", "since",
+                                     "task_id"}
+    rayfarm:workers:disabled         set of the names an admin disabled (no expiry)
 
 Times are Redis's own clock (`TIME`), so the service compares them with the
 same clock whatever the machines' clocks say. The worker's main process beats
@@ -25,10 +27,12 @@ import threading
 
 import redis
 
-from .keys import WORKERS, heartbeat_key, worker_key, worker_running_key
+from typing import Callable
+
+from .keys import DISABLED_WORKERS, WORKERS, heartbeat_key, worker_key, worker_running_key
 
 __all__ = ["Presence", "unit_started", "unit_finished", "forget_dead_processes", "read_workers",
-           "redis_now"]
+           "redis_now", "set_disabled", "is_disabled", "forget_worker"]
 
 log = logging.getLogger(__name__)
 
@@ -43,10 +47,15 @@ def redis_now(client: redis.Redis) -> float:
 
 class Presence:
     """The main process's heartbeat: `start()` when the worker is ready,
-    `stop()` when it shuts down (it is then shown offline, not lost)."""
+    `stop()` when it shuts down (it is then shown offline, not lost).
+    `consume(bool)`, if given, starts or stops the worker consuming the queue
+    when the disabled set says otherwise (see the module doc)."""
 
-    def __init__(self, client: redis.Redis, name: str, concurrency: int, interval: float):
+    def __init__(self, client: redis.Redis, name: str, concurrency: int, interval: float,
+                 consume: Callable[[bool], None] | None = None):
         self.client, self.name, self.concurrency, self.interval = client, name, concurrency, interval
+        self._consume = consume
+        self._consuming = True  # a worker starts consuming its queue
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rayfarm-presence", daemon=True)
 
@@ -59,12 +68,44 @@ class Presence:
         pipe.expire(worker_running_key(self.name), PRESENCE_TTL)
         pipe.execute()
 
+    def _follow_disabled(self) -> None:
+        if self._consume is None:
+            return
+        wanted = not self.client.sismember(DISABLED_WORKERS, self.name)
+        if wanted != self._consuming:
+            log.info("worker %s %s", self.name, "enabled: consuming again" if wanted
+                     else "disabled: no new units (running ones finish)")
+            self._consume(wanted)
+            self._consuming = wanted
+
+    def _beat_units(self) -> None:
+        """Refresh the heartbeat key of every unit a live render process of
+        this worker renders. The render process beats too, from a thread, but
+        a Numba kernel holds the GIL for as long as it runs: this process never
+        renders, so a long unit stays alive however long its kernels take. A
+        dead render process's record goes, so its unit's heartbeat lapses."""
+        key = worker_running_key(self.name)
+        pipe = self.client.pipeline()
+        for pid, raw in self.client.hgetall(key).items():
+            if not _process_alive(int(pid)):
+                pipe.hdel(key, pid)
+                continue
+            unit = json.loads(raw)
+            if unit.get("ttl"):
+                pipe.set(heartbeat_key(unit["job_id"], int(unit["index"])), self.name,
+                         px=max(int(float(unit["ttl"]) * 1000), 1000))
+        pipe.execute()
+
     def _run(self) -> None:
         while not self._stop.wait(self.interval):
             try:
                 self._beat(state="online")
+                self._beat_units()
+                self._follow_disabled()
             except redis.RedisError as exc:  # keep beating; the broker may come back
                 log.warning("presence heartbeat failed: %s", exc)
+            except Exception:  # a control message that failed: try again next beat
+                log.exception("presence: could not follow the disabled flag")
 
     def start(self) -> None:
         now = redis_now(self.client)
@@ -72,6 +113,7 @@ class Presence:
         self._beat(state="online", host=socket.gethostname(), pid=os.getpid(),
                    concurrency=self.concurrency, started=now, units_done=0, samples=0, rays=0,
                    seconds=0.0)
+        self._follow_disabled()
         self._thread.start()
 
     def stop(self) -> None:
@@ -83,11 +125,26 @@ class Presence:
             log.warning("could not mark worker %s offline: %s", self.name, exc)
 
 
-def unit_started(client: redis.Redis, name: str, job_id: str, index: int) -> None:
-    """A render process of worker `name` starts rendering unit `index` of `job_id`."""
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def unit_started(client: redis.Redis, name: str, job_id: str, index: int,
+                 task_id: str | None = None, ttl: float | None = None) -> None:
+    """A render process of worker `name` starts rendering unit `index` of
+    `job_id` as task `task_id` (the service re-enqueues the unit at once if
+    this worker is lost while that task is still the unit's latest); the
+    worker's main process keeps its heartbeat key (TTL `ttl`) alive meanwhile."""
     try:
         client.hset(worker_running_key(name), str(os.getpid()),
-                    json.dumps({"job_id": job_id, "index": index, "since": redis_now(client)}))
+                    json.dumps({"job_id": job_id, "index": index, "since": redis_now(client),
+                                "task_id": task_id, "ttl": ttl}))
     except redis.RedisError as exc:
         log.warning("presence: unit start not recorded: %s", exc)
 
@@ -117,20 +174,17 @@ def forget_dead_processes(client: redis.Redis, name: str, payload: dict | None) 
     if payload and "job_id" in payload and "index" in payload:
         pipe.delete(heartbeat_key(payload["job_id"], int(payload["index"])))
     for pid in client.hkeys(worker_running_key(name)):
-        try:
-            os.kill(int(pid), 0)
-        except ProcessLookupError:
+        if pid.isdigit() and not _process_alive(int(pid)):
             pipe.hdel(worker_running_key(name), pid)
-        except (PermissionError, ValueError):
-            pass
     pipe.execute()
 
 
 def read_workers(client: redis.Redis) -> tuple[float, list[dict]]:
     """(Redis's clock now, every known worker as a dict of its hash fields
-    plus `name` and `running`: a list of {"job_id", "index", "since"}).
-    Workers whose keys expired are forgotten."""
+    plus `name`, `disabled` (a bool) and `running`: a list of {"job_id",
+    "index", "since", "task_id"}). Workers whose keys expired are forgotten."""
     names = sorted(n.decode() for n in client.smembers(WORKERS))
+    disabled = {n.decode() for n in client.smembers(DISABLED_WORKERS)}
     pipe = client.pipeline()
     for name in names:
         pipe.hgetall(worker_key(name))
@@ -144,9 +198,32 @@ def read_workers(client: redis.Redis) -> tuple[float, list[dict]]:
             continue
         record = {k.decode(): v.decode() for k, v in fields.items()}
         record["name"] = name
+        record["disabled"] = name in disabled
         record["running"] = sorted((json.loads(v) for v in running.values()),
                                    key=lambda r: (r["job_id"], r["index"]))
         out.append(record)
     if gone:
         client.srem(WORKERS, *gone)
     return now, out
+
+
+def set_disabled(client: redis.Redis, name: str, disabled: bool) -> None:
+    """Mark worker `name` disabled (drained) or enabled again; the worker's
+    presence thread follows within a beat (module doc)."""
+    if disabled:
+        client.sadd(DISABLED_WORKERS, name)
+    else:
+        client.srem(DISABLED_WORKERS, name)
+
+
+def is_disabled(client: redis.Redis, name: str) -> bool:
+    return bool(client.sismember(DISABLED_WORKERS, name))
+
+
+def forget_worker(client: redis.Redis, name: str) -> None:
+    """Remove a worker's presence (an admin removing a lost or offline worker)."""
+    pipe = client.pipeline()
+    pipe.srem(WORKERS, name)
+    pipe.srem(DISABLED_WORKERS, name)
+    pipe.delete(worker_key(name), worker_running_key(name))
+    pipe.execute()

@@ -66,10 +66,14 @@ class Settings(BaseSettings):
                           description="largest accepted job: width x height x spp")
     max_units: int = Field(65536, gt=0, description="largest accepted number of work units")
     unit_lease_seconds: float = Field(
-        60.0, gt=0, description="a started unit whose heartbeat is absent this long, or a "
+        60.0, gt=0, description="a started unit whose heartbeat was not seen this long, or a "
                                 "queued unit missing from an empty queue this long, is "
                                 "enqueued again")
     max_attempts: int = Field(3, ge=1, description="attempts of a failing unit before its job fails")
+    worker_failures_per_job: int = Field(
+        3, ge=0, description="failed units of one job on one worker before that worker is "
+                             "blocklisted for the job (its units go to other workers; when "
+                             "every live worker is blocklisted the job fails); 0 = never")
     local_workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1,
                                description="processes of the embedded pool")
     poll_interval: float = Field(0.2, gt=0, description="seconds between scheduler ticks")
@@ -78,9 +82,11 @@ class Settings(BaseSettings):
                                "standby takes over this long after the leader stopped "
                                "renewing it; the leader stops scheduling after half of it")
     worker_heartbeat_seconds: float = Field(
-        2.0, gt=0, description="how often a Celery worker reports that it is alive")
+        2.0, gt=0, description="how often a Celery worker reports that it is alive; a "
+                               "rendering unit's own heartbeat lives three times this long")
     worker_lost_seconds: float = Field(
-        10.0, gt=0, description="a worker silent this long is shown as lost")
+        10.0, gt=0, description="a worker silent this long is lost: shown so, and the units it "
+                                "was rendering are enqueued again at once")
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0,
                                   description="largest request body of POST /scenes (413 above)")
     max_upload_files: int = Field(64, ge=0, description="most mesh files in one POST /scenes")

@@ -7,9 +7,17 @@ encoded for the JSON result backend, the worker's name and the unit's own log
 (renderer.unitlog: its log lines; a failed unit's log, with its traceback,
 goes to `unit_log_key(task id)` with a TTL, since Celery's failure result
 holds only the exception). While it runs, a
-heartbeat key with a TTL of one lease tells the service the unit is alive,
-and the worker's presence record (worker/presence.py) shows the unit and,
-once it is done, counts it.
+heartbeat key with a short TTL (a few heartbeat intervals, refreshed three
+times per TTL by this process and on every beat by the worker's main
+process, which never holds the GIL in a kernel) tells the service the unit is
+alive, and the worker's presence record (worker/presence.py) shows the unit
+(with its task id) and, once it is done, counts it.
+
+A worker declines a unit, returning ``{"declined": reason, "worker": name}``
+at once without rendering, when it is blocklisted for the unit's job (the
+payload's ``blocked``) or an admin disabled it (a unit it had prefetched
+before the drain): the service enqueues the unit again without spending an
+attempt, for another worker.
 """
 
 from __future__ import annotations
@@ -120,13 +128,18 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
     `unit_log_key(task_id)` first.
 
     `payload`: ``job_id``, ``index``, ``scene_hash``, ``spec`` (a RenderSpec
-    dict), ``unit`` (a Unit dict), ``lease_seconds`` (the heartbeat's TTL)
-    and ``inputs`` (unit index -> SHA-256 of the film bytes it needs, published
+    dict), ``unit`` (a Unit dict), ``heartbeat_seconds`` (the unit heartbeat's
+    TTL; older services sent ``lease_seconds``), ``blocked`` (workers that
+    decline it) and ``inputs`` (unit index -> SHA-256 of the film bytes it needs, published
     in Redis by the service).
     """
     job_id, index, scene = payload["job_id"], int(payload["index"]), payload["scene_hash"]
     if client.exists(cancel_key(job_id)):
         return {"canceled": True, "worker": worker}
+    if worker in (payload.get("blocked") or ()):
+        return {"declined": "blocklisted for the job", "worker": worker}
+    if presence.is_disabled(client, worker):
+        return {"declined": "disabled", "worker": worker}
 
     def load_scene_text() -> str:
         text = client.get(scene_key(scene))
@@ -134,12 +147,13 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
             raise SceneUnavailable(f"scene {scene[:12]} is not in the broker")
         return text.decode()
 
-    presence.unit_started(client, worker, job_id, index)
+    ttl = float(payload.get("heartbeat_seconds") or payload["lease_seconds"])
+    presence.unit_started(client, worker, job_id, index, task_id, ttl)
     stats = None
     captured = None
     try:
-        with Heartbeat(client, heartbeat_key(job_id, index), float(payload["lease_seconds"]),
-                       worker), capture_unit_log(job_id, index) as captured:
+        with Heartbeat(client, heartbeat_key(job_id, index), ttl, worker), \
+                capture_unit_log(job_id, index) as captured:
             inputs = {int(i): _fetch_input(client, digest)
                       for i, digest in (payload.get("inputs") or {}).items()}
             film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs)

@@ -26,6 +26,8 @@ class Ticket:
     # The film bytes of the units this one needs (a DAG job's photon map,
     # bootstrap, radiosity solution...), by unit index; empty for tile units.
     inputs: dict[int, bytes] = field(default_factory=dict)
+    # Workers blocklisted for the job (too many failed units): they decline it.
+    blocked: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -45,11 +47,17 @@ class Observation:
     """What an executor knows about a unit in flight.
 
     `lost`: no task of the unit will ever report (worker died, message gone);
-    the scheduler enqueues it again without counting an attempt.
+    the scheduler enqueues it again without counting an attempt. `cause` says
+    why, for the metrics and the unit's `requeue_reason` (with `error` as the
+    sentence shown): "worker" (its worker's presence says lost), "lease" (no
+    heartbeat of the unit for a lease), "message" (queued, but gone from the
+    broker), "declined" (a blocklisted or disabled worker gave it back).
     `crashed`: the process rendering the unit died under it (a segfault in a
     kernel, a SIGKILL of that process); `error` says how, in
     `renderer.process_death`'s words. It spends an attempt, like `failed`: a
     unit that kills every process it runs in fails after `max_attempts`.
+    `worker` of a failed unit is the worker the attempt failed on, when known
+    (it counts towards that worker's blocklisting for the job).
     `log`: with done or failed, the unit's own log as its render process
     captured it (renderer.unitlog: lines, traceback, dropped), if any.
     """
@@ -59,6 +67,7 @@ class Observation:
     worker: str | None = None
     error: str | None = None
     log: dict | None = None
+    cause: str | None = None
 
 
 @dataclass(frozen=True)
@@ -66,6 +75,7 @@ class RunningUnit:
     job_id: str
     index: int
     since: datetime | None = None
+    task_id: str | None = None  # the task rendering it (Celery), when known
 
 
 @dataclass(frozen=True)
@@ -90,6 +100,7 @@ class WorkerInfo:
     started: datetime | None
     last_seen: datetime | None
     silent_seconds: float = 0.0  # since the last heartbeat, on the broker's clock
+    disabled: bool = False  # drained by an admin: finishes what it runs, takes nothing new
 
 
 class Executor(ABC):
@@ -97,6 +108,9 @@ class Executor(ABC):
     `workers` and `health`, which any thread may call)."""
 
     name: str
+    # Whether a worker that fails N units of a job is blocklisted for it
+    # (service.blocklist): true where other workers can take its units.
+    blocklists_workers: bool = True
 
     @abstractmethod
     def submit(self, ticket: Ticket) -> str:
@@ -133,6 +147,15 @@ class Executor(ABC):
     def workers(self) -> list[WorkerInfo]:
         """The workers this executor runs units on, as last seen."""
         return []
+
+    def set_worker_enabled(self, name: str, enabled: bool) -> None:
+        """Drain (`enabled=False`) or re-enable a worker: a disabled one finishes
+        the units it runs and takes no new ones. The name is one of `workers()`."""
+        raise NotImplementedError(f"the {self.name} executor cannot disable workers")
+
+    def remove_worker(self, name: str) -> None:
+        """Forget a lost or offline worker (one of `workers()`, not live)."""
+        raise NotImplementedError(f"the {self.name} executor cannot remove workers")
 
     def health(self) -> dict:
         return {"executor": self.name}

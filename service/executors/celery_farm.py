@@ -5,11 +5,17 @@ its render process died under it: the worker records billiard's
 WorkerLostError as the task's FAILURE and does not redeliver it
 (worker/celery_app.py). A unit is *lost*, and enqueued again under a
 new task id (its attempt count unchanged), when
-- it started but its heartbeat key has been absent for a lease: the worker
-  died (a SIGKILL leaves the message unacknowledged for Redis's visibility
-  timeout, an hour by default; we don't wait for that);
+- the worker rendering it is lost by presence (its heartbeats stopped for
+  `worker_lost_seconds`, worker/presence.py) while the unit's latest task is
+  among those its presence record says it runs: at once, not after a lease
+  (a SIGKILL leaves the message unacknowledged for Redis's visibility
+  timeout, an hour by default; we don't wait for that either);
+- it started but no heartbeat of it has been seen for a lease: the unit's
+  heartbeat key lives a few heartbeat intervals and its render process keeps
+  refreshing it, so a long unit that still renders is never re-run by lease;
 - it has been queued longer than a lease while the queue is empty: the
-  message itself is gone (e.g. Redis restarted without persistence).
+  message itself is gone (e.g. Redis restarted without persistence);
+- a worker declined it (blocklisted for its job, or disabled meanwhile).
 Results are collected from every task id a unit ever had; the first wins,
 and since units are deterministic a late duplicate changes nothing.
 
@@ -38,7 +44,7 @@ from renderer import PartialFilm, process_death
 from worker.celery_app import create_celery_app
 from worker.keys import (QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key,
                          scene_key, unit_log_key)
-from worker.presence import read_workers
+from worker.presence import forget_worker, read_workers, set_disabled
 
 from ..settings import Settings
 from .base import Executor, Flight, Observation, RunningUnit, Ticket, WorkerInfo
@@ -76,7 +82,13 @@ class CeleryExecutor(Executor):
         self.app = create_celery_app(settings)
         self.lease = timedelta(seconds=settings.unit_lease_seconds)
         self.lease_seconds = settings.unit_lease_seconds
+        # The unit heartbeat's TTL: a few beats, never more than the lease.
+        self.heartbeat_ttl = min(3 * settings.worker_heartbeat_seconds, self.lease_seconds)
         self.lost_seconds = settings.worker_lost_seconds
+        self._beat_seen: dict[str, datetime] = {}  # task id -> when its unit's heartbeat was last seen
+        # Tasks whose worker is lost by presence -> that worker (read at most once a second).
+        self._lost_tasks: dict[str, str] = {}
+        self._lost_read = -1e9
         self.redis = redis.Redis.from_url(settings.broker_url)
         self._load_scene_text = load_scene_text
         self._published: dict[str, float] = {}
@@ -119,7 +131,8 @@ class CeleryExecutor(Executor):
         task_id = uuid.uuid4().hex
         payload = {"job_id": ticket.job_id, "index": ticket.index,
                    "scene_hash": ticket.scene_hash, "spec": ticket.spec, "unit": ticket.unit,
-                   "lease_seconds": self.lease_seconds,
+                   "lease_seconds": self.lease_seconds, "heartbeat_seconds": self.heartbeat_ttl,
+                   "blocked": list(ticket.blocked),
                    "inputs": self._publish_inputs(ticket.inputs)}
         self.app.send_task(TASK_RENDER_UNIT, args=[payload], queue=QUEUE, task_id=task_id,
                            priority=redis_priority(ticket.priority))
@@ -142,22 +155,38 @@ class CeleryExecutor(Executor):
             return []
         metas = self._metas([t for f in flights for t in f.task_ids])
         beats = self.redis.mget([heartbeat_key(f.job_id, f.index) for f in flights])
+        lost_tasks = self._tasks_of_lost_workers()
         queue_length: int | None = None
         out = []
         for flight, beat in zip(flights, beats):
-            obs = self._decide(flight, [metas[t] for t in flight.task_ids], beat, now)
+            obs = self._decide(flight, [metas[t] for t in flight.task_ids], beat, now, lost_tasks)
             if obs is None:  # queued for more than a lease: lost only if the queue is empty
                 if queue_length is None:
                     queue_length = self.queue_length()
-                obs = Observation("lost") if queue_length == 0 else Observation("queued")
+                obs = Observation("lost", cause="message",
+                                  error=f"queued for over {self.lease_seconds:g} s and not in "
+                                        "the broker's queue") if queue_length == 0 \
+                    else Observation("queued")
             out.append(obs)
         return out
 
+    def _tasks_of_lost_workers(self) -> dict[str, str]:
+        """Task id -> worker, for the units the presence records of lost workers
+        say they were rendering (read at most once a second)."""
+        now = time.monotonic()
+        if now - self._lost_read >= 1.0:
+            self._lost_tasks = {r.task_id: w.name for w in self.workers() if w.state == "lost"
+                                for r in w.running if r.task_id}
+            self._lost_read = now
+        return self._lost_tasks
+
     def _decide(self, flight: Flight, metas: list[dict | None], beat: bytes | None,
-                now: datetime) -> Observation | None:
+                now: datetime, lost_tasks: dict[str, str]) -> Observation | None:
         for meta in metas:
             if meta and meta.get("status") == "SUCCESS":
                 result = meta.get("result") or {}
+                if "declined" in result:
+                    continue  # only the latest task's decline matters (below)
                 if "film" not in result:
                     return Observation("failed", error=f"task returned no film: {sorted(result)}")
                 film = base64.b64decode(result["film"])
@@ -165,20 +194,35 @@ class CeleryExecutor(Executor):
                 return Observation("done", film=film, worker=result.get("worker"),
                                    log=result.get("log"))
         latest = metas[-1] if metas else None
+        latest_id = flight.task_ids[-1] if flight.task_ids else None
         status = latest.get("status") if latest else None
+        if status == "SUCCESS":  # declined (a done result returned above)
+            result = latest.get("result") or {}
+            return Observation("lost", cause="declined", worker=result.get("worker"),
+                               error=f"declined by {result.get('worker')}: {result['declined']}")
         if status == "FAILURE":
             crash = _process_death(latest)
             if crash is not None:
-                return Observation("crashed", error=crash,
+                return Observation("crashed", error=crash, worker=latest.get("worker"),
                                    log=self._failure_log(flight.task_ids[-1], latest))
-            return Observation("failed", error=_error_text(latest),
+            return Observation("failed", error=_error_text(latest), worker=latest.get("worker"),
                                log=self._failure_log(flight.task_ids[-1], latest))
+        if latest_id in lost_tasks:
+            return Observation("lost", cause="worker", worker=lost_tasks[latest_id],
+                               error=f"worker {lost_tasks[latest_id]} lost (no presence "
+                                     f"heartbeat for {self.lost_seconds:g} s)")
         if beat is not None:
+            if latest_id is not None:
+                self._beat_seen[latest_id] = now
             return Observation("running", worker=beat.decode(errors="replace"))
         if status == "STARTED" or flight.state == "running":
             started = flight.started_at if flight.state == "running" else None
-            if started is not None and now - started > self.lease:
-                return Observation("lost")
+            if started is not None:
+                # The lease runs from the last heartbeat seen (or the start).
+                seen = max(started, self._beat_seen.get(latest_id, started))
+                if now - seen > self.lease:
+                    return Observation("lost", cause="lease",
+                                       error=f"no heartbeat for {self.lease_seconds:g} s")
             worker = (latest or {}).get("result") or {}
             return Observation("running", worker=worker.get("hostname") if isinstance(worker, dict) else None)
         if now - flight.enqueued_at > self.lease:
@@ -212,6 +256,7 @@ class CeleryExecutor(Executor):
             self.app.backend.forget(task_id)
         if task_ids:
             self.redis.delete(*[unit_log_key(t) for t in task_ids])
+            self._beat_seen.pop(task_id, None)
 
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
         # The marker makes any worker skip the job's units still queued (also
@@ -248,7 +293,7 @@ class CeleryExecutor(Executor):
         now = time.monotonic()
         if now - self._processes_read >= 1.0:
             self._processes = sum(w.concurrency for w in self.workers()
-                                  if w.state in ("busy", "idle"))
+                                  if w.state in ("busy", "idle") and not w.disabled)
             self._processes_read = now
         return self._processes
 
@@ -259,7 +304,8 @@ class CeleryExecutor(Executor):
         out = []
         for r in records:
             last_seen = float(r.get("last_seen", 0.0))
-            running = tuple(RunningUnit(u["job_id"], int(u["index"]), _utc(u.get("since")))
+            running = tuple(RunningUnit(u["job_id"], int(u["index"]), _utc(u.get("since")),
+                                        u.get("task_id"))
                             for u in r["running"])
             if r.get("state") == "offline":
                 state, running = "offline", ()
@@ -273,8 +319,20 @@ class CeleryExecutor(Executor):
                 units_done=int(r.get("units_done", 0)), samples=int(r.get("samples", 0)),
                 rays=int(r.get("rays", 0)), seconds=float(r.get("seconds", 0.0)),
                 started=_utc(r.get("started")), last_seen=_utc(last_seen),
-                silent_seconds=max(now - last_seen, 0.0)))
+                silent_seconds=max(now - last_seen, 0.0), disabled=bool(r.get("disabled"))))
         return out
+
+    def set_worker_enabled(self, name: str, enabled: bool) -> None:
+        # The marker first (a restarted worker reads it; a prefetched unit is
+        # declined by it), then the broadcast: the worker stops or starts
+        # consuming now rather than at its next beat.
+        set_disabled(self.redis, name, not enabled)
+        control = self.app.control.add_consumer if enabled else self.app.control.cancel_consumer
+        control(QUEUE, destination=[name])
+        self._processes_read = -1e9  # its processes no longer count (see limit)
+
+    def remove_worker(self, name: str) -> None:
+        forget_worker(self.redis, name)
 
     def health(self) -> dict:
         try:

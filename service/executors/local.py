@@ -34,6 +34,7 @@ class LocalExecutor(Executor):
     """A process pool of `settings.local_workers` single-threaded renderers."""
 
     name = "local"
+    blocklists_workers = False  # its one worker: max_attempts alone decides
     MAX_AHEAD = 16  # units in flight per process, at most (see `limit`)
 
     def __init__(self, settings: Settings, load_scene_text: Callable[[str], str]):
@@ -56,6 +57,7 @@ class LocalExecutor(Executor):
         self.seconds = 0.0
         self._progress = lambda: None
         self._unit_seconds = 0.1  # a running mean of render seconds per unit (see capacity)
+        self.disabled = False  # drained by an admin: no new submissions (see capacity)
 
     def _scene(self, scene_hash: str) -> str:
         if scene_hash not in self._scene_texts:
@@ -149,7 +151,13 @@ class LocalExecutor(Executor):
                 name=self.worker_name, kind="local", host=self.host,
                 state="busy" if running else "idle", concurrency=self.processes,
                 running=tuple(running), units_done=self.units_done, samples=self.samples,
-                rays=self.rays, seconds=self.seconds, started=self.started, last_seen=now)]
+                rays=self.rays, seconds=self.seconds, started=self.started, last_seen=now,
+                disabled=self.disabled)]
+
+    def set_worker_enabled(self, name: str, enabled: bool) -> None:
+        if name != self.worker_name:
+            raise KeyError(name)
+        self.disabled = not enabled
 
     def on_progress(self, callback) -> None:
         self._progress = callback
@@ -164,6 +172,8 @@ class LocalExecutor(Executor):
         return ahead * self.processes
 
     def capacity(self, in_flight: int) -> int:
+        if self.disabled:  # drained: what is in the pool finishes, nothing new goes
+            return 0
         return max(self.limit() - in_flight, 0)
 
     def health(self) -> dict:

@@ -8,9 +8,9 @@ from typing import Annotated
 from fastapi import APIRouter, Path, Query, Response, status
 from fastapi.responses import FileResponse
 
-from ... import admission, jobs
+from ... import admission, blocklist, jobs
 from ...models import utcnow
-from ...schemas import JobCreate, JobPublic, JobUpdate, UnitLogPublic, UnitPublic
+from ...schemas import JobCreate, JobPublic, JobUpdate, UnitLogPublic, UnitPublic, WorkerBlockPublic
 from ..auth import ActorDep
 from ..deps import FarmDep, SessionDep
 from ..errors import responses
@@ -67,6 +67,30 @@ def unit_log(job_id: str, index: Annotated[int, Path(ge=0, le=MAX_OFFSET)],
     lines and, if it failed, the exception's traceback (oldest task first)."""
     unit, logs = jobs.unit_logs(session, farm.store, actor, job_id, index)
     return UnitLogPublic.from_unit(unit, logs)
+
+
+@router.get("/{job_id}/blocklist", response_model=list[WorkerBlockPublic],
+            responses=responses(404))
+def list_blocklist(job_id: str, session: SessionDep, actor: ActorDep) -> list[WorkerBlockPublic]:
+    """The workers that failed units of the job: blocklisted for it (`blocked`
+    set) once `worker_failures_per_job` of its units failed there."""
+    job = jobs.get_job(session, actor, job_id)
+    return [WorkerBlockPublic.from_row(r) for r in blocklist.list_blocks(session, job.id)]
+
+
+@router.delete("/{job_id}/blocklist/{worker}", status_code=status.HTTP_204_NO_CONTENT,
+               responses=responses(403, 404))
+def clear_blocklist(job_id: str, worker: str, farm: FarmDep, actor: ActorDep) -> Response:
+    """Take a worker off the job's blocklist, with its failure count (the job's
+    owner or an admin); its next units may go to it again."""
+    jobs.retrying(farm.sessions, job_id, lambda session: _clear(session, actor, job_id, worker))
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+def _clear(session, actor, job_id: str, worker: str):
+    job = jobs.get_job(session, actor, job_id)
+    blocklist.clear(session, actor, job, worker)
+    return job
 
 
 @router.post("/{job_id}/cancel", response_model=JobPublic, responses=_CHANGE)

@@ -55,6 +55,7 @@ export function jobView(root, jobId) {
   const paramsBox = h("div.panel-body");
   const downloads = h("div.panel-body.actions");
   const workersBox = h("div.panel-body");
+  const blocklistBox = h("div.panel-body#blocklist");
   const unitsHead = h("div.viewer-bar");
   const unitsBody = h("tbody");
   const logTitle = h("h2", {}, "Unit log");
@@ -83,6 +84,7 @@ export function jobView(root, jobId) {
         h("div.panel", {}, h("h2", {}, "Progress"), progressBox),
         h("div.panel", {}, h("h2", {}, "Throughput"), statsBox),
         h("div.panel", {}, h("h2", {}, "Workers"), workersBox),
+        h("div.panel", {}, h("h2", {}, "Blocklist"), blocklistBox),
         h("div.panel", {}, h("h2", {}, "Parameters"), paramsBox),
         h("div.panel", {}, h("h2", {}, "Downloads"), downloads))));
 
@@ -388,7 +390,8 @@ export function jobView(root, jobId) {
       h("td", {}, badge(u.state)), h("td.mono", {}, u.worker || "–"),
       h("td.num", {}, u.tasks > u.attempts ? `${u.attempts} (${u.tasks} tasks)` : u.attempts),
       h("td.num", {}, u.seconds === null ? "–" : `${u.seconds.toFixed(3)} s`),
-      h("td.wrap", {}, u.error || "")))
+      h("td.wrap", {}, u.error || (u.requeue_reason && u.state !== "done"
+        ? h("span.muted", { "data-requeued": "yes" }, `requeued: ${u.requeue_reason}`) : ""))))
       : h("tr", {}, h("td.empty", { colspan: 9 }, job && job.progress.units_total ? "No such units."
         : "The job is not planned yet.")));
   }
@@ -468,7 +471,41 @@ export function jobView(root, jobId) {
     });
   }
 
+  // Workers that failed units of this job; blocklisted ones take none of its
+  // units until its owner (or an admin) clears them (service/blocklist.py).
+  let blocklistShown = "";
+  async function loadBlocklist() {
+    let rows;
+    try {
+      rows = await api.get(`/jobs/${jobId}/blocklist`);
+    } catch (err) {
+      return;
+    }
+    const key = JSON.stringify(rows);
+    if (key === blocklistShown) return;
+    blocklistShown = key;
+    replace(blocklistBox, rows.length ? h("div.worker-list", {}, rows.map((b) =>
+      h("div.row", { "data-blocked-worker": b.worker },
+        h("span.name.mono", { title: b.last_error || "" }, b.worker),
+        h("span.num", {}, `${b.failures} failed${b.blocked ? " · blocklisted" : ""}`),
+        may.change(job) ? h("button.small", {
+          "data-action": "clear-block", title: "let it take this job's units again",
+          onclick: async () => {
+            try {
+              await api.del(`/jobs/${jobId}/blocklist/${encodeURIComponent(b.worker)}`);
+              toast(`Cleared ${b.worker}`);
+            } catch (err) {
+              toast(`Clear failed: ${err.message}`, true);
+            }
+            loadBlocklist();
+          },
+        }, "Clear") : null)))
+      : h("span.muted", {}, "No worker failed a unit of this job."));
+  }
+
   renderViewTabs();
+  loadBlocklist();
+  const blocklistTimer = setInterval(() => { if (job && !FINAL.has(job.status)) loadBlocklist(); }, 5000);
   api.get(`/jobs/${jobId}`).then((data) => {
     setJob(data);
     if (data.preview_url) loadImage();
@@ -485,5 +522,5 @@ export function jobView(root, jobId) {
     if (elapsed) elapsed.textContent = fmt.duration(elapsedNow(job));
     if (eta) eta.textContent = fmt.duration(etaNow(job));
   }, 1000);
-  return () => { if (closeStream) closeStream(); clearInterval(ticker); };
+  return () => { if (closeStream) closeStream(); clearInterval(ticker); clearInterval(blocklistTimer); };
 }

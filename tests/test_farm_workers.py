@@ -1,0 +1,161 @@
+"""Lost workers and worker control on the real farm: this run's Redis,
+`rayfarm worker` processes, the service in this process (a TestClient).
+
+- a SIGKILLed worker's unit is enqueued again within a few heartbeat
+  intervals of the kill, with a lease of 120 s that plays no part;
+- a unit rendering longer than the lease is never re-run: its heartbeat
+  keeps it alive;
+- a drained (disabled) worker takes no new unit while another does;
+- a worker declines, without rendering, a unit of a job it is blocklisted
+  for, or any unit while it is disabled.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+
+from service.main import create_app
+from service.settings import Settings
+
+from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, get_json, poll_job,
+                      submit, wait_for)
+
+pytestmark = pytest.mark.farm
+
+BEAT = {"RAYFARM_WORKER_HEARTBEAT_SECONDS": "0.3"}
+# Four units of about a second each (16x16 pixels x 2048 samples).
+SLOW = dict(TINY, spp=2048, tile_size=16, progressive=False)
+
+
+def _settings(tmp_path, redis_url, **extra) -> Settings:
+    return Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
+                    worker_heartbeat_seconds=0.3, worker_lost_seconds=1.5, **extra)
+
+
+def _name(child, workers: list[dict]) -> str | None:
+    return next((w["name"] for w in workers if w["name"].startswith(f"rayfarm-{child.pid}@")),
+                None)
+
+
+def test01_a_killed_workers_unit_is_enqueued_again_within_heartbeats_not_the_lease(
+        redis_url, spawn_worker, tmp_path, reference_channels):
+    import redis
+
+    doomed = spawn_worker(concurrency=1, **BEAT)
+    rescuer = spawn_worker(concurrency=1, **BEAT)
+    broker = redis.Redis.from_url(redis_url)
+    with TestClient(create_app(_settings(tmp_path, redis_url, unit_lease_seconds=120)),
+                    headers=ADMIN_HEADERS) as client:
+        get = get_json(client)
+        name = wait_for(lambda: _name(doomed, get("/workers")), 30, "the doomed worker")
+        job_id = submit(client, SLOW)["id"]
+
+        def doomed_renders() -> list[int]:
+            return [int(k.rsplit(b":", 1)[1]) for k in broker.keys(f"rayfarm:hb:{job_id}:*")
+                    if broker.get(k) == name.encode()]
+        victims = wait_for(doomed_renders, 120, "the doomed worker to render a unit",
+                           interval=0.01)
+        doomed.kill_group(signal.SIGKILL)  # the main process and its render process
+        killed = time.monotonic()
+
+        def requeued() -> dict | None:
+            unit = get(f"/jobs/{job_id}/units")[victims[0]]
+            return unit if unit["tasks"] > 1 or unit["state"] == "done" else None
+        unit = wait_for(requeued, 60, "the killed worker's unit to be enqueued again",
+                        interval=0.02)
+        delay = time.monotonic() - killed
+        print(f"\nre-enqueue delay after the kill: {delay:.2f} s "
+              f"(worker heartbeat 0.3 s, lost after 1.5 s, lease 120 s)")
+        assert unit["tasks"] == 2, unit  # not done by the dead worker in its last instant
+        assert delay < 30, delay  # a few heartbeats and ticks; the lease is 120 s
+        job = poll_job(get, job_id)
+        assert job["status"] == "done", job
+        units = get(f"/jobs/{job_id}/units")
+        again = units[victims[0]]
+        assert again["requeue_reason"].startswith(f"worker {name} lost"), again
+        assert again["attempts"] == 1 and again["worker"] != name
+        assert job["stats"]["units_retried"] >= 1
+        assert job["samples"] == 32 * 32 * 2048, "a unit was counted twice or lost"
+        workers = {w["name"]: w for w in get("/workers")}
+        assert workers[name]["state"] == "lost"
+        # A lost worker can be removed from the list; a live one cannot.
+        live = _name(rescuer, list(workers.values()))
+        assert client.delete(f"/workers/{live}").status_code == 409
+        assert client.delete(f"/workers/{name}").status_code == 204
+        assert name not in {w["name"] for w in get("/workers")}
+        (tmp_path / "killed.exr").write_bytes(client.get(job["result_url"]).content)
+    broker.close()
+    assert_bit_identical(channels_of(tmp_path / "killed.exr"), reference_channels(SLOW))
+
+
+def test02_a_unit_longer_than_the_lease_is_never_rendered_again(redis_url, spawn_worker,
+                                                                tmp_path):
+    spawn_worker(concurrency=1, **BEAT)
+    # One unit of about four seconds against a lease of 1.5 s (a Numba kernel
+    # holds the render process's GIL: its own heartbeat thread cannot beat).
+    body = dict(TINY, spp=2048, tile_size=32, progressive=False)
+    with TestClient(create_app(_settings(tmp_path, redis_url, unit_lease_seconds=1.5)),
+                    headers=ADMIN_HEADERS) as client:
+        get = get_json(client)
+        # First a one-unit job, so the render process is warm: a message it
+        # reserved while it still loaded its kernels would be taken for lost
+        # (queued past this short lease), which is not what this test is about.
+        assert poll_job(get, submit(client, dict(TINY, spp=1, tile_size=32,
+                                                 progressive=False))["id"])["status"] == "done"
+        job = poll_job(get, submit(client, body)["id"])
+        assert job["status"] == "done", job
+        (unit,) = get(f"/jobs/{job['id']}/units")
+        assert unit["seconds"] > 1.5, unit  # it did outlive the lease
+        assert unit["tasks"] == 1 and unit["requeue_reason"] is None, unit
+
+
+def test03_a_disabled_worker_takes_no_new_unit_while_another_does(redis_url, spawn_worker,
+                                                                 tmp_path):
+    drained, busy = spawn_worker(concurrency=1, **BEAT), spawn_worker(concurrency=1, **BEAT)
+    with TestClient(create_app(_settings(tmp_path, redis_url)), headers=ADMIN_HEADERS) as client:
+        get = get_json(client)
+        def both() -> list[dict] | None:
+            found = get("/workers")
+            return found if _name(drained, found) and _name(busy, found) else None
+        workers = wait_for(both, 30, "both workers")
+        name = _name(drained, workers)
+        answer = client.post(f"/workers/{name}/disable")
+        assert answer.status_code == 200 and answer.json()["disabled"] is True
+        job = poll_job(get, submit(client, dict(TINY, progressive=False, tile_size=8))["id"])
+        assert job["status"] == "done", job
+        units = get(f"/jobs/{job['id']}/units")
+        assert {u["worker"] for u in units} == {_name(busy, workers)}
+        shown = {w["name"]: w for w in get("/workers")}
+        assert shown[name]["disabled"] and shown[name]["units_done"] == 0
+        # Enabled again, it takes units again.
+        assert client.post(f"/workers/{name}/enable").json()["disabled"] is False
+        job = poll_job(get, submit(client, dict(TINY, progressive=False, tile_size=4,
+                                                seed=8))["id"])
+        assert job["status"] == "done"
+        wait_for(lambda: {w["name"]: w for w in get("/workers")}[name]["units_done"] > 0, 30,
+                 "the enabled worker to take units", interval=0.2)
+
+
+def test04_a_worker_declines_units_of_a_job_it_is_blocklisted_for_or_while_disabled(
+        redis_url):
+    import redis
+
+    from worker.presence import set_disabled
+    from worker.tasks import render_unit
+
+    client = redis.Redis.from_url(redis_url)
+    # Neither the scene nor anything else is needed: it declines before reading them.
+    payload = {"job_id": "j1", "index": 0, "scene_hash": "0" * 64, "spec": {}, "unit": {},
+               "lease_seconds": 60, "heartbeat_seconds": 1, "blocked": ["w1"], "inputs": {}}
+    assert render_unit(client, "w1", payload, "t1") == {"declined": "blocklisted for the job",
+                                                       "worker": "w1"}
+    set_disabled(client, "w2", True)
+    assert render_unit(client, "w2", payload, "t2") == {"declined": "disabled", "worker": "w2"}
+    set_disabled(client, "w2", False)
+    with pytest.raises(Exception):  # enabled and not blocklisted: it does try to render
+        render_unit(client, "w2", payload, "t3")
+    client.close()
