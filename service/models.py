@@ -142,6 +142,9 @@ class WorkUnit(Base):
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     seconds: Mapped[float | None] = mapped_column(Float)
     error: Mapped[str | None] = mapped_column(Text)
+    # SHA-256 of the stored film (set when the unit is done): later units of a
+    # DAG job receive their inputs by it (service.artefacts).
+    film_digest: Mapped[str | None] = mapped_column(String(64))
 
     __mapper_args__ = {"version_id_col": version}
 

@@ -19,8 +19,9 @@ Each tick:
    (`service.fairshare`): each slot goes to the owner with the fewest units
    in flight relative to its share, within an owner to its highest priority,
    then to the job with the fewest units in flight, then the oldest. Only
-   pending units whose needs are done go (a DAG unit travels with the stored
-   films of the units it needs); paused jobs collect but never enqueue. The
+   pending units whose needs are done go (a DAG unit travels with the
+   digests of the stored films it needs, `service.artefacts`; the executor
+   finds the bytes); paused jobs collect but never enqueue. The
    units are enqueued in the order they were chosen, so different jobs'
    units interleave in the executor's queue too, and no job can hold it:
    a small job submitted behind a huge one starts within a few ticks.
@@ -43,6 +44,7 @@ land), the final merge and its images `service.results`'.
 from __future__ import annotations
 
 import errno
+import hashlib
 import logging
 import threading
 import time
@@ -51,13 +53,14 @@ from datetime import datetime
 from typing import Callable, NamedTuple
 
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session, object_session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
 
 from renderer import METHODS, PartialFilm, RenderSpec
 
 from . import events, states
+from .artefacts import Artefacts
 from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
 from .fairshare import Contender, fair_share
@@ -107,10 +110,8 @@ class Scheduler:
         self._wake = threading.Event()
         executor.on_progress(self._wake.set)
         self._thread: threading.Thread | None = None
-        # Stored films read as inputs during one tick, by (job, unit): every
-        # gather tile of a photon round needs the same photon maps, so they are
-        # read once and the tickets share one bytes object each.
-        self._inputs: dict[tuple[str, int], bytes] = {}
+        # Which unit films later units read, and their digests (read once a tick).
+        self.artefacts = Artefacts(store.unit_film)
         self.ticks = 0
         self.last_error: str | None = None
 
@@ -157,7 +158,7 @@ class Scheduler:
         jobs, flying = self._census()
         self._cancel_departed()
         self.previews.keep_only(jobs)
-        self._inputs = {}
+        self.artefacts.new_tick()
         try:
             for job in jobs.values():
                 if self._stop.is_set():
@@ -178,7 +179,7 @@ class Scheduler:
                 # ledger, so the next tick cancels them and chooses again.
                 log.info("a job changed while units were enqueued; next tick chooses again")
         finally:
-            self._inputs = {}
+            self.artefacts.new_tick()
             self.ticks += 1
 
     def _census(self) -> tuple[dict[str, _JobRow], Counter[str]]:
@@ -341,6 +342,7 @@ class Scheduler:
         spec = RenderSpec.from_dict(job.spec)
         units = METHODS[spec.method].make_plan(spec, bool(job.progressive))
         self.previews.drop(job.id)  # planned anew (e.g. requeued): a fresh preview
+        self.artefacts.forget(job.id)
         for unit in units:
             session.add(WorkUnit(job_id=job.id, index=unit.index, state="pending",
                                  unit=unit.to_dict(), attempts=0, task_ids=[]))
@@ -349,15 +351,12 @@ class Scheduler:
         session.flush()
 
     def _enqueue(self, job: Job, unit: WorkUnit, now: datetime) -> None:
-        inputs = {}
-        for i in unit.unit.get("needs") or ():
-            key = (job.id, int(i))
-            if key not in self._inputs:
-                self._inputs[key] = self.store.unit_film(job.id, int(i))
-            inputs[int(i)] = self._inputs[key]
+        needs = unit.unit.get("needs") or ()
+        inputs = self.artefacts.digests(object_session(unit), job, needs) if needs else {}
         task_id = self.executor.submit(Ticket(job.id, unit.index, job.scene_hash, job.spec,
                                               unit.unit, priority=job.priority or 0,
-                                              inputs=inputs))
+                                              inputs=inputs,
+                                              is_input=self.artefacts.is_input(job, unit.index)))
         unit.task_ids = [*unit.task_ids, task_id]
         states.change_unit(unit, "queued", now)
         self._tracked[(job.id, unit.index)] = tuple(unit.task_ids)
@@ -384,6 +383,7 @@ class Scheduler:
                     job.error = None  # space is back (another unit still failing says so)
                     events.note(job)
                 states.change_unit(unit, "done", now)
+                unit.film_digest = obs.digest or hashlib.sha256(obs.film).hexdigest()
                 unit.worker = obs.worker or unit.worker
                 unit.seconds = float(film.stats.get("seconds", 0.0))
                 job.units_done += 1
@@ -442,6 +442,16 @@ class Scheduler:
         for other in session.scalars(select(WorkUnit).where(
                 WorkUnit.job_id == job.id, WorkUnit.state.not_in(states.FINAL_UNIT))):
             states.change_unit(other, "canceled", now)  # their tasks are canceled next tick
+        self._drop_artefacts(session, job)
+
+    def _drop_artefacts(self, session: Session, job: Job) -> None:
+        """The job is over: the executor may let go of the films kept for its
+        later units (a retry plans and renders the job anew)."""
+        try:
+            self.executor.drop_films(self.artefacts.stored_digests(session, job))
+        except Exception as exc:  # they expire anyway; never keep a job from finishing
+            log.warning("job %s: dropping its artefacts failed: %s", job.id, exc)
+        self.artefacts.forget(job.id)
 
     def _done_units(self, job_id: str) -> list[int]:
         """The indices of a job's done units (a preview rebuilt after a restart)."""
@@ -502,5 +512,6 @@ class Scheduler:
                 job.error = None
             if error is None:
                 states.change_job(job, "done", self.clock())
+                self._drop_artefacts(session, job)
             else:
                 self._fail_job(session, job, self.clock(), error)

@@ -2,8 +2,11 @@
 
 The task takes ids and parameters only; the scene's canonical text travels by
 content hash (`rayfarm:scene:<hash>` in Redis, read only when this process
-has not built that scene yet). It returns the partial film's bytes, base64
-encoded for the JSON result backend, and the worker's name. While it runs, a
+has not built that scene yet), and so do the films of the units it needs
+(`input_key(digest)`). It publishes its own film the same way, under its
+SHA-256 with a TTL, and returns only that digest, the film's size and stats
+and the worker's name: the service copies the bytes into its store from
+there, and a later unit that needs them finds them already in place. While it runs, a
 heartbeat key with a TTL of one lease tells the service the unit is alive,
 and the worker's presence record (worker/presence.py) shows the unit and,
 once it is done, counts it.
@@ -11,7 +14,7 @@ once it is done, counts it.
 
 from __future__ import annotations
 
-import base64
+import hashlib
 import logging
 import os
 import threading
@@ -23,9 +26,9 @@ from celery import Celery
 from renderer import PartialFilm, execute_unit
 
 from . import presence
-from .keys import TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key
+from .keys import FILM_TTL, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key
 
-__all__ = ["register_tasks", "render_unit", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
+__all__ = ["register_tasks", "render_unit", "publish_film", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +53,11 @@ def _fetch_input(client: redis.Redis, digest: str) -> bytes:
         data = client.get(input_key(digest))
         if data is None:
             raise InputUnavailable(f"input {digest[:12]} is not in the broker")
+        if hashlib.sha256(data).hexdigest() != digest:
+            # Deleted, so the service's next enqueue of this unit (it takes the
+            # failure for a lost unit) uploads the bytes again from its store.
+            client.delete(input_key(digest))
+            raise InputUnavailable(f"input {digest[:12]} in the broker does not match its digest")
         _inputs[digest] = data
         while len(_inputs) > _INPUTS_KEPT:
             _inputs.pop(next(iter(_inputs)))
@@ -105,13 +113,25 @@ def _redis(url: str) -> redis.Redis:
     return _clients[key]
 
 
+def publish_film(client: redis.Redis, film: bytes) -> str:
+    """Put `film` in Redis under its SHA-256 (`input_key`, TTL `FILM_TTL`) and
+    return the digest. Bytes already there (a retried unit renders the same
+    bytes) only get their TTL refreshed, not sent again."""
+    digest = hashlib.sha256(film).hexdigest()
+    key = input_key(digest)
+    if not client.expire(key, FILM_TTL):
+        client.set(key, film, ex=FILM_TTL)
+    return digest
+
+
 def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> dict[str, Any]:
-    """Run one unit described by `payload` and return ``{"film": b64, "worker": name}``.
+    """Run one unit described by `payload`, publish its film (`publish_film`)
+    and return ``{"digest": sha256, "bytes": n, "stats": {...}, "worker": name}``.
 
     `payload`: ``job_id``, ``index``, ``scene_hash``, ``spec`` (a RenderSpec
     dict), ``unit`` (a Unit dict), ``lease_seconds`` (the heartbeat's TTL)
-    and ``inputs`` (unit index -> SHA-256 of the film bytes it needs, published
-    in Redis by the service).
+    and ``inputs`` (unit index -> SHA-256 of the film bytes it needs, in Redis
+    under `input_key`, where the worker that rendered that unit put them).
     """
     job_id, index, scene = payload["job_id"], int(payload["index"]), payload["scene_hash"]
     if client.exists(cancel_key(job_id)):
@@ -131,10 +151,12 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any]) -> di
             inputs = {int(i): _fetch_input(client, digest)
                       for i, digest in (payload.get("inputs") or {}).items()}
             film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs)
+            # Published while the heartbeat still says the unit is alive.
+            digest = publish_film(client, film)
         stats = PartialFilm.stats_from_bytes(film)
     finally:
         presence.unit_finished(client, worker, stats)
-    return {"film": base64.b64encode(film).decode("ascii"), "worker": worker}
+    return {"digest": digest, "bytes": len(film), "stats": stats, "worker": worker}
 
 
 def register_tasks(app: Celery) -> None:
