@@ -52,6 +52,7 @@ class InputSets:
 
     def close(self) -> None:
         self._thread.stop()
+        self._thread.join(5)  # before its connection is closed under it
         self._pubsub.close()
         self.client.config_set("notify-keyspace-events", "")
         self.client.close()
