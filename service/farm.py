@@ -58,7 +58,7 @@ class Farm:
         try:
             # A farm always has an admin (`rayfarm serve` made it already and printed its URL).
             bootstrap_admin(sessions, settings.data_dir, settings.admin_token)
-            executor = make_executor(settings, store.scene_text)
+            executor = make_executor(settings, store.scene_text, store.unit_film)
         except BaseException:
             engine.dispose()
             raise

@@ -147,6 +147,9 @@ class WorkUnit(Base):
     # Why it was last enqueued again without spending an attempt (its worker
     # lost, its lease lapsed, its message lost, declined by a worker); None if never.
     requeue_reason: Mapped[str | None] = mapped_column(Text)
+    # SHA-256 of the stored film (set when the unit is done): later units of a
+    # DAG job receive their inputs by it (service.artefacts).
+    film_digest: Mapped[str | None] = mapped_column(String(64))
 
     __mapper_args__ = {"version_id_col": version}
 

@@ -19,8 +19,9 @@ Each tick:
    (`service.fairshare`): each slot goes to the owner with the fewest units
    in flight relative to its share, within an owner to its highest priority,
    then to the job with the fewest units in flight, then the oldest. Only
-   pending units whose needs are done go (a DAG unit travels with the stored
-   films of the units it needs); paused jobs collect but never enqueue. The
+   pending units whose needs are done go (a DAG unit travels with the
+   digests of the stored films it needs, `service.artefacts`; the executor
+   finds the bytes); paused jobs collect but never enqueue. The
    units are enqueued in the order they were chosen, so different jobs'
    units interleave in the executor's queue too, and no job can hold it:
    a small job submitted behind a huge one starts within a few ticks.
@@ -49,6 +50,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import logging
 import threading
 import time
@@ -64,6 +66,7 @@ from sqlalchemy.orm.exc import StaleDataError
 from renderer import METHODS, PartialFilm, RenderSpec
 
 from . import blocklist, events, states
+from .artefacts import Artefacts
 from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
 from .fairshare import Contender, fair_share
@@ -131,10 +134,8 @@ class Scheduler:
         self._wake = threading.Event()
         executor.on_progress(self._wake.set)
         self._thread: threading.Thread | None = None
-        # Stored films read as inputs during one tick, by (job, unit): every
-        # gather tile of a photon round needs the same photon maps, so they are
-        # read once and the tickets share one bytes object each.
-        self._inputs: dict[tuple[str, int], bytes] = {}
+        # Which unit films later units read, and their digests (read once a tick).
+        self.artefacts = Artefacts(store.unit_film)
         # The workers blocklisted per job, read once per tick (service.blocklist).
         self._blocked: dict[str, tuple[str, ...]] = {}
         self.ticks = 0  # a standby's stay 0
@@ -202,7 +203,7 @@ class Scheduler:
         jobs, flying = self._census()
         self._cancel_departed()
         self.previews.keep_only(jobs)
-        self._inputs = {}
+        self.artefacts.new_tick()
         self._blocked = {}
         try:
             for job in jobs.values():
@@ -224,7 +225,7 @@ class Scheduler:
                 # ledger, so the next tick cancels them and chooses again.
                 log.info("a job changed while units were enqueued; next tick chooses again")
         finally:
-            self._inputs = {}
+            self.artefacts.new_tick()
             self.ticks += 1
 
     def _census(self) -> tuple[dict[str, _JobRow], Counter[str]]:
@@ -387,6 +388,7 @@ class Scheduler:
         spec = RenderSpec.from_dict(job.spec)
         units = METHODS[spec.method].make_plan(spec, bool(job.progressive))
         self.previews.drop(job.id)  # planned anew (e.g. requeued): a fresh preview
+        self.artefacts.forget(job.id)
         for unit in units:
             session.add(WorkUnit(job_id=job.id, index=unit.index, state="pending",
                                  unit=unit.to_dict(), attempts=0, task_ids=[]))
@@ -395,17 +397,15 @@ class Scheduler:
         session.flush()
 
     def _enqueue(self, job: Job, unit: WorkUnit, now: datetime) -> None:
-        inputs = {}
-        for i in unit.unit.get("needs") or ():
-            key = (job.id, int(i))
-            if key not in self._inputs:
-                self._inputs[key] = self.store.unit_film(job.id, int(i))
-            inputs[int(i)] = self._inputs[key]
+        needs = unit.unit.get("needs") or ()
+        inputs = self.artefacts.digests(object_session(unit), job, needs) if needs else {}
         if job.id not in self._blocked:
             self._blocked[job.id] = blocklist.blocked_workers(object_session(job), job.id)
         task_id = self.executor.submit(Ticket(job.id, unit.index, job.scene_hash, job.spec,
                                               unit.unit, priority=job.priority or 0,
-                                              inputs=inputs, blocked=self._blocked[job.id]))
+                                              inputs=inputs,
+                                              is_input=self.artefacts.is_input(job, unit.index),
+                                              blocked=self._blocked[job.id]))
         unit.task_ids = [*unit.task_ids, task_id]
         states.change_unit(unit, "queued", now)
         self._tracked[(job.id, unit.index)] = tuple(unit.task_ids)
@@ -432,6 +432,7 @@ class Scheduler:
                     job.error = None  # space is back (another unit still failing says so)
                     events.note(job)
                 states.change_unit(unit, "done", now)
+                unit.film_digest = obs.digest or hashlib.sha256(obs.film).hexdigest()
                 unit.worker = obs.worker or unit.worker
                 self._keep_log(job, unit, obs, now)
                 unit.seconds = float(film.stats.get("seconds", 0.0))
@@ -551,6 +552,16 @@ class Scheduler:
         for other in session.scalars(select(WorkUnit).where(
                 WorkUnit.job_id == job.id, WorkUnit.state.not_in(states.FINAL_UNIT))):
             states.change_unit(other, "canceled", now)  # their tasks are canceled next tick
+        self._drop_artefacts(session, job)
+
+    def _drop_artefacts(self, session: Session, job: Job) -> None:
+        """The job is over: the executor may let go of the films kept for its
+        later units (a retry plans and renders the job anew)."""
+        try:
+            self.executor.drop_films(self.artefacts.stored_digests(session, job))
+        except Exception as exc:  # they expire anyway; never keep a job from finishing
+            log.warning("job %s: dropping its artefacts failed: %s", job.id, exc)
+        self.artefacts.forget(job.id)
 
     def _done_units(self, job_id: str) -> list[int]:
         """The indices of a job's done units (a preview rebuilt after a restart)."""
@@ -611,5 +622,6 @@ class Scheduler:
                 job.error = None
             if error is None:
                 states.change_job(job, "done", self.clock())
+                self._drop_artefacts(session, job)
             else:
                 self._fail_job(session, job, self.clock(), error)

@@ -9,8 +9,10 @@ from datetime import datetime
 
 import numpy as np
 import pytest
+from sqlalchemy import select
 
 from renderer import RenderSpec, load_scene, render_serial
+from service.models import WorkUnit
 
 from conftest import TINY, channels_of, get_json, poll_job, submit
 
@@ -70,3 +72,18 @@ def test02_bad_method_options_are_refused_at_submission(method, options, field, 
     assert response.status_code == 422, response.text
     detail = response.json()["detail"][0]
     assert detail["loc"][-1] == field and f"options.{field}" in detail["msg"], detail
+
+
+def test03_the_embedded_pool_reads_no_input_from_the_store(local_app, local_client):
+    """A DAG unit's inputs go to the pool by digest (the ledger records each
+    done unit's) and come from memory, kept as they landed: the store is not
+    read again for them."""
+    executor = local_app.state.farm.executor
+    before = executor.films_loaded
+    job = poll_job(get_json(local_client), submit(local_client, DAG_BODIES["photon"])["id"])
+    assert job["status"] == "done", job
+    assert executor.films_loaded == before
+    with local_app.state.farm.sessions() as session:
+        digests = list(session.scalars(select(WorkUnit.film_digest)
+                                       .where(WorkUnit.job_id == job["id"])))
+    assert len(digests) == 15 and all(digests)

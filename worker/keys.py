@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-__all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "scene_key", "heartbeat_key", "cancel_key",
-           "worker_key", "worker_running_key", "input_key", "unit_log_key", "DISABLED_WORKERS"]
+__all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "FILM_TTL", "scene_key", "heartbeat_key",
+           "cancel_key", "worker_key", "worker_running_key", "input_key", "unit_log_key",
+           "DISABLED_WORKERS"]
 
 TASK_RENDER_UNIT = "rayfarm.render_unit"
 QUEUE = "rayfarm.units"
@@ -12,6 +13,11 @@ WORKERS = "rayfarm:workers"  # the set of worker names that ever reported
 # a restarted worker stays disabled; its tasks decline units while it is in it.
 DISABLED_WORKERS = "rayfarm:workers:disabled"
 
+# Lifetime of a unit's film under `input_key` (seconds). A worker sets it when it
+# publishes the film; the service refreshes it whenever it enqueues a unit that
+# reads the film, and deletes films no later unit reads once they are stored.
+FILM_TTL = 24 * 3600
+
 
 def scene_key(scene_hash: str) -> str:
     """Where the service publishes a scene's canonical text for the workers."""
@@ -19,8 +25,9 @@ def scene_key(scene_hash: str) -> str:
 
 
 def input_key(digest: str) -> str:
-    """Where the service publishes a unit's input (another unit's film bytes,
-    e.g. a photon map) for the workers, by its SHA-256."""
+    """A unit's film bytes by their SHA-256: published by the worker that
+    rendered the unit, copied from there into the service's store, and read by
+    the later units that need it as an input (a photon map, a bootstrap...)."""
     return f"rayfarm:input:{digest}"
 
 

@@ -2,16 +2,19 @@
 
 The task takes ids and parameters only; the scene's canonical text travels by
 content hash (`rayfarm:scene:<hash>` in Redis, read only when this process
-has not built that scene yet). It returns the partial film's bytes, base64
-encoded for the JSON result backend, the worker's name and the unit's own log
-(renderer.unitlog: its log lines; a failed unit's log, with its traceback,
-goes to `unit_log_key(task id)` with a TTL, since Celery's failure result
-holds only the exception). While it runs, a
-heartbeat key with a short TTL (a few heartbeat intervals, refreshed three
-times per TTL by this process and on every beat by the worker's main
-process, which never holds the GIL in a kernel) tells the service the unit is
-alive, and the worker's presence record (worker/presence.py) shows the unit
-(with its task id) and, once it is done, counts it.
+has not built that scene yet), and so do the films of the units it needs
+(`input_key(digest)`). It publishes its own film the same way, under its
+SHA-256 with a TTL, and returns only that digest, the film's size and stats,
+the worker's name and the unit's own log (renderer.unitlog: its log lines; a
+failed unit's log, with its traceback, goes to `unit_log_key(task id)` with a
+TTL, since Celery's failure result holds only the exception): the service
+copies the bytes into its store from there, and a later unit that needs them
+finds them already in place. While it runs, a heartbeat key with a short TTL
+(a few heartbeat intervals, refreshed three times per TTL by this process and
+on every beat by the worker's main process, which never holds the GIL in a
+kernel) tells the service the unit is alive, and the worker's presence record
+(worker/presence.py) shows the unit (with its task id) and, once it is done,
+counts it.
 
 A worker declines a unit, returning ``{"declined": reason, "worker": name}``
 at once without rendering, when it is blocklisted for the unit's job (the
@@ -22,7 +25,7 @@ attempt, for another worker.
 
 from __future__ import annotations
 
-import base64
+import hashlib
 import json
 import logging
 import os
@@ -36,10 +39,10 @@ from renderer import PartialFilm, execute_unit
 from renderer.unitlog import capture_unit_log
 
 from . import presence
-from .keys import (TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key,
+from .keys import (FILM_TTL, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key,
                    unit_log_key)
 
-__all__ = ["register_tasks", "render_unit", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
+__all__ = ["register_tasks", "render_unit", "publish_film", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +67,11 @@ def _fetch_input(client: redis.Redis, digest: str) -> bytes:
         data = client.get(input_key(digest))
         if data is None:
             raise InputUnavailable(f"input {digest[:12]} is not in the broker")
+        if hashlib.sha256(data).hexdigest() != digest:
+            # Deleted, so the service's next enqueue of this unit (it takes the
+            # failure for a lost unit) uploads the bytes again from its store.
+            client.delete(input_key(digest))
+            raise InputUnavailable(f"input {digest[:12]} in the broker does not match its digest")
         _inputs[digest] = data
         while len(_inputs) > _INPUTS_KEPT:
             _inputs.pop(next(iter(_inputs)))
@@ -121,17 +129,30 @@ def _redis(url: str) -> redis.Redis:
     return _clients[key]
 
 
+def publish_film(client: redis.Redis, film: bytes) -> str:
+    """Put `film` in Redis under its SHA-256 (`input_key`, TTL `FILM_TTL`) and
+    return the digest. Bytes already there (a retried unit renders the same
+    bytes) only get their TTL refreshed, not sent again."""
+    digest = hashlib.sha256(film).hexdigest()
+    key = input_key(digest)
+    if not client.expire(key, FILM_TTL):
+        client.set(key, film, ex=FILM_TTL)
+    return digest
+
+
 def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
                 task_id: str | None = None) -> dict[str, Any]:
-    """Run one unit described by `payload` and return ``{"film": b64, "worker":
-    name, "log": captured}``; if it raises, its captured log is left under
+    """Run one unit described by `payload`, publish its film (`publish_film`)
+    and return ``{"digest": sha256, "bytes": n, "stats": {...}, "worker": name,
+    "log": captured}``; if it raises, its captured log is left under
     `unit_log_key(task_id)` first.
 
     `payload`: ``job_id``, ``index``, ``scene_hash``, ``spec`` (a RenderSpec
     dict), ``unit`` (a Unit dict), ``heartbeat_seconds`` (the unit heartbeat's
     TTL; older services sent ``lease_seconds``), ``blocked`` (workers that
-    decline it) and ``inputs`` (unit index -> SHA-256 of the film bytes it needs, published
-    in Redis by the service).
+    decline it) and ``inputs`` (unit index -> SHA-256 of the film bytes it
+    needs, in Redis under `input_key`, where the worker that rendered that
+    unit put them).
     """
     job_id, index, scene = payload["job_id"], int(payload["index"]), payload["scene_hash"]
     if client.exists(cancel_key(job_id)):
@@ -157,6 +178,8 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
             inputs = {int(i): _fetch_input(client, digest)
                       for i, digest in (payload.get("inputs") or {}).items()}
             film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs)
+            # Published while the heartbeat still says the unit is alive.
+            digest = publish_film(client, film)
         stats = PartialFilm.stats_from_bytes(film)
     except Exception:
         if captured is not None and task_id:
@@ -164,7 +187,7 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
         raise
     finally:
         presence.unit_finished(client, worker, stats)
-    return {"film": base64.b64encode(film).decode("ascii"), "worker": worker,
+    return {"digest": digest, "bytes": len(film), "stats": stats, "worker": worker,
             "log": captured.to_dict()}
 
 

@@ -18,12 +18,14 @@ __all__ = ["Executor", "Flight", "Observation", "RunningUnit", "Ticket", "Worker
            "make_executor"]
 
 
-def make_executor(settings: Settings, load_scene_text: Callable[[str], str]) -> Executor:
-    """The executor `settings` ask for; `load_scene_text(hash)` reads the store."""
+def make_executor(settings: Settings, load_scene_text: Callable[[str], str],
+                  load_unit_film: Callable[[str, int], bytes] | None = None) -> Executor:
+    """The executor `settings` ask for; `load_scene_text(hash)` and
+    `load_unit_film(job_id, index)` read the store (a DAG unit's inputs)."""
     if settings.broker_url:
         from .celery_farm import CeleryExecutor
 
-        return CeleryExecutor(settings, load_scene_text)
+        return CeleryExecutor(settings, load_scene_text, load_unit_film)
     from .local import LocalExecutor
 
-    return LocalExecutor(settings, load_scene_text)
+    return LocalExecutor(settings, load_scene_text, load_unit_film)

@@ -23,9 +23,14 @@ class Ticket:
     spec: dict
     unit: dict
     priority: int = 0  # the job's; higher first (executors may pass it to the broker)
-    # The film bytes of the units this one needs (a DAG job's photon map,
-    # bootstrap, radiosity solution...), by unit index; empty for tile units.
-    inputs: dict[int, bytes] = field(default_factory=dict)
+    # The SHA-256 of the stored films of the units this one needs (a DAG job's
+    # photon map, bootstrap, radiosity solution...), by unit index; empty for
+    # tile units. The executor finds the bytes by digest where the unit that
+    # made them left them, or else in the store (`load_unit_film`).
+    inputs: dict[int, str] = field(default_factory=dict)
+    # Whether later units of the job read this unit's film: the executor keeps
+    # it at hand (in Redis) for them after it is stored, instead of dropping it.
+    is_input: bool = False
     # Workers blocklisted for the job (too many failed units): they decline it.
     blocked: tuple[str, ...] = ()
 
@@ -64,6 +69,7 @@ class Observation:
 
     state: Literal["queued", "running", "done", "failed", "crashed", "lost"]
     film: bytes | None = None
+    digest: str | None = None  # SHA-256 of `film`, if the executor verified it
     worker: str | None = None
     error: str | None = None
     log: dict | None = None
@@ -123,6 +129,10 @@ class Executor(ABC):
     @abstractmethod
     def release(self, task_ids: Sequence[str]) -> None:
         """Forget the results of these tasks (the unit's film is stored)."""
+
+    def drop_films(self, digests: Sequence[str]) -> None:
+        """The job these unit films belong to is over: let go of any copy kept
+        for later units (`Ticket.is_input`). Optional."""
 
     @abstractmethod
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:

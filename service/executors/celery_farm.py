@@ -19,6 +19,17 @@ new task id (its attempt count unchanged), when
 Results are collected from every task id a unit ever had; the first wins,
 and since units are deterministic a late duplicate changes nothing.
 
+Unit films travel by digest (worker/tasks.py `publish_film`): a task's result
+names the SHA-256 of the film its worker put in Redis (`input_key`), and
+`observe` fetches those bytes and checks them against it. A film gone from
+Redis before the service read it makes the unit lost (rendered again, no
+attempt spent); bytes that do not match their digest are a failed attempt
+(and are deleted, so the retry publishes them afresh). A DAG unit's ticket
+names its inputs by digest; they are normally still in Redis where their
+workers left them, so `submit` only refreshes their TTL and uploads them from
+the store only when they expired. A film no later unit reads is deleted from
+Redis once stored (`release`), the others when their job is over (`drop_films`).
+
 Redis serves a queue first in, first out (per message priority), so the
 executor keeps only a few units per live render process in it (`limit`):
 the scheduler's fair share decides what runs next, not a deep queue filled
@@ -27,7 +38,6 @@ by whichever job came first.
 
 from __future__ import annotations
 
-import base64
 import hashlib
 import json
 import logging
@@ -40,9 +50,9 @@ from typing import Any, Callable, Sequence
 
 import redis
 
-from renderer import PartialFilm, process_death
+from renderer import process_death
 from worker.celery_app import create_celery_app
-from worker.keys import (QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key,
+from worker.keys import (FILM_TTL, QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key,
                          scene_key, unit_log_key)
 from worker.presence import forget_worker, read_workers, set_disabled
 
@@ -54,7 +64,6 @@ __all__ = ["CeleryExecutor"]
 log = logging.getLogger(__name__)
 
 SCENE_TTL = 7 * 24 * 3600  # refreshed whenever a unit of the scene is enqueued
-INPUT_TTL = 24 * 3600  # refreshed whenever a unit needing the input is enqueued
 CANCEL_TTL = 24 * 3600
 PRIORITY_SEP = "\x06\x16"  # kombu's Redis transport: queue<sep><priority> lists
 PRIORITY_STEPS = (0, 3, 6, 9)  # kombu's default; a message goes to the step at or below
@@ -78,7 +87,8 @@ class CeleryExecutor(Executor):
     MIN_AHEAD, MAX_AHEAD = 2, 8
     NO_WORKER_SLOTS = 4
 
-    def __init__(self, settings: Settings, load_scene_text: Callable[[str], str]):
+    def __init__(self, settings: Settings, load_scene_text: Callable[[str], str],
+                 load_unit_film: Callable[[str, int], bytes] | None = None):
         self.app = create_celery_app(settings)
         self.lease = timedelta(seconds=settings.unit_lease_seconds)
         self.lease_seconds = settings.unit_lease_seconds
@@ -91,7 +101,13 @@ class CeleryExecutor(Executor):
         self._lost_read = -1e9
         self.redis = redis.Redis.from_url(settings.broker_url)
         self._load_scene_text = load_scene_text
+        self._load_unit_film = load_unit_film
         self._published: dict[str, float] = {}
+        # Tasks whose film no later unit reads (dropped from Redis at `release`),
+        # and the digest each finished task's film had.
+        self._transient: set[str] = set()
+        self._digest_of: dict[str, str] = {}
+        self.inputs_uploaded = 0  # inputs sent from the store because they had expired
         self._uncanceled: set[str] = set()  # jobs whose cancel marker we removed
         self.poll_interval = settings.poll_interval
         self._unit_seconds = 0.1  # a running mean of render seconds per unit (see limit)
@@ -109,17 +125,35 @@ class CeleryExecutor(Executor):
             self.redis.set(key, self._load_scene_text(scene_hash), ex=SCENE_TTL)
         self._published[scene_hash] = now
 
-    def _publish_inputs(self, inputs: dict[int, bytes]) -> dict[str, str]:
-        """Put each input's bytes in Redis under its SHA-256 (once; a DAG's
-        tiles share one photon map or solution) and return index -> digest."""
+    def _refresh_inputs(self, ticket: Ticket) -> dict[str, str]:
+        """Make sure each input of the ticket is in Redis under its digest and
+        return index -> digest. Normally it is (its worker published it): only
+        its TTL is refreshed. One that expired (EXPIRE answers 0) is uploaded
+        from the store, the truth."""
+        if not ticket.inputs:
+            return {}
+        pipe = self.redis.pipeline(transaction=False)
+        for digest in ticket.inputs.values():
+            pipe.expire(input_key(digest), FILM_TTL)
         digests = {}
-        for index, data in inputs.items():
-            digest = hashlib.sha256(data).hexdigest()
-            key = input_key(digest)
-            if not self.redis.expire(key, INPUT_TTL):
-                self.redis.set(key, data, ex=INPUT_TTL)
+        for (index, digest), present in zip(ticket.inputs.items(), pipe.execute()):
+            if not present:
+                digest = self._upload_input(ticket.job_id, index, digest)
             digests[str(index)] = digest
         return digests
+
+    def _upload_input(self, job_id: str, index: int, digest: str) -> str:
+        if self._load_unit_film is None:
+            raise RuntimeError(f"input {digest[:12]} expired from the broker and this "
+                               "executor cannot read the store")
+        data = self._load_unit_film(job_id, index)
+        stored = hashlib.sha256(data).hexdigest()
+        if stored != digest:  # the store is the truth; the ledger's digest is stale
+            log.error("unit %s/%d: stored film has digest %s, the ledger says %s",
+                      job_id, index, stored[:12], digest[:12])
+        self.redis.set(input_key(stored), data, ex=FILM_TTL)
+        self.inputs_uploaded += 1
+        return stored
 
     def submit(self, ticket: Ticket) -> str:
         self._publish_scene(ticket.scene_hash)
@@ -133,9 +167,11 @@ class CeleryExecutor(Executor):
                    "scene_hash": ticket.scene_hash, "spec": ticket.spec, "unit": ticket.unit,
                    "lease_seconds": self.lease_seconds, "heartbeat_seconds": self.heartbeat_ttl,
                    "blocked": list(ticket.blocked),
-                   "inputs": self._publish_inputs(ticket.inputs)}
+                   "inputs": self._refresh_inputs(ticket)}
         self.app.send_task(TASK_RENDER_UNIT, args=[payload], queue=QUEUE, task_id=task_id,
                            priority=redis_priority(ticket.priority))
+        if not ticket.is_input:
+            self._transient.add(task_id)
         return task_id
 
     # -- observing -------------------------------------------------------------
@@ -182,17 +218,16 @@ class CeleryExecutor(Executor):
 
     def _decide(self, flight: Flight, metas: list[dict | None], beat: bytes | None,
                 now: datetime, lost_tasks: dict[str, str]) -> Observation | None:
-        for meta in metas:
+        for task_id, meta in zip(flight.task_ids, metas):
             if meta and meta.get("status") == "SUCCESS":
                 result = meta.get("result") or {}
                 if "declined" in result:
                     continue  # only the latest task's decline matters (below)
-                if "film" not in result:
-                    return Observation("failed", error=f"task returned no film: {sorted(result)}")
-                film = base64.b64decode(result["film"])
-                self._note_seconds(film)
-                return Observation("done", film=film, worker=result.get("worker"),
-                                   log=result.get("log"))
+                obs = self._landed(task_id, result)
+                # An earlier task whose film is gone or bad leaves the unit to
+                # its latest task (the retry it was enqueued again for).
+                if obs.state == "done" or task_id == flight.task_ids[-1]:
+                    return obs
         latest = metas[-1] if metas else None
         latest_id = flight.task_ids[-1] if flight.task_ids else None
         status = latest.get("status") if latest else None
@@ -205,6 +240,10 @@ class CeleryExecutor(Executor):
             if crash is not None:
                 return Observation("crashed", error=crash, worker=latest.get("worker"),
                                    log=self._failure_log(flight.task_ids[-1], latest))
+            if (latest.get("result") or {}).get("exc_type") == "InputUnavailable":
+                # An input expired meanwhile: enqueued again, it is re-sent from the store.
+                return Observation("lost", cause="message",
+                                   error="an input film expired from the broker")
             return Observation("failed", error=_error_text(latest), worker=latest.get("worker"),
                                log=self._failure_log(flight.task_ids[-1], latest))
         if latest_id in lost_tasks:
@@ -243,20 +282,52 @@ class CeleryExecutor(Executor):
         return {"lines": list(captured.get("lines") or ()), "dropped": captured.get("dropped", 0),
                 "traceback": captured.get("traceback")}
 
-    def _note_seconds(self, film: bytes) -> None:
+    def _landed(self, task_id: str, result: dict) -> Observation:
+        """A finished task's film, fetched by the digest its result names and
+        checked against it."""
+        digest = result.get("digest")
+        if not isinstance(digest, str):
+            return Observation("failed", error=f"task returned no film digest: {sorted(result)}")
+        film = self.redis.get(input_key(digest))
+        if film is None:  # expired (or Redis restarted) before we read it: render it again
+            log.warning("film %s of task %s is gone from the broker", digest[:12], task_id)
+            return Observation("lost", cause="message",
+                               error=f"film {digest[:12]} expired from the broker before it was stored")
+        if hashlib.sha256(film).hexdigest() != digest:
+            self.redis.delete(input_key(digest))  # so the retry's worker publishes it afresh
+            return Observation("failed", error=f"film {digest[:12]} in the broker does not "
+                                               "match its digest (corrupted)")
+        self._digest_of[task_id] = digest
+        self._note_seconds(result.get("stats") or {})
+        return Observation("done", film=film, digest=digest, worker=result.get("worker"),
+                           log=result.get("log"))
+
+    def _note_seconds(self, stats: dict) -> None:
         try:
-            seconds = float(PartialFilm.stats_from_bytes(film).get("seconds", 0.0))
-        except Exception:  # an unreadable film fails its unit in the scheduler
+            seconds = float(stats.get("seconds", 0.0))
+        except (TypeError, ValueError):
             return
         self._unit_seconds += 0.2 * (seconds - self._unit_seconds)
 
     # -- cleaning up -----------------------------------------------------------
     def release(self, task_ids: Sequence[str]) -> None:
+        transient = set()
         for task_id in task_ids:
             self.app.backend.forget(task_id)
+            self._beat_seen.pop(task_id, None)
+            digest = self._digest_of.pop(task_id, None)
+            if task_id in self._transient:
+                self._transient.discard(task_id)
+                if digest is not None:
+                    transient.add(digest)
         if task_ids:
             self.redis.delete(*[unit_log_key(t) for t in task_ids])
-            self._beat_seen.pop(task_id, None)
+        if transient:  # stored; no later unit reads them
+            self.drop_films(sorted(transient))
+
+    def drop_films(self, digests: Sequence[str]) -> None:
+        for start in range(0, len(digests), 512):
+            self.redis.delete(*(input_key(d) for d in digests[start:start + 512]))
 
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
         # The marker makes any worker skip the job's units still queued (also

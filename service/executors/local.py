@@ -6,16 +6,24 @@ units, samples and render seconds the pool has done: the one worker of the
 embedded mode, as `workers()` shows it. A unit whose render process died is
 `crashed` (an attempt spent); the pool replaced that process, and the other
 units in flight never noticed.
+
+A DAG unit's inputs come by digest (`Ticket.inputs`) and go to the pool as
+bytes: the films of units that later units read (`Ticket.is_input`) are kept
+in memory when they land (`_films`, bounded), so the tiles of a photon round
+share one copy and the store is read only for what fell out of it (or after
+a restart).
 """
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import logging
 import math
 import socket
 import threading
 import uuid
+from collections import OrderedDict
 from concurrent.futures import Future
 from datetime import datetime, timezone
 from typing import Callable, Sequence
@@ -36,10 +44,17 @@ class LocalExecutor(Executor):
     name = "local"
     blocklists_workers = False  # its one worker: max_attempts alone decides
     MAX_AHEAD = 16  # units in flight per process, at most (see `limit`)
+    FILMS_KEPT_BYTES = 256 * 1024 * 1024  # input films kept in memory (see the module doc)
 
-    def __init__(self, settings: Settings, load_scene_text: Callable[[str], str]):
+    def __init__(self, settings: Settings, load_scene_text: Callable[[str], str],
+                 load_unit_film: Callable[[str, int], bytes] | None = None):
         self.processes = settings.local_workers
         self._load_scene_text = load_scene_text
+        self._load_unit_film = load_unit_film
+        self._films: OrderedDict[str, bytes] = OrderedDict()  # digest -> input film, LRU
+        self._films_bytes = 0
+        self._input_tasks: set[str] = set()  # tasks whose films later units read
+        self.films_loaded = 0  # input films read from the store
         self._scene_texts: dict[str, str] = {}
         self._futures: dict[str, Future] = {}
         self._pool = LocalPool(self.processes)
@@ -66,12 +81,43 @@ class LocalExecutor(Executor):
             self._scene_texts[scene_hash] = self._load_scene_text(scene_hash)
         return self._scene_texts[scene_hash]
 
+    def _keep_film(self, digest: str, film: bytes) -> None:
+        if digest in self._films:
+            self._films.move_to_end(digest)
+            return
+        self._films[digest] = film
+        self._films_bytes += len(film)
+        while self._films_bytes > self.FILMS_KEPT_BYTES and len(self._films) > 1:
+            self._films_bytes -= len(self._films.popitem(last=False)[1])
+
+    def _input(self, job_id: str, index: int, digest: str) -> bytes:
+        film = self._films.get(digest)
+        if film is None:
+            if self._load_unit_film is None:
+                raise RuntimeError(f"input {digest[:12]} is not in memory and this executor "
+                                   "cannot read the store")
+            film = self._load_unit_film(job_id, index)
+            self.films_loaded += 1
+            self._keep_film(digest, film)
+        else:
+            self._films.move_to_end(digest)
+        return film
+
+    def drop_films(self, digests: Sequence[str]) -> None:
+        for digest in digests:
+            film = self._films.pop(digest, None)
+            if film is not None:
+                self._films_bytes -= len(film)
+
     def submit(self, ticket: Ticket) -> str:
         task_id = uuid.uuid4().hex
         tag = next(self._tags)
+        inputs = {i: self._input(ticket.job_id, i, digest) for i, digest in ticket.inputs.items()}
         future = self._pool.submit(ticket.scene_hash, self._scene(ticket.scene_hash), ticket.spec,
-                                   ticket.unit, tag=tag, inputs=ticket.inputs or None,
+                                   ticket.unit, tag=tag, inputs=inputs or None,
                                    job_id=ticket.job_id)
+        if ticket.is_input:
+            self._input_tasks.add(task_id)
         future.add_done_callback(lambda _future: self._progress())
         with self._lock:
             self._futures[task_id] = future
@@ -102,8 +148,12 @@ class LocalExecutor(Executor):
         for task_id in flight.task_ids:
             fut = self._futures.get(task_id)
             if fut is not None and fut.done() and not fut.cancelled() and fut.exception() is None:
-                self._count(task_id, fut.result())
-                return Observation("done", film=fut.result(), worker=self.worker_name,
+                film = fut.result()
+                self._count(task_id, film)
+                digest = hashlib.sha256(film).hexdigest()
+                if task_id in self._input_tasks:
+                    self._keep_film(digest, film)
+                return Observation("done", film=film, digest=digest, worker=self.worker_name,
                                    log=getattr(fut, "unit_log", None))
         latest = self._futures.get(flight.task_ids[-1]) if flight.task_ids else None
         if latest is None or latest.cancelled():
@@ -126,6 +176,7 @@ class LocalExecutor(Executor):
             self._unit_of.pop(tag, None)
             self._since.pop(tag, None)
             self._counted.discard(task_id)
+            self._input_tasks.discard(task_id)
         return fut
 
     def release(self, task_ids: Sequence[str]) -> None:

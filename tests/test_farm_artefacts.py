@@ -1,0 +1,171 @@
+"""Unit films travel by digest on the real farm (a Redis of this run, `rayfarm
+worker` processes): the worker publishes each film under its SHA-256, the
+service copies it into the store from there, later DAG units receive the
+digest, and Redis keeps only what later units still read. A film that
+vanished before the service read it is rendered again; one that does not
+match its digest is a failed attempt."""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import Counter
+
+import numpy as np
+import pytest
+import redis
+from fastapi.testclient import TestClient
+
+from renderer import RenderSpec, load_scene, render_serial
+from service.farm import Farm
+from service.main import create_app
+from service.settings import Settings
+from worker.keys import input_key
+
+from conftest import ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, poll_job, get_json, \
+    wait_for
+from test_service_scheduler import create, finished, job_row, tick_until, unit_rows
+
+pytestmark = pytest.mark.farm
+
+INPUT_PREFIX = input_key("")
+
+
+class InputSets:
+    """Every SET of an input key on the test's Redis, by key (keyspace
+    notifications: no MONITOR, and every client's SETs are seen)."""
+
+    def __init__(self, url: str):
+        self.client = redis.Redis.from_url(url)
+        self.client.config_set("notify-keyspace-events", "E$")
+        self.keys: Counter[str] = Counter()
+        self._pubsub = self.client.pubsub()
+        self._pubsub.subscribe(**{"__keyevent@0__:set": self._on_set})
+        self._thread = self._pubsub.run_in_thread(sleep_time=0.01, daemon=True)
+        self._lock = threading.Lock()
+
+    def _on_set(self, message) -> None:
+        key = message["data"].decode()
+        if key.startswith(INPUT_PREFIX):
+            with self._lock:
+                self.keys[key] += 1
+
+    def close(self) -> None:
+        self._thread.stop()
+        self._thread.join(5)  # before its connection is closed under it
+        self._pubsub.close()
+        self.client.config_set("notify-keyspace-events", "")
+        self.client.close()
+
+
+def assert_equals_renderer(exr_path, body: dict) -> None:
+    """The EXR is the renderer's own in-process run of the same DAG, bit for bit."""
+    got = channels_of(exr_path)
+    spec = RenderSpec(**{k: v for k, v in body.items() if k not in ("scene", "progressive")})
+    film = render_serial(load_scene(body["scene"]), spec)
+    mean = film.mean().astype(np.float32)
+    var = film.variance_of_mean().astype(np.float32)
+    for c, name in enumerate("RGB"):
+        assert got[name].tobytes() == np.ascontiguousarray(mean[..., c]).tobytes(), name
+        assert got[f"var.{name}"].tobytes() == np.ascontiguousarray(var[..., c]).tobytes(), name
+
+
+PHOTON = dict(TINY, method="photon", spp=3, tile_size=16, progressive=False)
+
+
+def test01_a_photon_job_moves_each_film_once_and_redis_keeps_none_after(
+        redis_url, spawn_worker, tmp_path):
+    spawn_worker(concurrency=2)
+    sets = InputSets(redis_url)
+    broker = redis.Redis.from_url(redis_url)
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05)
+    try:
+        with TestClient(create_app(settings), headers=ADMIN_HEADERS) as client:
+            farm = client.app.state.farm
+            job = poll_job(get_json(client), client.post("/jobs", json=PHOTON).json()["id"])
+            assert job["status"] == "done", job
+            (tmp_path / "photon.exr").write_bytes(client.get(job["result_url"]).content)
+            units = unit_rows(farm, job["id"])
+            # The service sent no input from its store: every one was in Redis already.
+            assert farm.executor.inputs_uploaded == 0
+            # Nothing is left in Redis for the finished job: films no later unit
+            # read went when they were stored, the inputs when the job finished.
+            assert broker.keys(f"{INPUT_PREFIX}*") == []
+        wait_for(lambda: sum(sets.keys.values()) >= len(units), 10, "the last notifications")
+    finally:
+        sets.close()
+        broker.close()
+    assert len(units) == 15 and any(u.unit["needs"] for u in units)
+    for u in units:
+        # The ledger names each stored film by its digest...
+        assert u.film_digest == hashlib.sha256(farm.store.unit_film(u.job_id, u.index)).hexdigest()
+    # ... and each was SET in Redis exactly once: by the worker that rendered
+    # it, never again by the service for the units that read it.
+    assert sets.keys == Counter({input_key(u.film_digest): 1 for u in units})
+    assert_equals_renderer(tmp_path / "photon.exr", PHOTON)
+
+
+def _landed(farm: Farm, job_id: str) -> dict[int, str]:
+    """Units whose latest task succeeded (not yet collected): index -> film digest."""
+    out = {}
+    for u in unit_rows(farm, job_id):
+        if u.state in ("queued", "running") and u.task_ids:
+            result = farm.executor.app.AsyncResult(u.task_ids[-1])
+            if result.state == "SUCCESS":
+                out[u.index] = result.result["digest"]
+    return out
+
+
+def test02_a_film_gone_from_redis_is_rendered_again_a_corrupt_one_is_a_failed_attempt(
+        redis_url, spawn_worker, tmp_path, reference_channels):
+    body = dict(TINY, progressive=False)
+    spawn_worker(concurrency=1)
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05)
+    broker = redis.Redis.from_url(redis_url)
+    with Farm.open(settings) as farm:  # ticked by hand: nothing is collected meanwhile
+        job_id = create(farm, body)
+        farm.scheduler.tick()
+        landed = wait_for(lambda: (lambda d: d if len(d) >= 2 else None)(_landed(farm, job_id)),
+                          120, "two units to finish")
+        gone, corrupt = sorted(landed)[:2]
+        broker.delete(input_key(landed[gone]))
+        broker.set(input_key(landed[corrupt]), b"not the film")
+        farm.scheduler.tick()
+        rows = unit_rows(farm, job_id)
+        # Gone: enqueued again as a lost unit, no attempt spent.
+        assert rows[gone].state in ("queued", "running") and len(rows[gone].task_ids) == 2
+        assert rows[gone].attempts == 1 and rows[gone].error is None
+        # Corrupt: a failed attempt that says why, and tried again.
+        assert rows[corrupt].state in ("queued", "running") and rows[corrupt].attempts == 2
+        assert "does not match its digest" in rows[corrupt].error
+        tick_until(farm, finished(farm, job_id))
+        assert job_row(farm, job_id).status == "done"
+        rows = unit_rows(farm, job_id)
+        assert rows[gone].state == rows[corrupt].state == "done"
+        assert_bit_identical(channels_of(farm.store.result_path(job_id)), reference_channels(body))
+    broker.close()
+
+
+def test03_an_input_that_expired_is_sent_again_from_the_store(redis_url, spawn_worker, tmp_path):
+    spawn_worker(concurrency=1)
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05)
+    broker = redis.Redis.from_url(redis_url)
+    with Farm.open(settings) as farm:
+        submit = farm.executor.submit
+        expired: list[str] = []
+
+        def submit_after_expiry(ticket):
+            if ticket.inputs and not expired:  # the first unit with inputs: they expired
+                expired.extend(ticket.inputs.values())
+                assert broker.delete(*(input_key(d) for d in expired)) == len(expired)
+            return submit(ticket)
+        farm.executor.submit = submit_after_expiry
+        job_id = create(farm, PHOTON)
+        tick_until(farm, finished(farm, job_id))
+        assert job_row(farm, job_id).status == "done", job_row(farm, job_id).error
+        assert expired and farm.executor.inputs_uploaded == len(expired)
+        assert all(u.attempts == 1 for u in unit_rows(farm, job_id))
+        (tmp_path / "expired.exr").write_bytes(farm.store.result_path(job_id).read_bytes())
+    broker.close()
+    assert_equals_renderer(tmp_path / "expired.exr", PHOTON)
+
