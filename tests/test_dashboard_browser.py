@@ -137,7 +137,7 @@ def test01_submit_through_the_form_then_watch_progress_and_preview_change(page):
     page.select_option("#f-method", "path-mis")
     page.wait_for_selector("#f-opt-heuristic")  # the method's options come from GET /methods
     page.select_option("#f-sampler", "sobol")
-    for name, value in (("spp", "1024"), ("depth", "5"), ("width", "128"), ("height", "128"),
+    for name, value in (("spp", "256"), ("depth", "5"), ("width", "128"), ("height", "128"),
                         ("tile_size", "32"), ("seed", "5")):
         page.fill(f"#f-{name}", value)
     shot(page, "01-submit-form")
@@ -146,7 +146,7 @@ def test01_submit_through_the_form_then_watch_progress_and_preview_change(page):
     job_id = page.url.rsplit("/", 1)[1]
     with api(page.base) as client:
         job = client.get(f"/jobs/{job_id}").json()
-    assert (job["spp"], job["width"], job["sampler"], job["method"]) == (1024, 128, "sobol", "path-mis")
+    assert (job["spp"], job["width"], job["sampler"], job["method"]) == (256, 128, "sobol", "path-mis")
 
     # The preview appears and changes as passes land; the progress bar advances.
     page.wait_for_selector("#stage img#preview[data-loaded]")

@@ -124,7 +124,10 @@ def test03_embedded_a_done_units_lines_and_a_failed_units_tracebacks(local_app, 
 @pytest.mark.farm
 def test04_celery_logs_reach_the_service_the_cli_prints_them_json_logs(
         spawn_serve, spawn_worker, tmp_path):
-    child, base = spawn_serve(RAYFARM_LOG_FORMAT="json", RAYFARM_POLL_INTERVAL="0.05")
+    # No blocklisting: with one worker, the poisoned job's third failed unit would
+    # blocklist it and fail the job before any unit spends its three attempts.
+    child, base = spawn_serve(RAYFARM_LOG_FORMAT="json", RAYFARM_POLL_INTERVAL="0.05",
+                              RAYFARM_WORKER_FAILURES_PER_JOB="0")
     worker = spawn_worker(concurrency=1, RAYFARM_LOG_FORMAT="JSON")
     scenes = tmp_path / "serve-data" / "store" / "scenes"  # spawn_serve's data dir
     with httpx.Client(base_url=base, headers=ADMIN_HEADERS, timeout=30) as client:
