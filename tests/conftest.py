@@ -102,6 +102,21 @@ def assert_bit_identical(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> 
         assert a[name].tobytes() == b[name].tobytes(), f"channel {name} differs"
 
 
+
+def assert_equals_renderer(exr_path: Path, body: dict) -> None:
+    """The EXR is the renderer's own in-process run of the job body's DAG
+    (`render_serial`), bit for bit, mean and var channels."""
+    from renderer import RenderSpec, load_scene, render_serial
+
+    got = channels_of(exr_path)
+    spec = RenderSpec(**{k: v for k, v in body.items() if k not in ("scene", "progressive")})
+    film = render_serial(load_scene(body["scene"]), spec)
+    mean = film.mean().astype(np.float32)
+    var = film.variance_of_mean().astype(np.float32)
+    for c, name in enumerate("RGB"):
+        assert got[name].tobytes() == np.ascontiguousarray(mean[..., c]).tobytes(), name
+        assert got[f"var.{name}"].tobytes() == np.ascontiguousarray(var[..., c]).tobytes(), name
+
 # -- the embedded service ---------------------------------------------------------
 
 @pytest.fixture(scope="session")

@@ -11,19 +11,17 @@ import hashlib
 import threading
 from collections import Counter
 
-import numpy as np
 import pytest
 import redis
 from fastapi.testclient import TestClient
 
-from renderer import RenderSpec, load_scene, render_serial
 from service.farm import Farm
 from service.main import create_app
 from service.settings import Settings
 from worker.keys import input_key
 
-from conftest import ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, poll_job, get_json, \
-    wait_for
+from conftest import ADMIN_HEADERS, TINY, assert_bit_identical, assert_equals_renderer, \
+    channels_of, poll_job, get_json, wait_for
 from test_service_scheduler import create, finished, job_row, tick_until, unit_rows
 
 pytestmark = pytest.mark.farm
@@ -56,18 +54,6 @@ class InputSets:
         self._pubsub.close()
         self.client.config_set("notify-keyspace-events", "")
         self.client.close()
-
-
-def assert_equals_renderer(exr_path, body: dict) -> None:
-    """The EXR is the renderer's own in-process run of the same DAG, bit for bit."""
-    got = channels_of(exr_path)
-    spec = RenderSpec(**{k: v for k, v in body.items() if k not in ("scene", "progressive")})
-    film = render_serial(load_scene(body["scene"]), spec)
-    mean = film.mean().astype(np.float32)
-    var = film.variance_of_mean().astype(np.float32)
-    for c, name in enumerate("RGB"):
-        assert got[name].tobytes() == np.ascontiguousarray(mean[..., c]).tobytes(), name
-        assert got[f"var.{name}"].tobytes() == np.ascontiguousarray(var[..., c]).tobytes(), name
 
 
 PHOTON = dict(TINY, method="photon", spp=3, tile_size=16, progressive=False)

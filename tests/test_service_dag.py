@@ -7,14 +7,12 @@ from __future__ import annotations
 
 from datetime import datetime
 
-import numpy as np
 import pytest
 from sqlalchemy import select
 
-from renderer import RenderSpec, load_scene, render_serial
 from service.models import WorkUnit
 
-from conftest import TINY, channels_of, get_json, poll_job, submit
+from conftest import TINY, assert_equals_renderer, get_json, poll_job, submit
 
 DAG_BODIES = {
     "photon": dict(TINY, method="photon", spp=3, tile_size=16, progressive=False),
@@ -46,14 +44,7 @@ def test01_dag_units_wait_for_their_needs_and_the_image_matches_the_renderer(
 
     exr = tmp_path / f"{method}.exr"
     exr.write_bytes(local_client.get(job["result_url"]).content)
-    got = channels_of(exr)
-    spec = RenderSpec(**{k: v for k, v in body.items() if k not in ("scene", "progressive")})
-    film = render_serial(load_scene(body["scene"]), spec)
-    mean = film.mean().astype(np.float32)
-    var = film.variance_of_mean().astype(np.float32)
-    for c, name in enumerate("RGB"):
-        assert got[name].tobytes() == np.ascontiguousarray(mean[..., c]).tobytes(), name
-        assert got[f"var.{name}"].tobytes() == np.ascontiguousarray(var[..., c]).tobytes(), name
+    assert_equals_renderer(exr, body)
 
 
 @pytest.mark.parametrize("method, options, field", [
