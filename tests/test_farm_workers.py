@@ -95,9 +95,10 @@ def test01_a_killed_workers_unit_is_enqueued_again_within_heartbeats_not_the_lea
 def test02_a_unit_longer_than_the_lease_is_never_rendered_again(redis_url, spawn_worker,
                                                                 tmp_path):
     spawn_worker(concurrency=1, **BEAT)
-    # One unit of about four seconds against a lease of 1.5 s (a Numba kernel
-    # holds the render process's GIL: its own heartbeat thread cannot beat).
-    body = dict(TINY, spp=2048, tile_size=32, progressive=False)
+    # One unit of about three seconds or more against a lease of 1.5 s (a Numba
+    # kernel holds the render process's GIL: its own heartbeat thread cannot
+    # beat). 2048 samples took 1.36 s on a fast machine: too close to the lease.
+    body = dict(TINY, spp=4096, tile_size=32, progressive=False)
     with TestClient(create_app(_settings(tmp_path, redis_url, unit_lease_seconds=1.5)),
                     headers=ADMIN_HEADERS) as client:
         get = get_json(client)
@@ -159,3 +160,48 @@ def test04_a_worker_declines_units_of_a_job_it_is_blocklisted_for_or_while_disab
     with pytest.raises(Exception):  # enabled and not blocklisted: it does try to render
         render_unit(client, "w2", payload, "t3")
     client.close()
+
+
+def test05_a_unit_whose_message_a_live_worker_holds_stays_queued_past_the_lease(
+        redis_url, tmp_path):
+    # A cold worker's render processes compile kernels for minutes while its
+    # main process holds prefetched messages: not in the broker's queue, yet
+    # not lost. Taking them for lost ("queued over a lease, not in the queue")
+    # rendered them twice. The presence record lists what a worker holds; the
+    # messages a *lost* worker held are lost with it.
+    from datetime import datetime, timedelta, timezone
+
+    import redis
+
+    from service.executors.base import Flight
+    from service.executors.celery_farm import CeleryExecutor
+    from worker.keys import worker_key
+    from worker.presence import Presence
+
+    client = redis.Redis.from_url(redis_url)
+    executor = CeleryExecutor(_settings(tmp_path, redis_url, unit_lease_seconds=1.0),
+                              load_scene_text=lambda h: "")
+    now = datetime.now(timezone.utc)
+    flight = Flight("job", 0, "queued", ("t-held",), now - timedelta(seconds=30), None)
+    presence = Presence(client, "w-cold", 2, 0.1, reserved=lambda: ["t-held", "t-other"])
+    presence.start()
+    try:
+        (worker,) = executor.workers()
+        assert worker.reserved == ("t-held", "t-other") and worker.state == "idle"
+        (obs,) = executor.observe([flight], now)
+        assert obs.state == "queued", obs
+        # Not held by anyone: the message is gone from the broker.
+        (obs,) = executor.observe([Flight("job", 1, "queued", ("t-gone",),
+                                          now - timedelta(seconds=30), None)], now)
+        assert (obs.state, obs.cause) == ("lost", "message"), obs
+        # The worker that holds it stops beating: the unit is lost with it.
+        presence._stop.set()
+        presence._thread.join()
+        client.hset(worker_key("w-cold"), "last_seen", float(client.time()[0]) - 60)
+        executor._lost_read = -1e9  # presence is read at most once a second
+        (obs,) = executor.observe([flight], now)
+        assert (obs.state, obs.cause, obs.worker) == ("lost", "worker", "w-cold"), obs
+    finally:
+        presence.stop()
+        executor.close()
+        client.close()

@@ -122,9 +122,17 @@ def _start_presence(sender=None, **_kwargs) -> None:
         control = app.control.add_consumer if on else app.control.cancel_consumer
         control(QUEUE, destination=[hostname])
 
+    def reserved() -> list[str]:
+        # Every message this worker holds, prefetched or running (Celery's own
+        # bookkeeping, in this process): the service keeps such a unit queued
+        # however long it waits (service/executors/celery_farm.py).
+        from celery.worker import state
+
+        return [request.id for request in list(state.reserved_requests)]
+
     _presence = Presence(redis.Redis.from_url(app.conf.broker_url), hostname,
                          int(concurrency), float(app.conf.rayfarm_heartbeat_seconds or 2.0),
-                         consume=consume)
+                         consume=consume, reserved=reserved)
     try:
         _presence.start()
     except Exception:  # presence is for the dashboard; never stop the worker for it

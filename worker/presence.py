@@ -3,7 +3,8 @@
     rayfarm:workers                  set of worker names
     rayfarm:worker:<name>            hash: host, pid, concurrency, started, last_seen,
                                      state (online | offline), units_done, samples,
-                                     rays, seconds
+                                     rays, seconds, reserved (JSON list of the task
+                                     ids this worker holds: prefetched or running)
     rayfarm:worker:<name>:running    hash: render process id -> {"job_id", "index", "since",
                                      "task_id"}
     rayfarm:workers:disabled         set of the names an admin disabled (no expiry)
@@ -49,17 +50,32 @@ class Presence:
     """The main process's heartbeat: `start()` when the worker is ready,
     `stop()` when it shuts down (it is then shown offline, not lost).
     `consume(bool)`, if given, starts or stops the worker consuming the queue
-    when the disabled set says otherwise (see the module doc)."""
+    when the disabled set says otherwise (see the module doc). `reserved()`, if
+    given, lists the task ids the worker holds (prefetched or running): the
+    service must not take a unit whose message a live worker holds for lost
+    merely because it has waited long (its render processes may still be
+    compiling kernels, minutes on a cold cache)."""
 
     def __init__(self, client: redis.Redis, name: str, concurrency: int, interval: float,
-                 consume: Callable[[bool], None] | None = None):
+                 consume: Callable[[bool], None] | None = None,
+                 reserved: Callable[[], list[str]] | None = None):
         self.client, self.name, self.concurrency, self.interval = client, name, concurrency, interval
         self._consume = consume
+        self._reserved = reserved
         self._consuming = True  # a worker starts consuming its queue
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rayfarm-presence", daemon=True)
 
+    def _held(self) -> str:
+        if self._reserved is None:
+            return "[]"
+        try:
+            return json.dumps(sorted(self._reserved()))
+        except RuntimeError:  # the event loop changed the set meanwhile: next beat
+            return self.client.hget(worker_key(self.name), "reserved") or "[]"
+
     def _beat(self, **fields) -> None:
+        fields.setdefault("reserved", self._held())
         now = redis_now(self.client)
         pipe = self.client.pipeline()
         pipe.sadd(WORKERS, self.name)
@@ -119,7 +135,7 @@ class Presence:
     def stop(self) -> None:
         self._stop.set()
         try:
-            self._beat(state="offline")
+            self._beat(state="offline", reserved="[]")
             self.client.delete(worker_running_key(self.name))
         except redis.RedisError as exc:
             log.warning("could not mark worker %s offline: %s", self.name, exc)
@@ -181,8 +197,9 @@ def forget_dead_processes(client: redis.Redis, name: str, payload: dict | None) 
 
 def read_workers(client: redis.Redis) -> tuple[float, list[dict]]:
     """(Redis's clock now, every known worker as a dict of its hash fields
-    plus `name`, `disabled` (a bool) and `running`: a list of {"job_id",
-    "index", "since", "task_id"}). Workers whose keys expired are forgotten."""
+    plus `name`, `disabled` (a bool), `reserved` (a list of task ids) and
+    `running`: a list of {"job_id", "index", "since", "task_id"}). Workers whose
+    keys expired are forgotten."""
     names = sorted(n.decode() for n in client.smembers(WORKERS))
     disabled = {n.decode() for n in client.smembers(DISABLED_WORKERS)}
     pipe = client.pipeline()
@@ -199,6 +216,10 @@ def read_workers(client: redis.Redis) -> tuple[float, list[dict]]:
         record = {k.decode(): v.decode() for k, v in fields.items()}
         record["name"] = name
         record["disabled"] = name in disabled
+        try:
+            record["reserved"] = [str(t) for t in json.loads(record.get("reserved") or "[]")]
+        except (ValueError, TypeError):  # a worker of an older version
+            record["reserved"] = []
         record["running"] = sorted((json.loads(v) for v in running.values()),
                                    key=lambda r: (r["job_id"], r["index"]))
         out.append(record)

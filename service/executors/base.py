@@ -107,6 +107,8 @@ class WorkerInfo:
     last_seen: datetime | None
     silent_seconds: float = 0.0  # since the last heartbeat, on the broker's clock
     disabled: bool = False  # drained by an admin: finishes what it runs, takes nothing new
+    # Task ids whose messages the worker holds (prefetched or running), when known.
+    reserved: tuple[str, ...] = ()
 
 
 class Executor(ABC):

@@ -13,8 +13,13 @@ new task id (its attempt count unchanged), when
 - it started but no heartbeat of it has been seen for a lease: the unit's
   heartbeat key lives a few heartbeat intervals and its render process keeps
   refreshing it, so a long unit that still renders is never re-run by lease;
-- it has been queued longer than a lease while the queue is empty: the
-  message itself is gone (e.g. Redis restarted without persistence);
+- it has been queued longer than a lease while the queue is empty and no
+  live worker holds its message: the message itself is gone (e.g. Redis
+  restarted without persistence). A worker's presence lists the messages it
+  holds (prefetched or running): on a cold start its render processes compile
+  kernels for minutes while its main process holds prefetched units, and
+  those are neither in the queue nor lost (taking them for lost rendered them
+  twice). The messages a lost worker held are lost with it;
 - a worker declined it (blocklisted for its job, or disabled meanwhile).
 Results are collected from every task id a unit ever had; the first wins,
 and since units are deterministic a late duplicate changes nothing.
@@ -96,8 +101,10 @@ class CeleryExecutor(Executor):
         self.heartbeat_ttl = min(3 * settings.worker_heartbeat_seconds, self.lease_seconds)
         self.lost_seconds = settings.worker_lost_seconds
         self._beat_seen: dict[str, datetime] = {}  # task id -> when its unit's heartbeat was last seen
-        # Tasks whose worker is lost by presence -> that worker (read at most once a second).
+        # Tasks whose worker is lost by presence -> that worker, and the tasks
+        # live workers hold (read at most once a second).
         self._lost_tasks: dict[str, str] = {}
+        self._held_tasks: set[str] = set()
         self._lost_read = -1e9
         self.redis = redis.Redis.from_url(settings.broker_url)
         self._load_scene_text = load_scene_text
@@ -196,6 +203,8 @@ class CeleryExecutor(Executor):
         out = []
         for flight, beat in zip(flights, beats):
             obs = self._decide(flight, [metas[t] for t in flight.task_ids], beat, now, lost_tasks)
+            if obs is None and flight.task_ids and flight.task_ids[-1] in self._held_tasks:
+                obs = Observation("queued")  # a live worker holds it (e.g. still warming up)
             if obs is None:  # queued for more than a lease: lost only if the queue is empty
                 if queue_length is None:
                     queue_length = self.queue_length()
@@ -208,11 +217,18 @@ class CeleryExecutor(Executor):
 
     def _tasks_of_lost_workers(self) -> dict[str, str]:
         """Task id -> worker, for the units the presence records of lost workers
-        say they were rendering (read at most once a second)."""
+        say they were rendering or held (read at most once a second; the tasks
+        live workers hold go to `_held_tasks` on the same read)."""
         now = time.monotonic()
         if now - self._lost_read >= 1.0:
-            self._lost_tasks = {r.task_id: w.name for w in self.workers() if w.state == "lost"
-                                for r in w.running if r.task_id}
+            lost, held = {}, set()
+            for w in self.workers():
+                tasks = {r.task_id for r in w.running if r.task_id} | set(w.reserved)
+                if w.state == "lost":
+                    lost.update(dict.fromkeys(tasks, w.name))
+                elif w.state in ("busy", "idle"):
+                    held |= tasks
+            self._lost_tasks, self._held_tasks = lost, held
             self._lost_read = now
         return self._lost_tasks
 
@@ -378,8 +394,9 @@ class CeleryExecutor(Executor):
             running = tuple(RunningUnit(u["job_id"], int(u["index"]), _utc(u.get("since")),
                                         u.get("task_id"))
                             for u in r["running"])
+            reserved = tuple(r.get("reserved") or ())
             if r.get("state") == "offline":
-                state, running = "offline", ()
+                state, running, reserved = "offline", (), ()
             elif now - last_seen > self.lost_seconds:
                 state = "lost"
             else:
@@ -390,7 +407,8 @@ class CeleryExecutor(Executor):
                 units_done=int(r.get("units_done", 0)), samples=int(r.get("samples", 0)),
                 rays=int(r.get("rays", 0)), seconds=float(r.get("seconds", 0.0)),
                 started=_utc(r.get("started")), last_seen=_utc(last_seen),
-                silent_seconds=max(now - last_seen, 0.0), disabled=bool(r.get("disabled"))))
+                silent_seconds=max(now - last_seen, 0.0), disabled=bool(r.get("disabled")),
+                reserved=reserved))
         return out
 
     def set_worker_enabled(self, name: str, enabled: bool) -> None:
