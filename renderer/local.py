@@ -203,7 +203,9 @@ class LocalPool:
 
     def __init__(self, workers: int | None = None):
         self.workers = workers or os.cpu_count() or 1
-        warm_up()  # compile here once, so the processes only load Numba's cache
+        # Compile here once (in parallel on a cold cache), so the processes only
+        # load Numba's cache.
+        warm_up(processes=self.workers)
         # Spawned, not forked from a forkserver: the parent of every render
         # process is this process (its slot thread), which PR_SET_PDEATHSIG needs.
         self._context = multiprocessing.get_context("spawn")

@@ -14,6 +14,10 @@ scheduler's two questions about them:
 - `digests(session, job, needs)`: the digests of the films a unit needs, read
   from the ledger once per tick (every gather tile of a photon round needs the
   same photon units).
+- `departed(scheduled)`: the digests of input films stored for jobs that left
+  the scheduler's view behind its back (canceled or deleted through the API),
+  which the executor may drop at once rather than when they expire (a day).
+  A job that finishes or fails here drops its own (`stored_digests`).
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ class Artefacts:
         self._load_unit_film = load_unit_film
         self._inputs: OrderedDict[str, frozenset[int]] = OrderedDict()
         self._digests: dict[tuple[str, int], str] = {}  # this tick's reads
+        self._kept: dict[str, set[str]] = {}  # job -> digests of its stored input films
 
     def new_tick(self) -> None:
         """Forget the digests read so far (they are re-read from the ledger)."""
@@ -72,6 +77,20 @@ class Artefacts:
     def forget(self, job_id: str) -> None:
         """The job was planned anew or is over."""
         self._inputs.pop(job_id, None)
+        self._kept.pop(job_id, None)
+
+    def keep(self, job_id: str, digest: str) -> None:
+        """An input film of the job was stored; the executor keeps a copy."""
+        self._kept.setdefault(job_id, set()).add(digest)
+
+    def departed(self, scheduled: Iterable[str]) -> list[str]:
+        """The kept digests of jobs not among `scheduled` (the jobs the
+        scheduler still looks at), forgotten as they are returned."""
+        gone = set(self._kept) - set(scheduled)
+        digests = sorted({d for job_id in gone for d in self._kept.pop(job_id)})
+        for job_id in gone:
+            self._inputs.pop(job_id, None)
+        return digests
 
     def digests(self, session: Session, job: Job, needs: Iterable[int]) -> dict[int, str]:
         """index -> SHA-256 of the stored film, for the done units `needs`."""

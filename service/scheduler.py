@@ -202,6 +202,7 @@ class Scheduler:
     def _tick(self) -> None:
         jobs, flying = self._census()
         self._cancel_departed()
+        self._drop_departed_artefacts(jobs)
         self.previews.keep_only(jobs)
         self.artefacts.new_tick()
         self._blocked = {}
@@ -264,6 +265,16 @@ class Scheduler:
                        Job.status.in_(states.SCHEDULED_JOB)))}
         for key in [k for k in self._tracked if k not in live]:
             self.executor.cancel(key[0], self._tracked.pop(key))
+
+    def _drop_departed_artefacts(self, jobs: dict[str, _JobRow]) -> None:
+        """Let the executor drop the input films kept for jobs canceled or
+        deleted behind our back (see service.artefacts)."""
+        digests = self.artefacts.departed(jobs)
+        if digests:
+            try:
+                self.executor.drop_films(digests)
+            except Exception as exc:  # they expire anyway
+                log.warning("dropping %d films of departed jobs failed: %s", len(digests), exc)
 
     def _advance(self, job_id: str) -> bool:
         """Plan a queued job, collect a job's units in flight and refresh its
@@ -433,6 +444,8 @@ class Scheduler:
                     events.note(job)
                 states.change_unit(unit, "done", now)
                 unit.film_digest = obs.digest or hashlib.sha256(obs.film).hexdigest()
+                if self.artefacts.is_input(job, unit.index):
+                    self.artefacts.keep(job.id, unit.film_digest)
                 unit.worker = obs.worker or unit.worker
                 self._keep_log(job, unit, obs, now)
                 unit.seconds = float(film.stats.get("seconds", 0.0))

@@ -117,6 +117,18 @@ def assert_equals_renderer(exr_path: Path, body: dict) -> None:
         assert got[name].tobytes() == np.ascontiguousarray(mean[..., c]).tobytes(), name
         assert got[f"var.{name}"].tobytes() == np.ascontiguousarray(var[..., c]).tobytes(), name
 
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels():
+    """Every kernel compiled into Numba's on-disk cache before the first test,
+    two method families at a time on a cold cache (renderer.runtime.warm_up):
+    the worker and service processes the tests start then only load it. Left
+    to themselves, each Celery render process compiled every kernel on its
+    own for minutes while its worker held prefetched units."""
+    from renderer import warm_up
+
+    warm_up(processes=2)
+
+
 # -- the embedded service ---------------------------------------------------------
 
 @pytest.fixture(scope="session")

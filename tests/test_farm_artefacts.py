@@ -155,3 +155,33 @@ def test03_an_input_that_expired_is_sent_again_from_the_store(redis_url, spawn_w
     broker.close()
     assert_equals_renderer(tmp_path / "expired.exr", PHOTON)
 
+
+
+def test04_a_canceled_jobs_films_leave_redis_at_once(redis_url, spawn_worker, tmp_path):
+    # A photon job canceled mid-way: the photon maps kept for its gather
+    # tiles, the films of tasks that landed but were never stored, and those
+    # of units still rendering at the cancel all leave Redis within moments,
+    # not when they would expire (a day).
+    spawn_worker(concurrency=2)
+    broker = redis.Redis.from_url(redis_url)
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05)
+    body = dict(PHOTON, spp=64)  # 128 units: 32 rounds of 4 photon units and 4 gather tiles
+    try:
+        with TestClient(create_app(settings), headers=ADMIN_HEADERS) as client:
+            farm = client.app.state.farm
+            get = get_json(client)
+            job_id = client.post("/jobs", json=body).json()["id"]
+            # Some input film stored and kept in Redis for later units.
+            wait_for(lambda: get(f"/jobs/{job_id}")["progress"]["units_done"] >= 6
+                     and broker.keys(f"{INPUT_PREFIX}*"), 120, "photon maps kept in Redis")
+            assert client.post(f"/jobs/{job_id}/cancel").status_code == 200
+            wait_for(lambda: not broker.keys(f"{INPUT_PREFIX}*"), 30,
+                     "the canceled job's films to leave Redis", interval=0.1)
+            assert get(f"/jobs/{job_id}")["status"] == "canceled"
+            assert farm.executor.inputs_uploaded == 0
+            # Nothing comes back: the units in flight at the cancel have finished
+            # (their films taken back by their workers) or were skipped.
+            wait_for(lambda: not broker.keys("rayfarm:hb:*"), 30, "the units in flight to end")
+            assert broker.keys(f"{INPUT_PREFIX}*") == []
+    finally:
+        broker.close()

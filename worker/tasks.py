@@ -16,6 +16,10 @@ kernel) tells the service the unit is alive, and the worker's presence record
 (worker/presence.py) shows the unit (with its task id) and, once it is done,
 counts it.
 
+A unit whose job was canceled (`cancel_key`) before it started is skipped,
+and one canceled while it rendered takes its published film back; both
+return ``{"canceled": True, "worker": name}``.
+
 A worker declines a unit, returning ``{"declined": reason, "worker": name}``
 at once without rendering, when it is blocklisted for the unit's job (the
 payload's ``blocked``) or an admin disabled it (a unit it had prefetched
@@ -181,6 +185,11 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
             # Published while the heartbeat still says the unit is alive.
             digest = publish_film(client, film)
         stats = PartialFilm.stats_from_bytes(film)
+        if client.exists(cancel_key(job_id)):
+            # Canceled while it rendered: the service will never store this
+            # film, and may have dropped the job's films already; take it back.
+            client.delete(input_key(digest))
+            return {"canceled": True, "worker": worker}
     except Exception:
         if captured is not None and task_id:
             _leave_log(client, task_id, captured.to_dict())

@@ -237,8 +237,8 @@ class CeleryExecutor(Executor):
         for task_id, meta in zip(flight.task_ids, metas):
             if meta and meta.get("status") == "SUCCESS":
                 result = meta.get("result") or {}
-                if "declined" in result:
-                    continue  # only the latest task's decline matters (below)
+                if "declined" in result or "canceled" in result:
+                    continue  # only the latest task's matters (below)
                 obs = self._landed(task_id, result)
                 # An earlier task whose film is gone or bad leaves the unit to
                 # its latest task (the retry it was enqueued again for).
@@ -247,8 +247,11 @@ class CeleryExecutor(Executor):
         latest = metas[-1] if metas else None
         latest_id = flight.task_ids[-1] if flight.task_ids else None
         status = latest.get("status") if latest else None
-        if status == "SUCCESS":  # declined (a done result returned above)
+        if status == "SUCCESS":  # declined or canceled (a done result returned above)
             result = latest.get("result") or {}
+            if "canceled" in result:  # the job was canceled then enqueued again (retried)
+                return Observation("lost", cause="message", worker=result.get("worker"),
+                                   error="the worker found its job canceled")
             return Observation("lost", cause="declined", worker=result.get("worker"),
                                error=f"declined by {result.get('worker')}: {result['declined']}")
         if status == "FAILURE":
@@ -347,11 +350,22 @@ class CeleryExecutor(Executor):
 
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
         # The marker makes any worker skip the job's units still queued (also
-        # workers started later, which a revoke broadcast does not reach).
+        # workers started later, which a revoke broadcast does not reach), and
+        # a worker that finishes one of them after it takes its film back
+        # (worker/tasks.py). Films already published by tasks that succeeded,
+        # which the service will never store, go now, not when they expire.
         self.redis.set(cancel_key(job_id), "1", ex=CANCEL_TTL)
         self._uncanceled.discard(job_id)
         if task_ids:
             self.app.control.revoke(list(task_ids))
+            landed = {(meta.get("result") or {}).get("digest")
+                      for meta in self._metas(list(task_ids)).values()
+                      if meta and meta.get("status") == "SUCCESS"
+                      and isinstance(meta.get("result"), dict)}
+            landed.discard(None)
+            landed -= set(self._digest_of.get(t) for t in task_ids)  # stored: release decides
+            if landed:
+                self.drop_films(sorted(landed))
         self.release(task_ids)
 
     def limit(self) -> int:
