@@ -13,7 +13,9 @@ travels as its reference and each replica reads the row itself. Events missed
 while the listening connection was away are not replayed: every stream is told
 to resynchronise from a snapshot (`Subscription.overflowed`).
 
-On SQLite the hub delivers in-process, as before: one service owns the file.
+On SQLite the hub delivers in-process: the service that runs the scheduler
+publishes what it commits, and a standby on the same file reads the changes
+from the ledger (`service.ledger_watch`).
 """
 
 from __future__ import annotations

@@ -20,8 +20,10 @@ Event kinds (the SSE `event:` names) and their data:
               preview and noise map were rewritten
     deleted   {"job_id"}
 
-Streams are in-process on SQLite: the service that owns the ledger publishes,
-its HTTP handlers subscribe. On PostgreSQL, with several service replicas,
+Streams are in-process on SQLite: the service that runs the scheduler
+publishes, its HTTP handlers subscribe; a second service on the same file (a
+standby) polls the ledger for changes and publishes them to its own streams
+(`service.ledger_watch`). On PostgreSQL, with several service replicas,
 the hub's `relay` (`service.event_relay`) carries every event to every
 replica, which delivers it to its own streams. Every job and deletion event carries its job's `owner`; a
 subscription made for someone who may see only their own jobs names that

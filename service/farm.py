@@ -22,6 +22,7 @@ from .event_relay import PostgresRelay
 from .events import EventHub, publish_commits
 from .executors import Executor, make_executor
 from .leader import Leadership, open_leadership
+from .ledger_watch import LedgerWatch
 from .metrics import FarmMetrics
 from .scenes import scene_hashes
 from .scheduler import Scheduler
@@ -47,6 +48,9 @@ class Farm:
     limiter: RateLimiter  # submissions per token, uploads per owner (service.admission)
     leadership: Leadership  # whether this replica runs the scheduler (service.leader)
     relay: PostgresRelay | None  # events to and from other replicas (PostgreSQL only)
+    # Events of the jobs another replica schedules, polled from the ledger while
+    # this one stands by (SQLite only; service.ledger_watch).
+    watch: LedgerWatch | None = None
 
     @classmethod
     def open(cls, settings: Settings, metrics: FarmMetrics | None = None) -> "Farm":
@@ -64,19 +68,21 @@ class Farm:
             raise
         hub = EventHub()
         publish_commits(sessions, hub)
-        relay = None
+        relay = watch = None
+        leadership = open_leadership(settings, engine)
         if engine.dialect.name == "postgresql":
             relay = PostgresRelay(engine, sessions, hub)  # attached by start()
-        leadership = open_leadership(settings, engine)
+        else:
+            watch = LedgerWatch(sessions, hub, leading=leadership.leading)
         leadership.guard(sessions)
         scheduler = Scheduler(settings, sessions, store, executor, hub=hub, metrics=metrics,
                               leadership=leadership)
         return cls(settings, engine, sessions, store, executor, scheduler, hub,
                    Thumbnailer(store, lambda: scene_hashes(sessions, store)), RateLimiter(),
-                   leadership, relay)
+                   leadership, relay, watch)
 
     def start(self) -> None:
-        """Relay events, try to lead, and run the scheduler's thread (which ticks
+        """Relay (or watch for) events, try to lead, and run the scheduler's thread (which ticks
         only while this replica leads) and the thumbnailer."""
         if self.relay is not None:
             self.relay.start()
@@ -84,6 +90,8 @@ class Farm:
         self.leadership.start()
         if not self.leadership.leading():
             log.warning("%s", self.standby_message())
+        if self.watch is not None:
+            self.watch.start()
         self.scheduler.start()
         self.thumbnails.start()
 
@@ -96,6 +104,8 @@ class Farm:
         self.thumbnails.stop()
         self.scheduler.stop()
         self.leadership.stop()  # after the scheduler: a standby may start at once
+        if self.watch is not None:
+            self.watch.stop()
         if self.relay is not None:
             self.events.relay = None
             self.relay.stop()

@@ -278,6 +278,9 @@ class UnitPublic(BaseModel):
         None, description="why it was last enqueued again without spending an attempt: its "
                           "worker lost, no heartbeat for a lease, its message lost, declined "
                           "by a worker (null if never)")
+    film_digest: str | None = Field(
+        None, description="SHA-256 of the unit's stored partial film, once done: the name "
+                          "later units of a DAG job and the workers know it by")
 
     @classmethod
     def from_unit(cls, unit: WorkUnit) -> "UnitPublic":
@@ -290,7 +293,7 @@ class UnitPublic(BaseModel):
                    needs=list(u.get("needs") or ()), attempts=unit.attempts, tasks=len(unit.task_ids), worker=unit.worker,
                    enqueued_at=unit.enqueued_at, started_at=unit.started_at,
                    finished_at=unit.finished_at, seconds=unit.seconds, error=unit.error,
-                   requeue_reason=unit.requeue_reason)
+                   requeue_reason=unit.requeue_reason, film_digest=unit.film_digest)
 
 
 class UnitAttemptLog(BaseModel):

@@ -237,6 +237,8 @@ def test05_the_workers_page_shows_the_pool(page):
     row = page.wait_for_selector("#workers-table tr[data-worker^='local@']")
     assert row.get_attribute("data-state") in ("idle", "busy")
     assert "local pool" in row.inner_text()
+    # The top bar says this replica runs the scheduler (service.leader).
+    page.locator("#health", has_text="scheduler here (").wait_for()
     shot(page, "09-workers")
 
 

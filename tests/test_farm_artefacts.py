@@ -72,6 +72,9 @@ def test01_a_photon_job_moves_each_film_once_and_redis_keeps_none_after(
             assert job["status"] == "done", job
             (tmp_path / "photon.exr").write_bytes(client.get(job["result_url"]).content)
             units = unit_rows(farm, job["id"])
+            # The API names each unit's film by the digest the ledger holds.
+            shown = client.get(f"/jobs/{job['id']}/units").json()
+            assert [u["film_digest"] for u in shown] == [u.film_digest for u in units]
             # The service sent no input from its store: every one was in Redis already.
             assert farm.executor.inputs_uploaded == 0
             # Nothing is left in Redis for the finished job: films no later unit

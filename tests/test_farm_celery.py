@@ -227,6 +227,11 @@ def test06_a_higher_priority_job_overtakes_the_units_already_in_the_broker(
             time.sleep(0.05)
         assert 0 < max(samples) <= CeleryExecutor.MAX_AHEAD * 1, samples
         high = submit(client, dict(TINY, progressive=False, tile_size=16, priority=60))  # 4 units
+        # Counted once the high job's units are all in the broker: each waits
+        # for a slot a low unit frees, so low units keep finishing until then
+        # (read at the submit, this raced: 15 finished first against 12 + 2).
+        wait_for(lambda: all(u["state"] != "pending" for u in get(f"/jobs/{high['id']}/units")),
+                 60, "the high job's units to be sent", interval=0.01)
         done_before = get(f"/jobs/{low['id']}")["progress"]["units_done"]
         high = poll_job(get, high["id"])
         assert high["status"] == "done"

@@ -205,3 +205,78 @@ def test05_a_unit_whose_message_a_live_worker_holds_stays_queued_past_the_lease(
         presence.stop()
         executor.close()
         client.close()
+
+
+def test06_a_blocklisted_worker_is_never_offered_the_jobs_units(redis_url, spawn_worker,
+                                                                 tmp_path):
+    # From the shared queue, an idle worker blocklisted for a job took each of
+    # its units and declined it, again and again, while the other worker was
+    # busy. The job's units now go to the own queue of a worker that may run
+    # them: each is sent once, and the blocklisted one sees none.
+    from service.farm import Farm
+    from service.models import WorkerBlock, utcnow
+
+    from test_service_scheduler import create, finished, job_row, tick_until, unit_rows
+
+    blocked, allowed = spawn_worker(concurrency=1, **BEAT), spawn_worker(concurrency=1, **BEAT)
+    with Farm.open(_settings(tmp_path, redis_url)) as farm:
+        def both() -> list | None:
+            found = [{"name": w.name} for w in farm.executor.workers() if w.state == "idle"]
+            return found if _name(blocked, found) and _name(allowed, found) else None
+        names = wait_for(both, 30, "both workers")
+        bad, good = _name(blocked, names), _name(allowed, names)
+        body = dict(TINY, spp=64, tile_size=8, progressive=False)  # 16 short units
+        job_id = create(farm, body)
+        with farm.sessions.begin() as session:
+            session.add(WorkerBlock(job_id=job_id, worker=bad, failures=3,
+                                    last_error="test", blocked=utcnow()))
+        tick_until(farm, finished(farm, job_id), 120)
+        assert job_row(farm, job_id).status == "done", job_row(farm, job_id).error
+        units = unit_rows(farm, job_id)
+        assert {u.worker for u in units} == {good}
+        assert [len(u.task_ids) for u in units] == [1] * len(units), \
+            [(u.index, u.requeue_reason) for u in units if len(u.task_ids) > 1]
+        # Without a blocklisted live worker the job's units use the shared queue.
+        assert farm.executor._direct_target([]) is None
+        assert farm.executor._direct_target(["rayfarm-gone@nowhere"]) is None
+        assert farm.executor._direct_target([bad]) == good
+        assert farm.executor._direct_target([bad, good]) is None
+
+
+def test07_a_unit_in_a_stopped_workers_own_queue_is_enqueued_again(redis_url, tmp_path):
+    # Presence records only (no worker consumes): a unit sent to w-good's own
+    # queue waits there past the lease while w-good lives, and is enqueued
+    # again as soon as w-good stops without having taken it.
+    from datetime import datetime, timedelta, timezone
+
+    import redis
+
+    from service.executors.base import Flight, Ticket
+    from service.executors.celery_farm import CeleryExecutor
+    from worker.presence import Presence
+
+    client = redis.Redis.from_url(redis_url)
+    executor = CeleryExecutor(_settings(tmp_path, redis_url, unit_lease_seconds=1.0),
+                              load_scene_text=lambda h: "")
+    workers = [Presence(client, name, 1, 0.1) for name in ("w-bad", "w-good")]
+    for presence in workers:
+        presence.start()
+    try:
+        task_id = executor.submit(Ticket("job", 0, "0" * 64, {}, {}, blocked=("w-bad",)))
+        # In w-good's own queue (kombu keeps a list per priority step), not the shared one.
+        assert sum(client.llen(k) for k in client.keys("w-good.dq2*")) == 1
+        assert executor.queue_length() == 0 and not client.keys("w-bad.dq2*")
+        now = datetime.now(timezone.utc)
+        flight = Flight("job", 0, "queued", (task_id,), now - timedelta(seconds=30), None)
+        (obs,) = executor.observe([flight], now)
+        assert obs.state == "queued", obs
+        workers[1].stop()
+        executor._lost_read = -1e9  # presence is read at most once a second
+        (obs,) = executor.observe([flight], now)
+        assert (obs.state, obs.cause, obs.worker) == ("lost", "worker", "w-good"), obs
+        assert "stopped before taking it" in obs.error
+    finally:
+        for presence in workers:
+            presence.stop()
+        executor.close()
+        client.close()

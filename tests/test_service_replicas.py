@@ -157,33 +157,6 @@ def api(base: str, method: str, path: str, **kwargs):
     return response.json()
 
 
-def test04_two_services_on_one_sqlite_file_never_both_schedule(spawn_replica):
-    first, a = spawn_replica()
-    second, b = spawn_replica()
-    assert health(a)["leadership"]["role"] == "leader"
-    standby = health(b)
-    assert standby["leadership"]["role"] == "standby" and standby["scheduler"] == "standby"
-    assert standby["leadership"]["holder"] == health(a)["leadership"]["replica"]
-    assert "another service runs the scheduler" in second.log()
-    job = api(b, "POST", "/jobs", json=TINY)  # submitted to the standby, run by the leader
-    wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["status"] == "done", 120,
-             "the job to be done")
-    assert health(b)["scheduler_ticks"] == 0, "the standby scheduled"
-    first.kill_group(signal.SIGKILL)  # the kernel drops its lock: the standby takes over
-    wait_for(lambda: health(b)["leadership"]["role"] == "leader", 10, "the standby to lead")
-    wait_for(lambda: health(b)["scheduler_ticks"] > 0, 10, "the new leader to tick")
-
-
-def _replica_pair(spawn_replica, postgres_url: str):
-    """Two replicas on one PostgreSQL ledger and one data dir; the first leads."""
-    leader, a = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
-    standby, b = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
-    first, second = health(a)["leadership"], health(b)["leadership"]
-    assert first["role"] == "leader" and second["role"] == "standby", (first, second)
-    assert second["holder"] == first["replica"] and second["epoch"] == 1
-    return (leader, a), (standby, b)
-
-
 class EventReader(threading.Thread):
     """Reads a job's event stream (`GET /jobs/{id}/events`) into `seen`."""
 
@@ -204,6 +177,43 @@ class EventReader(threading.Thread):
 
     def kinds(self) -> list[str]:
         return [kind for kind, _ in self.seen]
+
+
+def test04_two_services_on_one_sqlite_file_never_both_schedule(spawn_replica):
+    first, a = spawn_replica()
+    second, b = spawn_replica()
+    assert health(a)["leadership"]["role"] == "leader"
+    standby = health(b)
+    assert standby["leadership"]["role"] == "standby" and standby["scheduler"] == "standby"
+    assert standby["leadership"]["holder"] == health(a)["leadership"]["replica"]
+    assert "another service runs the scheduler" in second.log()
+    job = api(b, "POST", "/jobs", json=TINY)  # submitted to the standby, run by the leader
+    # A stream on the standby follows the job the leader renders (the standby
+    # reads the changes from the ledger: service.ledger_watch) to its end.
+    stream = EventReader(f"{b}/jobs/{job['id']}/events")
+    stream.start()
+    wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["status"] == "done", 120,
+             "the job to be done")
+    stream.join(30)
+    assert not stream.is_alive(), f"the standby's stream did not end: {stream.kinds()}"
+    assert stream.seen[-1] == ("end", {"job_id": job["id"], "status": "done"})
+    assert {"unit", "preview"} <= set(stream.kinds()), stream.kinds()
+    done_units = {d["index"] for k, d in stream.seen if k == "unit" and d["state"] == "done"}
+    assert done_units == set(range(len(api(b, "GET", f"/jobs/{job['id']}/units"))))
+    assert health(b)["scheduler_ticks"] == 0, "the standby scheduled"
+    first.kill_group(signal.SIGKILL)  # the kernel drops its lock: the standby takes over
+    wait_for(lambda: health(b)["leadership"]["role"] == "leader", 10, "the standby to lead")
+    wait_for(lambda: health(b)["scheduler_ticks"] > 0, 10, "the new leader to tick")
+
+
+def _replica_pair(spawn_replica, postgres_url: str):
+    """Two replicas on one PostgreSQL ledger and one data dir; the first leads."""
+    leader, a = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
+    standby, b = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
+    first, second = health(a)["leadership"], health(b)["leadership"]
+    assert first["role"] == "leader" and second["role"] == "standby", (first, second)
+    assert second["holder"] == first["replica"] and second["epoch"] == 1
+    return (leader, a), (standby, b)
 
 
 def test05_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(

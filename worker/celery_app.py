@@ -53,6 +53,11 @@ def create_celery_app(settings: Settings) -> Celery:
         # counts failed units per worker and job (blocklisting, service.workers).
         result_extended=True,
         task_default_queue=QUEUE,
+        # Each worker also consumes its own queue (`<name>.dq2`): the service
+        # sends a job's units there when a live worker is blocklisted for the
+        # job, so that worker never takes them from the shared queue only to
+        # decline them again and again (service/executors/celery_farm.py).
+        worker_direct=True,
         # Results are collected within seconds; don't keep stale films for a day.
         result_expires=3600,
         # Each child warms the Numba kernels at start (loading the on-disk cache or

@@ -20,7 +20,13 @@ new task id (its attempt count unchanged), when
   kernels for minutes while its main process holds prefetched units, and
   those are neither in the queue nor lost (taking them for lost rendered them
   twice). The messages a lost worker held are lost with it;
-- a worker declined it (blocklisted for its job, or disabled meanwhile).
+- a worker declined it (blocklisted for its job, or disabled meanwhile);
+- it was sent to one worker's own queue (below) and that worker is lost or
+  stopped before taking it.
+While a live worker is blocklisted for a job, the job's units go to the own
+queue (Celery's `worker_direct`) of the least loaded live worker that is not:
+from the shared queue, an idle blocklisted worker took each of them and
+declined it, over and over, while the others were busy.
 Results are collected from every task id a unit ever had; the first wins,
 and since units are deterministic a late duplicate changes nothing.
 
@@ -50,6 +56,7 @@ import math
 import re
 import time
 import uuid
+from collections import Counter
 from datetime import datetime, timedelta, timezone
 from typing import Any, Callable, Sequence
 
@@ -60,6 +67,7 @@ from worker.celery_app import create_celery_app
 from worker.keys import (FILM_TTL, QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key,
                          scene_key, unit_log_key)
 from worker.presence import forget_worker, read_workers, set_disabled
+from celery.utils.nodenames import worker_direct
 
 from ..settings import Settings
 from .base import Executor, Flight, Observation, RunningUnit, Ticket, WorkerInfo
@@ -106,6 +114,12 @@ class CeleryExecutor(Executor):
         self._lost_tasks: dict[str, str] = {}
         self._held_tasks: set[str] = set()
         self._lost_read = -1e9
+        self._presence: list[WorkerInfo] = []  # as of `_lost_read`
+        # Tasks sent to one worker's own queue -> that worker, and how many were
+        # sent to each since presence was last read (see `_direct_target`).
+        self._directed: dict[str, str] = {}
+        self._directed_since: Counter[str] = Counter()
+        self._stranded: dict[str, str] = {}  # directed tasks whose worker is gone
         self.redis = redis.Redis.from_url(settings.broker_url)
         self._load_scene_text = load_scene_text
         self._load_unit_film = load_unit_film
@@ -175,11 +189,34 @@ class CeleryExecutor(Executor):
                    "lease_seconds": self.lease_seconds, "heartbeat_seconds": self.heartbeat_ttl,
                    "blocked": list(ticket.blocked),
                    "inputs": self._refresh_inputs(ticket)}
-        self.app.send_task(TASK_RENDER_UNIT, args=[payload], queue=QUEUE, task_id=task_id,
+        target = self._direct_target(ticket.blocked) if ticket.blocked else None
+        self.app.send_task(TASK_RENDER_UNIT, args=[payload], task_id=task_id,
+                           queue=worker_direct(target) if target else QUEUE,
                            priority=redis_priority(ticket.priority))
+        if target is not None:
+            self._directed[task_id] = target
+            self._directed_since[target] += 1
         if not ticket.is_input:
             self._transient.add(task_id)
         return task_id
+
+    def _direct_target(self, blocked: Sequence[str]) -> str | None:
+        """The worker whose own queue a unit of a job that `blocked` workers
+        decline should go to: None (the shared queue) unless a live worker is
+        blocklisted; then the least loaded live, enabled worker that is not
+        (messages it holds, and units sent to it since presence was read, per
+        render process), or None if there is none (the scheduler fails the
+        job when every live worker is blocklisted)."""
+        self._tasks_of_lost_workers()  # presence, read at most once a second
+        live = [w for w in self._presence if w.state in ("busy", "idle") and not w.disabled]
+        blocked = set(blocked)
+        if not any(w.name in blocked for w in live):
+            return None
+        allowed = [w for w in live if w.name not in blocked]
+        if not allowed:
+            return None
+        return min(allowed, key=lambda w: ((len(w.reserved) + self._directed_since[w.name])
+                                           / max(w.concurrency, 1), w.name)).name
 
     # -- observing -------------------------------------------------------------
     def _metas(self, task_ids: list[str]) -> dict[str, dict | None]:
@@ -203,8 +240,11 @@ class CeleryExecutor(Executor):
         out = []
         for flight, beat in zip(flights, beats):
             obs = self._decide(flight, [metas[t] for t in flight.task_ids], beat, now, lost_tasks)
-            if obs is None and flight.task_ids and flight.task_ids[-1] in self._held_tasks:
-                obs = Observation("queued")  # a live worker holds it (e.g. still warming up)
+            if obs is None and flight.task_ids and (flight.task_ids[-1] in self._held_tasks
+                                                    or flight.task_ids[-1] in self._directed):
+                # A live worker holds it (e.g. still warming up), or it waits in
+                # a live worker's own queue (a stopped one's is `_stranded`).
+                obs = Observation("queued")
             if obs is None:  # queued for more than a lease: lost only if the queue is empty
                 if queue_length is None:
                     queue_length = self.queue_length()
@@ -222,13 +262,21 @@ class CeleryExecutor(Executor):
         now = time.monotonic()
         if now - self._lost_read >= 1.0:
             lost, held = {}, set()
-            for w in self.workers():
+            self._presence = self.workers()
+            for w in self._presence:
                 tasks = {r.task_id for r in w.running if r.task_id} | set(w.reserved)
                 if w.state == "lost":
                     lost.update(dict.fromkeys(tasks, w.name))
                 elif w.state in ("busy", "idle"):
                     held |= tasks
             self._lost_tasks, self._held_tasks = lost, held
+            # A unit in the own queue of a worker that is lost, stopped or
+            # forgotten waits for nobody: it is enqueued again at once.
+            gone = {w.name for w in self._presence if w.state in ("lost", "offline")}
+            gone |= set(self._directed.values()) - {w.name for w in self._presence}
+            self._stranded = {t: name for t, name in self._directed.items()
+                              if name in gone and t not in lost}
+            self._directed_since.clear()
             self._lost_read = now
         return self._lost_tasks
 
@@ -269,6 +317,10 @@ class CeleryExecutor(Executor):
             return Observation("lost", cause="worker", worker=lost_tasks[latest_id],
                                error=f"worker {lost_tasks[latest_id]} lost (no presence "
                                      f"heartbeat for {self.lost_seconds:g} s)")
+        if beat is None and status in (None, "PENDING") and latest_id in self._stranded:
+            name = self._stranded[latest_id]
+            return Observation("lost", cause="worker", worker=name,
+                               error=f"sent to worker {name}, which stopped before taking it")
         if beat is not None:
             if latest_id is not None:
                 self._beat_seen[latest_id] = now
@@ -334,6 +386,7 @@ class CeleryExecutor(Executor):
         for task_id in task_ids:
             self.app.backend.forget(task_id)
             self._beat_seen.pop(task_id, None)
+            self._directed.pop(task_id, None)
             digest = self._digest_of.pop(task_id, None)
             if task_id in self._transient:
                 self._transient.discard(task_id)

@@ -105,6 +105,10 @@ async function health() {
   el.className = `health ${report.status}`;
   const parts = [report.executor === "local" ? `local pool · ${report.workers} processes` : "celery"];
   if (report.broker && report.broker !== "ok") parts.push("broker unreachable");
+  // Which replica runs the scheduler (service.leader): this one, or another.
+  const lead = report.leadership;
+  if (lead && lead.role === "leader") parts.push(`scheduler here (${lead.replica})`);
+  else if (lead) parts.push(`standby · scheduler on ${lead.holder || "no replica yet"}`);
   if (report.status !== "ok") parts.unshift(report.status);
   el.textContent = parts.join(" · ");
   el.title = JSON.stringify(report, null, 1);
