@@ -104,12 +104,17 @@ def _worker(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     app = create_celery_app(settings)
-    # One single-threaded render process per core (prefork); a unique node
-    # name so several workers on one host don't collide.
+    # One single-threaded render process per core (prefork); by default a
+    # unique node name so several workers on one host don't collide. A name
+    # given with --name stays across restarts, and with it what the farm knows
+    # of the worker (drained, blocklisted).
+    name = args.name or f"rayfarm-{os.getpid()}@%h"
+    if "@" not in name:
+        name += "@%h"
     app.worker_main([
         "worker", "--pool=prefork", f"--concurrency={args.concurrency}",
         f"--loglevel={args.loglevel.upper()}", f"--queues={QUEUE}",
-        f"--hostname=rayfarm-{os.getpid()}@%h", "--without-gossip", "--without-mingle",
+        f"--hostname={name}", "--without-gossip", "--without-mingle",
     ])
     return 0
 
@@ -128,6 +133,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="render processes (default: one per core)")
     worker.add_argument("--loglevel", default="info",
                         choices=["critical", "error", "warning", "info", "debug"])
+    worker.add_argument("--name", default=None,
+                        help="the worker's name, kept across restarts (NAME or NAME@HOST; "
+                             "default: rayfarm-<pid>@<host>, new at every start)")
     worker.set_defaults(run=_worker)
     sub.add_parser("render", help="render a scene locally (see `rayfarm render --help`)",
                    add_help=False)

@@ -438,10 +438,11 @@ def spawn_worker(redis_url, tmp_path):
     """Start `rayfarm worker` processes; each is stopped (whole group) at teardown."""
     children: list[Child] = []
 
-    def spawn(concurrency: int = 2, **env: str) -> Child:
+    def spawn(concurrency: int = 2, name: str | None = None, **env: str) -> Child:
         log = tmp_path / f"worker-{len(children)}.log"
         child = Child([*rayfarm_command(), "worker", "--concurrency", str(concurrency),
-                       "--loglevel", "info"], farm_env(redis_url, **env), log)
+                       "--loglevel", "info", *(["--name", name] if name else [])],
+                      farm_env(redis_url, **env), log)
         children.append(child)
         wait_for(lambda: " ready." in child.log() or child.proc.poll() is not None, 120,
                  "the worker to be ready")

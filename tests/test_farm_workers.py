@@ -280,3 +280,31 @@ def test07_a_unit_in_a_stopped_workers_own_queue_is_enqueued_again(redis_url, tm
             presence.stop()
         executor.close()
         client.close()
+
+
+def test08_a_drained_worker_stays_drained_across_a_restart(redis_url, spawn_worker, tmp_path):
+    # `rayfarm worker --name` keeps its name across restarts, and with it the
+    # drain: restarted, it takes no unit until it is enabled again.
+    first = spawn_worker(concurrency=1, name="steady", **BEAT)
+    with TestClient(create_app(_settings(tmp_path, redis_url)), headers=ADMIN_HEADERS) as client:
+        get = get_json(client)
+        name = wait_for(lambda: next((w["name"] for w in get("/workers")
+                                      if w["name"].startswith("steady@")), None),
+                        30, "the named worker")
+        assert client.post(f"/workers/{name}/disable").json()["disabled"] is True
+        first.stop()
+        wait_for(lambda: {w["name"]: w for w in get("/workers")}[name]["state"] == "offline",
+                 30, "the worker to be offline")
+        spawn_worker(concurrency=1, name="steady", **BEAT)
+        wait_for(lambda: {w["name"]: w for w in get("/workers")}[name]["state"] == "idle",
+                 30, "the restarted worker")
+        assert {w["name"]: w for w in get("/workers")}[name]["disabled"] is True
+        job_id = submit(client, dict(TINY, progressive=False, tile_size=16))["id"]
+        time.sleep(3)  # many ticks and heartbeats: nothing may start meanwhile
+        units = get(f"/jobs/{job_id}/units")
+        assert all(u["started_at"] is None for u in units), units
+        assert get(f"/jobs/{job_id}")["progress"]["units_done"] == 0
+        assert client.post(f"/workers/{name}/enable").json()["disabled"] is False
+        job = poll_job(get, job_id)
+        assert job["status"] == "done", job
+        assert {u["worker"] for u in get(f"/jobs/{job_id}/units")} == {name}
