@@ -206,10 +206,11 @@ def test04_two_services_on_one_sqlite_file_never_both_schedule(spawn_replica):
     wait_for(lambda: health(b)["scheduler_ticks"] > 0, 10, "the new leader to tick")
 
 
-def _replica_pair(spawn_replica, postgres_url: str):
+def _replica_pair(spawn_replica, postgres_url: str, **env: str):
     """Two replicas on one PostgreSQL ledger and one data dir; the first leads."""
-    leader, a = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
-    standby, b = spawn_replica(RAYFARM_DATABASE_URL=postgres_url)
+    env.setdefault("RAYFARM_DATABASE_URL", postgres_url)
+    leader, a = spawn_replica(**env)
+    standby, b = spawn_replica(**env)
     first, second = health(a)["leadership"], health(b)["leadership"]
     assert first["role"] == "leader" and second["role"] == "standby", (first, second)
     assert second["holder"] == first["replica"] and second["epoch"] == 1
@@ -259,6 +260,36 @@ def test05_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
           f"with a 2 s lease; {len(finished_before)} units done before the kill, "
           f"{len(in_flight)} in flight, {len(retried)} rendered again; states at the kill: "
           f"{dict(Counter(u['state'] for u in at_kill.values()))}")
+    exr = tmp_path / "result.exr"
+    exr.write_bytes(httpx.get(f"{b}/jobs/{job['id']}/result.exr", headers=ADMIN_HEADERS,
+                              timeout=30).content)
+    assert_bit_identical(channels_of(exr), reference_channels(body))
+
+
+@pytest.mark.farm
+def test06_on_celery_the_leader_killed_mid_job_leaves_no_unit_rendered_twice(
+        postgres_url, redis_url, spawn_worker, spawn_replica, reference_channels, tmp_path):
+    """The same on the Celery farm: the units in flight at the kill go on
+    rendering on the workers, and the new leader collects their results from
+    the broker; nothing is rendered again and the EXR is bit-identical."""
+    spawn_worker(concurrency=2)
+    farm = dict(RAYFARM_DATABASE_URL=postgres_url, RAYFARM_BROKER_URL=redis_url)
+    (leader, a), (_, b) = _replica_pair(spawn_replica, postgres_url, **farm)
+    body = dict(TINY, width=64, height=64, tile_size=8, spp=128, progressive=False)
+    job = api(a, "POST", "/jobs", json=body)
+    wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["progress"]["units_done"] >= 16, 120,
+             "a quarter of the units to be done")
+    leader.kill_group(signal.SIGKILL)
+    at_kill = {u["index"]: u for u in api(b, "GET", f"/jobs/{job['id']}/units")}
+    wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["status"] == "done", 120,
+             "the standby to finish the job")
+    units = {u["index"]: u for u in api(b, "GET", f"/jobs/{job['id']}/units")}
+    assert all(u["tasks"] == 1 for u in units.values()), \
+        {i: (u["tasks"], u["requeue_reason"]) for i, u in units.items() if u["tasks"] > 1}
+    assert api(b, "GET", f"/jobs/{job['id']}")["progress"]["samples_done"] == 64 * 64 * 128
+    print(f"\ncelery failover: {sum(u['state'] == 'done' for u in at_kill.values())} units done "
+          f"at the kill, {sum(u['state'] in ('queued', 'running') for u in at_kill.values())} "
+          "in flight, 0 rendered again")
     exr = tmp_path / "result.exr"
     exr.write_bytes(httpx.get(f"{b}/jobs/{job['id']}/result.exr", headers=ADMIN_HEADERS,
                               timeout=30).content)
