@@ -475,19 +475,48 @@ def wait_healthy(child: Child, base: str) -> None:
     wait_for(healthy, 300, "rayfarm serve to be healthy", interval=0.2)
 
 
+def embedded_env(data_dir: Path, **extra: str | None) -> dict:
+    """The environment of a `rayfarm serve` child in embedded mode: this
+    process's without any RAYFARM_ setting, then the data dir, a 0.05 s tick,
+    two render processes, unbuffered output and the tests' admin token;
+    `extra` adds or overrides settings (None removes one)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
+    env.update(RAYFARM_DATA_DIR=str(data_dir), RAYFARM_POLL_INTERVAL="0.05",
+               RAYFARM_LOCAL_WORKERS="2", PYTHONUNBUFFERED="1",
+               RAYFARM_ADMIN_TOKEN=TEST_ADMIN_TOKEN, RAYFARM_TOKEN=TEST_ADMIN_TOKEN)
+    for key, value in extra.items():
+        if value is None:
+            env.pop(key, None)
+        else:
+            env[key] = value
+    return env
+
+
+def start_serve(env: dict, log: Path) -> tuple[Child, str]:
+    """`rayfarm serve` with `env` on a free port of 127.0.0.1, once it is
+    healthy: (child, base URL). The caller stops the child (`Child.stop`)."""
+    port = free_port()
+    child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
+                  env, log)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        wait_healthy(child, base)
+    except BaseException:
+        child.stop()
+        raise
+    return child, base
+
+
 @pytest.fixture
 def spawn_serve(redis_url, tmp_path):
     """Start `rayfarm serve` on a free port; returns (child, base_url)."""
     children: list[Child] = []
 
     def spawn(**env: str) -> tuple[Child, str]:
-        port = free_port()
-        child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
-                      farm_env(redis_url, RAYFARM_DATA_DIR=str(tmp_path / "serve-data"), **env),
-                      tmp_path / f"serve-{len(children)}.log")
+        child, base = start_serve(
+            farm_env(redis_url, RAYFARM_DATA_DIR=str(tmp_path / "serve-data"), **env),
+            tmp_path / f"serve-{len(children)}.log")
         children.append(child)
-        base = f"http://127.0.0.1:{port}"
-        wait_healthy(child, base)
         return child, base
 
     yield spawn
@@ -502,16 +531,8 @@ def embedded_serve(tmp_path_factory):
     yields (child, base URL), stops the child's process group afterwards and
     then fails if the service logged a traceback meanwhile."""
     directory = tmp_path_factory.mktemp("embedded-serve")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update(RAYFARM_DATA_DIR=str(directory / "data"), RAYFARM_POLL_INTERVAL="0.05",
-               RAYFARM_LOCAL_WORKERS="2", PYTHONUNBUFFERED="1",
-               RAYFARM_ADMIN_TOKEN=TEST_ADMIN_TOKEN, RAYFARM_TOKEN=TEST_ADMIN_TOKEN)
-    port = free_port()
-    child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
-                  env, directory / "serve.log")
-    base = f"http://127.0.0.1:{port}"
+    child, base = start_serve(embedded_env(directory / "data"), directory / "serve.log")
     try:
-        wait_healthy(child, base)
         yield child, base
     finally:
         child.stop()

@@ -10,7 +10,6 @@ by a few percent. Fixed seeds throughout.
 """
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np

@@ -73,21 +73,17 @@ def test05_serve_in_embedded_mode_renders_over_http(embedded_serve, tmp_path, re
 def test06_serve_prints_a_login_url_that_logs_a_browser_in(tmp_path):
     """A first start with no RAYFARM_ADMIN_TOKEN: `rayfarm serve` makes the admin,
     prints the login URL (Jupyter's way) and the URL's token works."""
-    import os
     import re
 
     import httpx
 
-    from conftest import Child, free_port, wait_healthy
+    from conftest import embedded_env, start_serve
 
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update(RAYFARM_DATA_DIR=str(tmp_path / "data"), RAYFARM_LOCAL_WORKERS="1",
-               PYTHONUNBUFFERED="1")
-    port = free_port()
-    child = Child([*rayfarm_command(), "serve", "--port", str(port)], env, tmp_path / "serve.log")
+    # No admin token given: the service makes one and prints its login URL.
+    env = embedded_env(tmp_path / "data", RAYFARM_LOCAL_WORKERS="1", RAYFARM_POLL_INTERVAL=None,
+                       RAYFARM_ADMIN_TOKEN=None, RAYFARM_TOKEN=None)
+    child, base = start_serve(env, tmp_path / "serve.log")
     try:
-        base = f"http://127.0.0.1:{port}"
-        wait_healthy(child, base)
         url = re.search(r"http://127\.0\.0\.1:\d+/\?token=(rf_[\w-]+)", child.log())
         assert url, child.log()
         token = url.group(1)

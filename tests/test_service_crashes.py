@@ -29,9 +29,8 @@ from service.models import Job, WorkUnit, utcnow
 from service.schemas import JobCreate
 from service.settings import Settings
 
-from conftest import (ADMIN_HEADERS, TEST_ADMIN_TOKEN, TINY, Child, assert_bit_identical,
-                      channels_of, free_port, get_json, poll_job, rayfarm_command, wait_for,
-                      wait_healthy)
+from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, embedded_env,
+                      get_json, poll_job, start_serve, wait_for)
 from fake_executor import FakeExecutor
 
 CRASH_SEED = 660013  # no other test renders with this seed
@@ -237,16 +236,8 @@ def alive(pid: int) -> bool:
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads processes from /proc")
 def test05_a_sigkilled_embedded_service_leaves_no_render_process(tmp_path):
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update(RAYFARM_DATA_DIR=str(tmp_path / "data"), RAYFARM_POLL_INTERVAL="0.05",
-               RAYFARM_LOCAL_WORKERS="2", PYTHONUNBUFFERED="1",
-               RAYFARM_ADMIN_TOKEN=TEST_ADMIN_TOKEN)
-    port = free_port()
-    child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
-                  env, tmp_path / "serve.log")
-    base = f"http://127.0.0.1:{port}"
+    child, base = start_serve(embedded_env(tmp_path / "data"), tmp_path / "serve.log")
     try:
-        wait_healthy(child, base)
         import httpx
 
         with httpx.Client(base_url=base, headers=ADMIN_HEADERS, timeout=10) as client:

@@ -13,7 +13,6 @@ from collections import Counter
 import signal
 import threading
 import time
-from pathlib import Path
 
 import httpx
 import pytest
@@ -24,8 +23,8 @@ from service.leader import FileLockLeadership, LeadershipLost, LeaseLeadership
 from service.models import SchedulerLease, User, utcnow
 from service.settings import Settings
 
-from conftest import (ADMIN_HEADERS, TINY, Child, assert_bit_identical, channels_of, free_port,
-                      rayfarm_command, wait_for, wait_healthy)
+from conftest import (ADMIN_HEADERS, TINY, Child, assert_bit_identical, channels_of,
+                      embedded_env, start_serve, wait_for)
 
 
 @pytest.fixture
@@ -113,19 +112,6 @@ def test03_the_lock_file_has_one_holder_and_names_it(tmp_path):
 
 # -- real `rayfarm serve` replicas ------------------------------------------------------
 
-def _serve_env(data_dir: Path, **extra: str) -> dict:
-    import os
-
-    from conftest import TEST_ADMIN_TOKEN
-
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update(RAYFARM_DATA_DIR=str(data_dir), RAYFARM_POLL_INTERVAL="0.05",
-               RAYFARM_LOCAL_WORKERS="1", RAYFARM_LEADER_LEASE_SECONDS="2",
-               PYTHONUNBUFFERED="1", RAYFARM_ADMIN_TOKEN=TEST_ADMIN_TOKEN,
-               RAYFARM_TOKEN=TEST_ADMIN_TOKEN, **extra)
-    return env
-
-
 @pytest.fixture
 def spawn_replica(tmp_path):
     """spawn_replica(**env) -> (child, base URL): `rayfarm serve` (embedded
@@ -133,13 +119,11 @@ def spawn_replica(tmp_path):
     children: list[Child] = []
 
     def spawn(**env: str) -> tuple[Child, str]:
-        port = free_port()
-        child = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port", str(port)],
-                      _serve_env(tmp_path / "data", **env),
-                      tmp_path / f"replica-{len(children)}.log")
+        child, base = start_serve(
+            embedded_env(tmp_path / "data", RAYFARM_LOCAL_WORKERS="1",
+                         RAYFARM_LEADER_LEASE_SECONDS="2", **env),
+            tmp_path / f"replica-{len(children)}.log")
         children.append(child)
-        base = f"http://127.0.0.1:{port}"
-        wait_healthy(child, base)
         return child, base
 
     yield spawn
