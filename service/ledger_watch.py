@@ -10,7 +10,7 @@ service on the same file (a standby, service.leader) would hear nothing of the
 jobs it renders. PostgreSQL relays events between replicas (LISTEN/NOTIFY,
 service.event_relay); SQLite has no such channel, so a standby polls: every
 `interval` seconds it reads the version of every job and of every unit of the
-jobs in flight (both rows carry an optimistic-locking `version` that every
+jobs in flight or changed since the last poll (both rows carry an optimistic-locking `version` that every
 update bumps) and publishes, for what changed since the last poll, the `unit`
 and `job` events the leader's streams carried, a `preview` event when a job's
 units done moved (the preview files are in the shared data dir), and `deleted`
@@ -52,12 +52,21 @@ class LedgerWatch:
         self.sessions, self.hub, self.leading, self.interval = sessions, hub, leading, interval
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._jobs: dict[str, tuple[int, str, int]] | None = None  # id -> (version, owner, done)
+        # id -> (version, owner, units done, status), as of the last poll
+        self._jobs: dict[str, tuple[int, str, int, str]] | None = None
         self._units: dict[tuple[str, int], int] = {}  # (job, index) -> version
         self._previews = itertools.count(1)
         self.polls = 0
 
     def start(self) -> None:
+        """Take the first reading now (the service starts before it serves a
+        stream: none misses what happens between its snapshot and this
+        reading), then poll from a thread."""
+        if not self.leading():
+            try:
+                self.poll()
+            except Exception as exc:  # the thread tries again
+                log.warning("ledger watch: %s: %s", type(exc).__name__, exc)
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="rayfarm-ledger-watch",
                                         daemon=True)
@@ -84,18 +93,24 @@ class LedgerWatch:
         from .schemas import JobPublic, UnitPublic
 
         with self.sessions() as session:
-            jobs = {job_id: (version, owner, done) for job_id, version, owner, done in
-                    session.execute(select(Job.id, Job.version, Job.owner, Job.units_done))}
+            jobs = {job_id: (version, owner, done, status)
+                    for job_id, version, owner, done, status in session.execute(
+                        select(Job.id, Job.version, Job.owner, Job.units_done, Job.status))}
             # The units of the jobs in flight, and of those that were at the last
-            # poll (for the last change of a job that just finished).
-            was_flying = sorted({job_id for job_id, _ in self._units})
+            # poll or changed since (a job that just finished, perhaps planned
+            # and rendered between two polls: its units' last changes).
+            first, before = self._jobs is None, self._jobs or {}
+            changed_jobs = {job_id for job_id, row in jobs.items() if not first and (
+                job_id not in before or (before[job_id][0] != row[0]
+                                         and before[job_id][3] in states.SCHEDULED_JOB))}
+            also = sorted({job_id for job_id, _ in self._units} | changed_jobs)
             rows = session.execute(
                 select(WorkUnit.job_id, WorkUnit.index, WorkUnit.version, Job.status)
                 .join(Job, Job.id == WorkUnit.job_id)
                 .where(or_(Job.status.in_(states.SCHEDULED_JOB),
-                           WorkUnit.job_id.in_(was_flying)))).all()
+                           WorkUnit.job_id.in_(also)))).all()
             versions = {(job_id, index): version for job_id, index, version, _ in rows}
-            first, before, watched = self._jobs is None, self._jobs or {}, self._units
+            watched = self._units
             self._jobs = jobs
             self._units = {(job_id, index): version for job_id, index, version, status in rows
                            if status in states.SCHEDULED_JOB}
@@ -115,14 +130,14 @@ class LedgerWatch:
                             "job_id": job_id,
                             **UnitPublic.from_unit(unit).model_dump(mode="json")})
             now = utcnow()
-            for job_id, (version, owner, done) in jobs.items():
+            for job_id, (version, owner, done, _) in jobs.items():
                 old = before.get(job_id)
                 if old is not None and old[0] == version:
                     continue
                 job = session.get(Job, job_id)
                 if job is None:  # deleted since the first query
                     continue
-                if old is not None and old[2] != done:  # the leader rewrote the preview
+                if done and (old is None or old[2] != done):  # the leader rewrote the preview
                     version_seen = next(self._previews)
                     self.hub.publish("preview", job_id, {
                         "job_id": job_id, "version": version_seen, "units": done,
