@@ -132,13 +132,18 @@ def test03_a_disabled_worker_takes_no_new_unit_while_another_does(redis_url, spa
         assert {u["worker"] for u in units} == {_name(busy, workers)}
         shown = {w["name"]: w for w in get("/workers")}
         assert shown[name]["disabled"] and shown[name]["units_done"] == 0
-        # Enabled again, it takes units again.
+        # Enabled again, it takes units again: once it says so in its log, a
+        # job of 16 units of about a quarter of a second each (a tiny job was
+        # all done by the busy worker before a loaded CI machine's enabled one
+        # took any of it).
         assert client.post(f"/workers/{name}/enable").json()["disabled"] is False
-        job = poll_job(get, submit(client, dict(TINY, progressive=False, tile_size=4,
-                                                seed=8))["id"])
+        wait_for(lambda: "enabled: consuming again" in drained.log(), 30,
+                 "the worker to consume again")
+        job = poll_job(get, submit(client, dict(TINY, progressive=False, tile_size=8,
+                                                spp=2048, seed=8))["id"])
         assert job["status"] == "done"
-        wait_for(lambda: {w["name"]: w for w in get("/workers")}[name]["units_done"] > 0, 30,
-                 "the enabled worker to take units", interval=0.2)
+        takers = {u["worker"] for u in get(f"/jobs/{job['id']}/units")}
+        assert name in takers, (takers, drained.log()[-3000:])
 
 
 def test04_a_worker_declines_units_of_a_job_it_is_blocklisted_for_or_while_disabled(
