@@ -13,6 +13,7 @@ from .film import Film, PartialFilm, merge, read_exr, sample_blocks
 from .local import LocalPool, RenderProcessDied, process_death, render
 from .plan import Unit, plan
 from .registry import METHODS, SAMPLERS
+from . import integrators  # noqa: F401,E402 (fills the registry's table)
 from .runtime import execute_unit, render_serial, run_plan, run_unit, scene_text, warm_up
 from .scene import Scene, build_scene, load_scene
 from .scene_format import builtin_scene_names, resolve_document, scene_hash

@@ -1,9 +1,14 @@
-"""The one registry of rendering methods and pixel samplers.
+"""The one registry of rendering methods and pixel samplers: a plain table.
 
 Every list of valid names anywhere in rayfarm (the API's validation, `GET
 /methods`, the CLI's choices) is read from here. A method declares its
 options as a table (name, type, default, allowed values, meaning) the way
 Mitsuba's plugins do; unknown options are refused with their names.
+
+The table is filled by `renderer/integrators/__init__.py` (the methods) and
+the sampler modules (renderer/samplers/) when the `renderer` package is
+imported; this module imports neither. A plugin never looks itself up here:
+the `Method` hands its callables their checked options.
 """
 
 from __future__ import annotations
@@ -45,36 +50,43 @@ def _check_bounds(name: str, opt: Option, value: Any) -> None:
 
 @dataclass(frozen=True)
 class Method:
-    """A rendering method: `run(scene, spec, unit, inputs) -> PartialFilm`,
-    where `inputs` maps the indices in `unit.needs` to those units' films.
+    """A rendering method: `run(scene, spec, unit, inputs, options) -> PartialFilm`,
+    where `inputs` maps the indices in `unit.needs` to those units' films and
+    `options` are the job's options checked against the method's table, with
+    defaults (`check_options`).
 
-    `plan(spec, progressive) -> list[Unit]` cuts a job into units; None means
-    the tile plan (image tiles x sample passes, `renderer.plan.plan`). Methods
-    of other families plan a DAG (renderer/plan.py); `phases` names their unit
-    kinds in the order they run, for the dashboard.
+    `plan(spec, progressive, options) -> list[Unit]` cuts a job into units:
+    the tile plan (image tiles x sample passes, `renderer.plan.plan`) or, for
+    methods of other families, a DAG (renderer/plan.py); `phases` names their
+    unit kinds in the order they run, for the dashboard.
 
-    `check_scene(spec, doc)`, if given, checks what the options mean on one
-    scene (a resolved document) and raises `SpecError`: `RenderSpec.validate`
-    calls it when it is handed the scene, so a job that could only fail on
-    the farm is refused at submission.
+    `check_scene(spec, doc, options)`, if given, checks what the options mean
+    on one scene (a resolved document) and raises `SpecError`:
+    `RenderSpec.validate` calls it when it is handed the scene, so a job that
+    could only fail on the farm is refused at submission.
     """
 
     name: str
     description: str
     run: Callable
+    plan: Callable
     options: tuple[Option, ...] = ()
     family: str = "tile"  # how jobs split: "tile", "splat", "chains", "photons", "radiosity"
     aliases: tuple[str, ...] = field(default=())
-    plan: Callable | None = None
     phases: tuple[str, ...] = ("tile",)
     check_scene: Callable | None = None
 
-    def make_plan(self, spec, progressive: bool = False) -> list:
-        if self.plan is None:
-            from .plan import plan
+    def render(self, scene, spec, unit, inputs: dict | None = None):
+        """Run one unit of a job of this method (its options checked here)."""
+        return self.run(scene, spec, unit, inputs or {}, self.check_options(spec.options))
 
-            return plan(spec, progressive=progressive)
-        return self.plan(spec, progressive)
+    def make_plan(self, spec, progressive: bool = False) -> list:
+        return self.plan(spec, progressive, self.check_options(spec.options))
+
+    def check(self, spec, doc: dict) -> None:
+        """`check_scene` with the checked options, if the method has one."""
+        if self.check_scene is not None:
+            self.check_scene(spec, doc, self.check_options(spec.options))
 
     def check_options(self, options: dict) -> dict:
         known = {o.name: o for o in self.options}
@@ -134,17 +146,3 @@ def register_sampler(sampler: Sampler) -> Sampler:
         raise ValueError(f"sampler {sampler.name!r} registered twice")
     SAMPLERS[sampler.name] = sampler
     return sampler
-
-
-def _register_builtins() -> None:
-    # Importing an integrator module registers it.
-    from .integrators import path, raster  # noqa: F401
-    from .integrators import bdpt  # noqa: F401
-    from .integrators import light  # noqa: F401
-    from .integrators import photon  # noqa: F401
-    from .integrators import radiosity  # noqa: F401
-    from .integrators import mlt  # noqa: F401
-    from . import samplers  # noqa: F401
-
-
-_register_builtins()

@@ -65,7 +65,7 @@ def run_unit(scene: Scene, spec: RenderSpec, unit: Unit,
     if missing:
         raise ValueError(f"unit {unit.index} needs the results of units {missing}")
     t0 = time.perf_counter()
-    film = METHODS[spec.method].run(scene, spec, unit, inputs)
+    film = METHODS[spec.method].render(scene, spec, unit, inputs)
     film.stats["seconds"] = time.perf_counter() - t0
     log.info("unit %d (%s, stage %d) of %s: %d samples, %d rays in %.3f s", unit.index,
              unit.kind, unit.stage, spec.method, int(film.stats.get("samples", 0)),

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bvh import build_bvh
+from .kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR
+from .kernels.lights import LIGHT_MESH, LIGHT_POINT, LIGHT_SPHERE
 from .primitives import DISK_SEGMENTS, FIXED, world_mesh  # noqa: F401 (DISK_SEGMENTS: re-exported)
 from .scene_format import resolve_document, scene_hash
 
@@ -23,10 +25,8 @@ __all__ = ["Scene", "SceneArrays", "build_scene", "load_scene", "camera_array", 
            "MAT_DIFFUSE", "MAT_MIRROR", "MAT_DIELECTRIC", "MAT_GLOSSY", "LIGHT_MESH", "LIGHT_SPHERE",
            "LIGHT_POINT"]
 
-MAT_DIFFUSE, MAT_MIRROR, MAT_DIELECTRIC, MAT_GLOSSY = 0, 1, 2, 3
 _MAT_IDS = {"diffuse": MAT_DIFFUSE, "mirror": MAT_MIRROR, "dielectric": MAT_DIELECTRIC,
             "glossy": MAT_GLOSSY}
-LIGHT_MESH, LIGHT_SPHERE, LIGHT_POINT = 0, 1, 2
 
 SceneArrays = namedtuple("SceneArrays", [
     "tri_p",        # (T, 3, 3) float64 vertices

@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from .errors import SpecError
+from .registry import METHODS, SAMPLERS
 
 __all__ = ["RenderSpec", "BOUNDS", "DEFAULT_MAX_WORK"]
 
@@ -49,8 +50,6 @@ class RenderSpec:
         """Check bounds and registry names (and, given the resolved `scene`
         document, what the method's options make of it); return self or raise
         `SpecError`."""
-        from .registry import METHODS, SAMPLERS  # the registry imports integrators
-
         for name, (lo, hi) in BOUNDS.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int):
@@ -68,9 +67,8 @@ class RenderSpec:
         if work > max_work:
             raise SpecError("spp", f"total work width x height x spp = {work} exceeds the "
                                    f"limit {max_work}; lower spp or the resolution")
-        check_scene = METHODS[self.method].check_scene
-        if scene is not None and check_scene is not None:
-            check_scene(self, scene)
+        if scene is not None:
+            METHODS[self.method].check(self, scene)
         return self
 
     def to_dict(self) -> dict[str, Any]:

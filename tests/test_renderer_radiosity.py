@@ -285,7 +285,7 @@ def test10_options_are_checked_and_a_lone_tile_finds_its_solution():
         with pytest.raises(SpecError):
             run_plan(scene, spec)
     assert R.patch_count(scene, 0.1) == len(R.mesh_patches(scene, 0.1).kind)
-    assert R.check_options(RenderSpec(method="radiosity"), scene)["patch_size"] == \
+    assert R.resolve_options(METHODS["radiosity"].check_options({}), scene)["patch_size"] == \
         pytest.approx(0.1, rel=0.01)  # auto on a scene of side 2
     # the plain tile plan (no solve unit): the tile solves (or finds) the solution itself
     spec = RenderSpec(method="radiosity", spp=2, depth=2, width=8, height=8, tile_size=8,

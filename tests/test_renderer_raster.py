@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from renderer import RenderSpec, build_scene, load_scene, merge, plan, resolve_document, run_unit
-from renderer.integrators.path import camera_ray
+from renderer.kernels.camera import camera_ray
 from renderer.integrators.raster import depth_at_pixel_centres
 from renderer.kernels.geometry import intersect
 from renderer.scene import camera_array

@@ -40,7 +40,7 @@ def test02_cornell_box_is_the_reference_scene():
 
 
 def test03_camera_rays_match_mitsuba_table():
-    from renderer.integrators.path import camera_ray
+    from renderer.kernels.camera import camera_ray
     from renderer.scene import camera_array
 
     cam = camera_array(load_scene("cornell-box").camera, 256, 256)

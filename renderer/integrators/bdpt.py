@@ -60,16 +60,31 @@ import numpy as np
 
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_inline
-from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
-    dielectric_sample, diffuse_eval, diffuse_sample, reflect
-from ..kernels.camera import camera_connect, camera_pdf_dir
-from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
+from ..kernels.bsdf import (
+    MAT_DIELECTRIC,
+    MAT_DIFFUSE,
+    MAT_GLOSSY,
+    MAT_MIRROR,
+    dielectric_sample,
+    diffuse_eval,
+    diffuse_sample,
+    reflect,
+)
+from ..kernels.camera import camera_connect, camera_pdf_dir, camera_ray
+from ..kernels.geometry import (
+    STACK_SIZE,
+    intersect_arrays,
+    offset_origin,
+    surface_at_arrays,
+)
 from ..kernels.ggx import glossy_eval, glossy_sample
-from ..kernels.lights import LIGHT_POINT, emission_pdfs, sample_emission
+from ..kernels.lights import LIGHT_POINT, sample_emission
 from ..kernels.rng import sample_key, uniform
-from ..registry import METHODS, SAMPLERS, Method, Option, register_method
+from ..kernels.sampling import BALANCE, POWER
+from ..registry import SAMPLERS, Method, Option
+from ..samplers import u2d
 from ..scene import camera_array
-from .path import BALANCE, POWER, camera_ray, u1d, u2d, unit_blocks
+from .tile import unit_blocks
 
 # Vertex record fields.
 V_P = 0  # position xyz 0..2
@@ -709,8 +724,7 @@ def _check_strategy(value) -> str | None:
     return f"must be 'all' or 's=K' with K a whole number, got {value!r}"
 
 
-def _options(spec):
-    options = METHODS[spec.method].check_options(spec.options)
+def _options(options: dict):
     heuristic = POWER if options.get("heuristic") == "power" else BALANCE
     strategy = options.get("strategy", "all")
     if strategy == "all":
@@ -727,7 +741,7 @@ def _options(spec):
 MIN_BATCHES = 8
 
 
-def plan_bdpt(spec, progressive: bool = False) -> list:
+def plan_bdpt(spec, progressive: bool = False, options: dict | None = None) -> list:
     """The tile plan (tiles x sample passes). Each unit's t = 1 splats are one
     batch, and a pixel's splat variance needs several batches: a job of fewer
     than MIN_BATCHES tiles is also cut into its sample blocks (1, 1, 2, 4, ...
@@ -740,10 +754,10 @@ def plan_bdpt(spec, progressive: bool = False) -> list:
     return units
 
 
-def render_bdpt(scene, spec, unit, inputs=None) -> PartialFilm:
+def render_bdpt(scene, spec, unit, inputs, options) -> PartialFilm:
     """One tile unit of `bdpt`: its tile film plus its t = 1 splats as one batch
     (one light subpath per camera sample)."""
-    heuristic, only_s = _options(spec)
+    heuristic, only_s = _options(options)
     w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
     film = PartialFilm.zeros(unit.x0, unit.y0, w, h)
     splat = np.zeros((spec.height, spec.width, 3))
@@ -760,7 +774,7 @@ def render_bdpt(scene, spec, unit, inputs=None) -> PartialFilm:
     return film
 
 
-register_method(Method(
+METHODS = (Method(
     name="bdpt",
     description="Bidirectional path tracing: camera and light subpaths connected by every "
                 "(s, t) strategy, combined by multiple importance sampling; t = 1 splats.",
@@ -773,7 +787,7 @@ register_method(Method(
     family="splat",
     plan=plan_bdpt,
     phases=("tile",),
-))
+),)
 
 
 def strategy_weights(sc, cam, width, height, depth, heuristic, V, s, t):

@@ -34,12 +34,23 @@ from ..film import PartialFilm
 from ..kernels import kernel
 from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import STREAM_LIGHT_PATHS, stream_key, uniform
+from ..kernels.sampling import BALANCE
 from ..plan import Unit
-from ..registry import Method, register_method
+from ..registry import Method
 from ..scene import camera_array
-from .bdpt import NV, T_CAMERA, V_LIGHT, V_MAT, V_TYPE, conn0, connect, dims, light0, \
-    light_subpath, workspace
-from .path import BALANCE
+from .bdpt import (
+    NV,
+    T_CAMERA,
+    V_LIGHT,
+    V_MAT,
+    V_TYPE,
+    conn0,
+    connect,
+    dims,
+    light0,
+    light_subpath,
+    workspace,
+)
 
 MIN_BATCHES, MAX_BATCHES = 8, 64
 PATHS_PER_BATCH = 4096  # below 8 x this many paths, batches shrink instead of dropping below 8
@@ -50,7 +61,7 @@ def light_batches(n_paths: int) -> int:
     return max(1, min(n_paths, max(MIN_BATCHES, min(MAX_BATCHES, n_paths // PATHS_PER_BATCH))))
 
 
-def plan_light(spec, progressive: bool = False) -> list[Unit]:
+def plan_light(spec, progressive: bool = False, options: dict | None = None) -> list[Unit]:
     """K units of consecutive light-path indices, each splatting the full frame.
     (One pass: progressive jobs get the same plan.)"""
     n = spec.width * spec.height * spec.spp
@@ -91,7 +102,7 @@ def _trace_light_paths(sc, cam, width, height, seed, depth, p0, p1, splat, u, V,
     return rays
 
 
-def render_light(scene, spec, unit, inputs=None) -> PartialFilm:
+def render_light(scene, spec, unit, inputs=None, options=None) -> PartialFilm:
     """One unit of `light`: light paths [sample_start, sample_end) as a splat batch."""
     splat = np.zeros((spec.height, spec.width, 3))
     cam = camera_array(scene.camera, spec.width, spec.height)
@@ -106,7 +117,7 @@ def render_light(scene, spec, unit, inputs=None) -> PartialFilm:
     return film
 
 
-register_method(Method(
+METHODS = (Method(
     name="light",
     description="Light tracing: paths start on lights and every vertex connects to the "
                 "pinhole camera, splatting anywhere on the image.",
@@ -114,4 +125,4 @@ register_method(Method(
     family="splat",
     plan=plan_light,
     phases=("splat",),
-))
+),)

@@ -100,11 +100,12 @@ from ..film import PartialFilm
 from ..kernels import kernel, kernel_parallel
 from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import STREAM_BOOTSTRAP, STREAM_CHAINS, stream_key, uniform
+from ..kernels.sampling import BALANCE, POWER
 from ..plan import Unit
-from ..registry import METHODS, Method, Option, register_method
+from ..registry import Method, Option
 from ..scene import camera_array
-from .bdpt import NV, conn0, dims as bdpt_dims, light0, mlt_L
-from .path import BALANCE, POWER
+from .bdpt import NV, conn0, light0, mlt_L
+from .bdpt import dims as bdpt_dims
 
 CHAIN_UNITS = 8  # at most this many chain units: the variance's batches
 BOOTSTRAP_CHUNKS = 64  # prange work items of the bootstrap (each with its buffers)
@@ -384,10 +385,6 @@ def _start_numbers(seed, out):
         out[c] = uniform(stream_key(seed, STREAM_CHAINS, c), 0)
 
 
-def _options(spec) -> dict:
-    return METHODS[spec.method].check_options(spec.options)
-
-
 def bootstrap_per_depth(spec, opts: dict) -> int:
     n = int(opts["bootstrap"])
     if n > 0:
@@ -402,10 +399,9 @@ def chain_groups(chains: int) -> list[tuple[int, int]]:
     return [(g * chains // groups, (g + 1) * chains // groups) for g in range(groups)]
 
 
-def plan_mlt(spec, progressive: bool = False) -> list[Unit]:
+def plan_mlt(spec, progressive: bool, opts: dict) -> list[Unit]:
     """One bootstrap unit, then up to CHAIN_UNITS chain units (one pass even
     when `progressive`: see the module doc)."""
-    opts = _options(spec)
     n_boot = bootstrap_per_depth(spec, opts) * (spec.depth + 1)
     units = [Unit(0, 0, 0, 0, 0, 0, n_boot, stage=0, kind="bootstrap")]
     for g, (c0, c1) in enumerate(chain_groups(int(opts["chains"]))):
@@ -438,8 +434,7 @@ def chain_starts(seed: int, chains: int, weights: np.ndarray, max_depth: int) ->
     return order[pos].astype(np.int64)
 
 
-def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
-    opts = _options(spec)
+def run_mlt(scene, spec, unit, inputs, opts: dict) -> PartialFilm:
     cam = camera_array(scene.camera, spec.width, spec.height)
     heuristic = POWER if opts["heuristic"] == "power" else BALANCE
     dims = int(path_dims(spec.depth))
@@ -489,7 +484,7 @@ def run_mlt(scene, spec, unit, inputs=None) -> PartialFilm:
     return film
 
 
-register_method(Method(
+METHODS = (Method(
     name="mlt",
     description="Primary-sample-space Metropolis light transport (Kelemen) over BDPT: a "
                 "bootstrap estimates the normalisation, independent chains splat; spp = "
@@ -512,4 +507,4 @@ register_method(Method(
     family="chains",
     plan=plan_mlt,
     phases=("bootstrap", "chains"),
-))
+),)

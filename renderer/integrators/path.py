@@ -38,78 +38,44 @@ from functools import partial
 import numpy as np
 from numba import prange
 
-from ..film import PartialFilm, sample_blocks
-from ..kernels import kernel, kernel_inline, kernel_parallel
-from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
-    dielectric_sample, diffuse_eval, diffuse_sample, reflect
+from ..film import PartialFilm
+from ..kernels import kernel_inline, kernel_parallel
+from ..kernels.bsdf import (
+    MAT_DIFFUSE,
+    MAT_GLOSSY,
+    MAT_MIRROR,
+    dielectric_sample,
+    diffuse_eval,
+    diffuse_sample,
+    reflect,
+)
+from ..kernels.camera import camera_ray
+from ..kernels.geometry import (
+    STACK_SIZE,
+    intersect_arrays,
+    offset_origin,
+    shadow_ray,
+    surface_at_arrays,
+)
 from ..kernels.ggx import glossy_eval, glossy_sample
-from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
 from ..kernels.lights import light_pdf, sample_light
-from ..kernels.rng import sample_key, uniform
-from ..kernels.sampling import INV_PI, to_world, uniform_hemisphere
-from ..registry import METHODS, SAMPLERS, Method, Option, register_method
-from ..samplers import SAMPLER_RANDOM, sample_1d, sample_2d
+from ..kernels.rng import sample_key
+from ..kernels.sampling import (
+    BALANCE,
+    INV_PI,
+    POWER,
+    mis_weight,
+    to_world,
+    uniform_hemisphere,
+)
+from ..registry import SAMPLERS, Method, Option
+from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
 from ..scene import camera_array
-
-DIMS_PER_BOUNCE = 8
-
-
-@kernel
-def camera_ray(cam, width, height, fx, fy):
-    """World-space direction through film position (fx, fy) (pixels, row 0 at top)."""
-    sx = (2.0 * fx / width - 1.0) * cam[12]
-    sy = (1.0 - 2.0 * fy / height) * cam[13]
-    dx = sx * cam[3] + sy * cam[6] + cam[9]
-    dy = sx * cam[4] + sy * cam[7] + cam[10]
-    dz = sx * cam[5] + sy * cam[8] + cam[11]
-    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
-    return dx * inv, dy * inv, dz * inv
-
-
-@kernel
-def shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist):
-    """A shadow ray from the offset origin to the light point q = h + dist w:
-    (origin, unit direction, tmax). Distance and direction are measured from
-    the *offset* origin, and tmax stops a relative 1e-9 short of q, so the
-    light's own surface never shadows its sample (with dist from h, a 2e-7
-    offset towards an overhead light made q itself an occluder)."""
-    qx, qy, qz = hx + dist * wx, hy + dist * wy, hz + dist * wz
-    sx, sy, sz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
-    dx, dy, dz = qx - sx, qy - sy, qz - sz
-    d = np.sqrt(dx * dx + dy * dy + dz * dz)
-    inv = 1.0 / d
-    return sx, sy, sz, dx * inv, dy * inv, dz * inv, d * (1.0 - 1e-9)
-
-
-@kernel_inline
-def u1d(smp, key, seed, pixel, index, spp, dim):
-    """Dimension `dim` of the sample from sampler `smp` (`random` straight from
-    the sample's precomputed hash key: the common case stays cheap)."""
-    if smp == SAMPLER_RANDOM:
-        return uniform(key, dim)
-    return sample_1d(smp, seed, pixel, index, spp, dim)
-
-
-@kernel_inline
-def u2d(smp, key, seed, pixel, index, spp, dim):
-    """Dimensions (dim, dim + 1), dim even: one 2D pair of the sampler."""
-    if smp == SAMPLER_RANDOM:
-        return uniform(key, dim), uniform(key, dim + 1)
-    return sample_2d(smp, seed, pixel, index, spp, dim)
-
+from .tile import tile_plan, unit_blocks
 
 # Strategies of the path family (one kernel, switched at run time).
 BSDF_ONLY, NEE, ONE_SAMPLE, MIS, DIRECT = 0, 1, 2, 3, 4
-POWER, BALANCE = 0, 1
 COSINE, UNIFORM = 0, 1
-
-
-@kernel
-def mis_weight(pa, pb, heuristic):
-    """Veach's weight of strategy a against b: power (beta = 2) or balance."""
-    if heuristic == BALANCE:
-        return pa / (pa + pb)
-    return pa * pa / (pa * pa + pb * pb)
 
 
 @kernel_inline
@@ -316,18 +282,8 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
         row_rays[row] = rays
 
 
-def unit_blocks(spp: int, sample_start: int, sample_end: int) -> np.ndarray:
-    """The canonical sample blocks a unit's sample range covers (must align)."""
-    blocks = [b for b in sample_blocks(spp) if sample_start <= b[0] and b[1] <= sample_end]
-    if sum(e - s for s, e in blocks) != sample_end - sample_start:
-        raise ValueError(f"sample range [{sample_start}, {sample_end}) does not align "
-                         "with the canonical sample blocks")
-    return np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
-
-
-def render_tile(scene, spec, unit, inputs=None, *, strategy: int) -> PartialFilm:
+def render_tile(scene, spec, unit, inputs, options, *, strategy: int) -> PartialFilm:
     """Run the kernel over one unit's tile and sample range."""
-    options = METHODS[spec.method].check_options(spec.options)
     heuristic = BALANCE if options.get("heuristic") == "balance" else POWER
     hemisphere = UNIFORM if options.get("hemisphere") == "uniform" else COSINE
     w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
@@ -343,38 +299,45 @@ def render_tile(scene, spec, unit, inputs=None, *, strategy: int) -> PartialFilm
     return film
 
 
-register_method(Method(
-    name="path-bsdf",
-    description="Backward path tracing with BSDF sampling only: emitters count when a "
-                "sampled ray hits them; point lights are never reached.",
-    run=partial(render_tile, strategy=BSDF_ONLY),
-    options=(Option("hemisphere", str, "cosine", "diffuse lobe sampling: cosine-weighted "
-                    "(pdf cos/pi) or uniform (pdf 1/2pi)", ("cosine", "uniform")),),
-))
-register_method(Method(
-    name="path-nee",
-    description="Path tracing with next event estimation: a shadow ray to a sampled light "
-                "point at every non-specular vertex.",
-    run=partial(render_tile, strategy=NEE),
-))
-register_method(Method(
-    name="path-onesample",
-    description="Single-sample importance sampling: at each non-specular vertex light or "
-                "BSDF sampling with probability 1/2, weighted by the mixture pdf.",
-    run=partial(render_tile, strategy=ONE_SAMPLE),
-))
-register_method(Method(
-    name="direct",
-    description="Whitted-style direct lighting: emission seen directly, shadow rays at the "
-                "first diffuse hit, perfect mirror and glass chains followed up to depth.",
-    run=partial(render_tile, strategy=DIRECT),
-))
-register_method(Method(
-    name="path-mis",
-    aliases=("path",),
-    description="Path tracing: light and BSDF sampling combined by multiple importance "
-                "sampling; Russian roulette.",
-    run=partial(render_tile, strategy=MIS),
-    options=(Option("heuristic", str, "power", "MIS weights: Veach's power (beta = 2) or "
-                    "balance heuristic", ("power", "balance")),),
-))
+METHODS = (
+    Method(
+        name="path-bsdf",
+        description="Backward path tracing with BSDF sampling only: emitters count when a "
+                    "sampled ray hits them; point lights are never reached.",
+        run=partial(render_tile, strategy=BSDF_ONLY),
+        options=(Option("hemisphere", str, "cosine", "diffuse lobe sampling: cosine-weighted "
+                        "(pdf cos/pi) or uniform (pdf 1/2pi)", ("cosine", "uniform")),),
+        plan=tile_plan,
+    ),
+    Method(
+        name="path-nee",
+        description="Path tracing with next event estimation: a shadow ray to a sampled light "
+                    "point at every non-specular vertex.",
+        run=partial(render_tile, strategy=NEE),
+        plan=tile_plan,
+    ),
+    Method(
+        name="path-onesample",
+        description="Single-sample importance sampling: at each non-specular vertex light or "
+                    "BSDF sampling with probability 1/2, weighted by the mixture pdf.",
+        run=partial(render_tile, strategy=ONE_SAMPLE),
+        plan=tile_plan,
+    ),
+    Method(
+        name="direct",
+        description="Whitted-style direct lighting: emission seen directly, shadow rays at the "
+                    "first diffuse hit, perfect mirror and glass chains followed up to depth.",
+        run=partial(render_tile, strategy=DIRECT),
+        plan=tile_plan,
+    ),
+    Method(
+        name="path-mis",
+        aliases=("path",),
+        description="Path tracing: light and BSDF sampling combined by multiple importance "
+                    "sampling; Russian roulette.",
+        run=partial(render_tile, strategy=MIS),
+        options=(Option("heuristic", str, "power", "MIS weights: Veach's power (beta = 2) or "
+                        "balance heuristic", ("power", "balance")),),
+        plan=tile_plan,
+    ),
+)

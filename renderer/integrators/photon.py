@@ -123,17 +123,31 @@ from numba import prange
 
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_inline, kernel_parallel
-from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, dielectric_sample, \
-    diffuse_eval, diffuse_sample, reflect
+from ..kernels.bsdf import (
+    MAT_DIFFUSE,
+    MAT_GLOSSY,
+    MAT_MIRROR,
+    dielectric_sample,
+    diffuse_eval,
+    diffuse_sample,
+    reflect,
+)
+from ..kernels.camera import camera_ray
+from ..kernels.geometry import (
+    STACK_SIZE,
+    intersect_arrays,
+    offset_origin,
+    shadow_ray,
+    surface_at_arrays,
+)
 from ..kernels.ggx import glossy_eval, glossy_sample
-from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
 from ..kernels.lights import sample_emission, sample_light
 from ..kernels.rng import STREAM_PHOTONS, sample_key, stream_key, uniform
 from ..kernels.sampling import INV_PI
 from ..plan import Unit
-from ..registry import METHODS, SAMPLERS, Method, Option, register_method
+from ..registry import SAMPLERS, Method, Option
+from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
 from ..scene import camera_array
-from .path import DIMS_PER_BOUNCE, camera_ray, shadow_ray, u1d, u2d
 
 __all__ = ["ALPHA", "sppm_update", "plan_photon", "run_photon", "photons_per_iteration",
            "initial_radius", "trace_photons", "build_grid", "gather_pass"]
@@ -568,17 +582,14 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, smp, depth,
 
 # ------------------------------------------------------------ plumbing
 
-def _options(spec) -> dict:
-    """The checked options, converted to their declared types (the CLI's
+def _typed(options: dict) -> dict:
+    """The checked options converted to their declared types (the CLI's
     --option KEY=VALUE passes strings; check_options does not convert)."""
-    method = METHODS[spec.method]
-    options = method.check_options(spec.options)
-    return {o.name: o.type(options[o.name]) for o in method.options}
+    return {o.name: o.type(options[o.name]) for o in OPTIONS}
 
 
-def photons_per_iteration(spec, options: dict | None = None) -> int:
+def photons_per_iteration(spec, options: dict) -> int:
     """Photons of one iteration (sppm) or of the whole map (photonmap)."""
-    options = options or _options(spec)
     if options["photons"] > 0:
         return int(options["photons"])
     if options["mode"] == PHOTONMAP:
@@ -613,10 +624,10 @@ def _photon_ranges(total: int) -> list[tuple[int, int]]:
     return [(total * i // parts, total * (i + 1) // parts) for i in range(parts)]
 
 
-def plan_photon(spec, progressive: bool = False) -> list[Unit]:
+def plan_photon(spec, progressive: bool, options: dict) -> list[Unit]:
     """The DAG (module doc). `progressive` changes nothing: SPPM is
     progressive by construction (each gather round refines the image)."""
-    options = _options(spec)
+    options = _typed(options)
     n_photons = photons_per_iteration(spec, options)
     tiles = _tiles(spec)
     units: list[Unit] = []
@@ -805,9 +816,8 @@ def _run_knn(scene, spec, unit, inputs, options) -> PartialFilm:
     return film
 
 
-def run_photon(scene, spec, unit, inputs=None) -> PartialFilm:
-    options = _options(spec)
-    inputs = inputs or {}
+def run_photon(scene, spec, unit, inputs, options) -> PartialFilm:
+    options = _typed(options)
     if unit.kind == "photons":
         return _run_photons(scene, spec, unit, options)
     if options["mode"] == PHOTONMAP:
@@ -815,29 +825,31 @@ def run_photon(scene, spec, unit, inputs=None) -> PartialFilm:
     return _run_gather(scene, spec, unit, inputs, options)
 
 
-register_method(Method(
+OPTIONS = (
+    Option("mode", str, SPPM, "sppm: stochastic progressive photon mapping (spp = "
+           "iterations); photonmap: one photon pass, k-NN estimate at the first diffuse "
+           "hit (direct visualisation, no final gather)", (SPPM, PHOTONMAP)),
+    Option("photons", int, 0, "photons per iteration (sppm) or in the map (photonmap); "
+           "0 = auto: one per pixel, at least 16384 (sppm); 4 per pixel, at least 65536 "
+           "(photonmap)", bounds=(0, 1 << 26)),
+    Option("radius", float, 0.0, "initial gather radius (sppm) or maximum k-NN search "
+           "radius (photonmap) in scene units; 0 = auto: 1/100 (sppm) or 1/40 "
+           "(photonmap) of the scene's bounding box diagonal", bounds=(0.0, None)),
+    Option("k", int, 64, "photonmap: photons of the k-nearest-neighbour estimate",
+           bounds=(1, 4096)),
+    Option("iterations_per_unit", int, 0, "sppm: iterations per gather unit; 0 = auto "
+           "(at most 16 gather rounds)", bounds=(0, 1 << 20)),
+)
+
+METHODS = (Method(
     name="photon",
     aliases=("sppm",),
     description="Photon mapping: stochastic progressive photon mapping (photon pass and "
                 "gather per iteration, radius shrinking with alpha = 2/3), or the classic "
                 "one-pass photon map with k-nearest-neighbour density estimation.",
     run=run_photon,
-    options=(
-        Option("mode", str, SPPM, "sppm: stochastic progressive photon mapping (spp = "
-               "iterations); photonmap: one photon pass, k-NN estimate at the first diffuse "
-               "hit (direct visualisation, no final gather)", (SPPM, PHOTONMAP)),
-        Option("photons", int, 0, "photons per iteration (sppm) or in the map (photonmap); "
-               "0 = auto: one per pixel, at least 16384 (sppm); 4 per pixel, at least 65536 "
-               "(photonmap)", bounds=(0, 1 << 26)),
-        Option("radius", float, 0.0, "initial gather radius (sppm) or maximum k-NN search "
-               "radius (photonmap) in scene units; 0 = auto: 1/100 (sppm) or 1/40 "
-               "(photonmap) of the scene's bounding box diagonal", bounds=(0.0, None)),
-        Option("k", int, 64, "photonmap: photons of the k-nearest-neighbour estimate",
-               bounds=(1, 4096)),
-        Option("iterations_per_unit", int, 0, "sppm: iterations per gather unit; 0 = auto "
-               "(at most 16 gather rounds)", bounds=(0, 1 << 20)),
-    ),
+    options=OPTIONS,
     family="photons",
     plan=plan_photon,
     phases=("photons", "gather"),
-))
+),)

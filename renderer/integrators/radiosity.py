@@ -99,23 +99,49 @@ from pathlib import Path
 import numpy as np
 from numba import prange
 
-from ..cache import DiskCache, disk_cache as cache_of
+from ..cache import DiskCache
+from ..cache import disk_cache as cache_of
 from ..errors import SpecError
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_inline, kernel_parallel
-from ..kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR, \
-    dielectric_sample, diffuse_sample, reflect
-from ..kernels.geometry import STACK_SIZE, intersect_arrays, offset_origin, surface_at_arrays
+from ..kernels.bsdf import (
+    MAT_DIELECTRIC,
+    MAT_DIFFUSE,
+    MAT_GLOSSY,
+    MAT_MIRROR,
+    dielectric_sample,
+    diffuse_sample,
+    reflect,
+)
+from ..kernels.camera import camera_ray
+from ..kernels.geometry import (
+    STACK_SIZE,
+    intersect_arrays,
+    offset_origin,
+    shadow_ray,
+    surface_at_arrays,
+)
 from ..kernels.ggx import glossy_sample
 from ..kernels.lights import sample_light
-from ..kernels.radiosity import DIRECT_ALL, DIRECT_POINT, PATCH_SPHERE, PATCH_TRI, \
-    form_factor_rays, patch_of, solve_gauss_seidel, solve_jacobi, solve_progressive
+from ..kernels.radiosity import (
+    DIRECT_ALL,
+    DIRECT_POINT,
+    PATCH_SPHERE,
+    PATCH_TRI,
+    form_factor_rays,
+    patch_of,
+    solve_gauss_seidel,
+    solve_jacobi,
+    solve_progressive,
+)
 from ..kernels.rng import sample_key
-from ..plan import Unit, plan as tile_plan
-from ..registry import METHODS, SAMPLERS, Method, Option, register_method
+from ..plan import Unit
+from ..plan import plan as tile_plan
 from ..primitives import world_mesh
+from ..registry import SAMPLERS, Method, Option
+from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
 from ..scene import camera_array
-from .path import DIMS_PER_BOUNCE, camera_ray, shadow_ray, u1d, u2d, unit_blocks
+from .tile import unit_blocks
 
 __all__ = ["Patches", "mesh_patches", "solve", "form_factor_hits", "clear_cache"]
 
@@ -696,7 +722,7 @@ def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, 
 
 # ---------------------------------------------------------------- the method
 
-def plan_radiosity(spec, progressive: bool = False) -> list[Unit]:
+def plan_radiosity(spec, progressive: bool = False, options: dict | None = None) -> list[Unit]:
     """Unit 0 solves; then the tile plan, every unit needing unit 0."""
     units = [Unit(0, 0, 0, 0, 0, 0, 0, stage=0, kind="solve")]
     for u in tile_plan(spec, progressive=progressive):
@@ -747,7 +773,7 @@ def _document_geometry(doc: dict):
     return tri_p, sph_r, bounds
 
 
-def check_scene(spec, doc: dict) -> None:
+def check_scene(spec, doc: dict, options: dict) -> None:
     """Refuse at submission what the solve unit would refuse later, on the
     farm: more than MAX_PATCHES patches (the mesh is built in Python: ~15 s
     at that size) or more than MAX_HITS stored form-factor hits (1 GiB).
@@ -755,7 +781,6 @@ def check_scene(spec, doc: dict) -> None:
     patches) was accepted and its solve failed with SpecError in every
     attempt; 5e-324 with OverflowError. The count is the exact one of
     `mesh_patches`, from the document's world-space triangles."""
-    options = METHODS[spec.method].check_options(spec.options)
     tri_p, sph_r, (lo, hi) = _document_geometry(doc)
     patch_size = float(options["patch_size"]) or _patch_size_of_bounds(lo, hi)
     total = _patch_total(tri_p, sph_r, patch_size) if patch_size > 0 else math.inf
@@ -772,18 +797,15 @@ def check_scene(spec, doc: dict) -> None:
                         "stored hits: fewer rays or larger patches")
 
 
-def check_options(spec, scene=None) -> dict:
-    """The method's options with defaults, checked by the option table
-    (bounds, the hemicube's even resolution: SpecError, so a job is refused
-    at submission), and with a scene the automatic patch size resolved."""
-    options = METHODS[spec.method].check_options(spec.options)
-    if scene is not None and float(options["patch_size"]) == 0.0:
-        options["patch_size"] = auto_patch_size(scene)
+def resolve_options(options: dict, scene) -> dict:
+    """The checked options with the scene's automatic patch size resolved."""
+    if float(options["patch_size"]) == 0.0:
+        options = {**options, "patch_size": auto_patch_size(scene)}
     return options
 
 
-def run_radiosity(scene, spec, unit, inputs=None) -> PartialFilm:
-    options = check_options(spec, scene)
+def run_radiosity(scene, spec, unit, inputs, options) -> PartialFilm:
+    options = resolve_options(options, scene)
     if unit.kind == "solve":
         history, stats = solution(scene, options, spec.seed)
         film = PartialFilm.zeros(0, 0, 0, 0)
@@ -822,7 +844,7 @@ def run_radiosity(scene, spec, unit, inputs=None) -> PartialFilm:
     return film
 
 
-register_method(Method(
+METHODS = (Method(
     name="radiosity",
     description="Finite element radiosity: diffuse patches, Monte Carlo form factors with "
                 "visibility, an iterative solve once per scene (cached), displayed by tiles "
@@ -854,4 +876,4 @@ register_method(Method(
     plan=plan_radiosity,
     phases=("solve", "tile"),
     check_scene=check_scene,
-))
+),)

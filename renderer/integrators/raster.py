@@ -32,14 +32,15 @@ from numba import prange
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_parallel
 from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY
+from ..kernels.camera import camera_ray
 from ..kernels.ggx import glossy_eval
 from ..kernels.lights import sample_light
 from ..kernels.rng import sample_key
 from ..kernels.sampling import INV_PI
-from ..registry import Method, register_method
+from ..registry import SAMPLERS, Method
+from ..samplers import u1d, u2d
 from ..scene import camera_array
-from ..registry import SAMPLERS
-from .path import camera_ray, u1d, u2d, unit_blocks
+from .tile import tile_plan, unit_blocks
 
 NEAR = 0.001
 SPHERE_SEGMENTS, SPHERE_RINGS = 48, 24
@@ -255,7 +256,7 @@ def _run(scene, spec, unit, centres=False):
     return film, buffers[2]
 
 
-def render_tile(scene, spec, unit, inputs=None) -> PartialFilm:
+def render_tile(scene, spec, unit, inputs=None, options=None) -> PartialFilm:
     return _run(scene, spec, unit)[0]
 
 
@@ -274,9 +275,10 @@ def depth_at_pixel_centres(scene, spec, unit) -> np.ndarray:
     return zbuf / (dirs @ cam[9:12])
 
 
-register_method(Method(
+METHODS = (Method(
     name="raster",
     description="Z-buffer rasterization with local direct lighting: no shadows, no "
                 "interreflection; spp supersamples for antialiasing.",
     run=render_tile,
-))
+    plan=tile_plan,
+),)

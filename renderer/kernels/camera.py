@@ -6,8 +6,8 @@
 forward (unit vectors), tan of the half field of view along x and y. The film
 sits on the plane at distance 1 along `forward`, covering
 [-tx, tx] x [-ty, ty] (area A = 4 tx ty); film position (fx, fy) in pixels,
-x right and row 0 at the top, exactly as `camera_ray` (integrators/path.py)
-maps it to a direction.
+x right and row 0 at the top, exactly as `camera_ray` (below) maps it to a
+direction.
 
 Importance, pbrt-v3 PerspectiveCamera::We / Pdf_We / Sample_Wi style, but
 normalised *per pixel* rather than per film: a pixel covers A / (W H) of the
@@ -26,7 +26,21 @@ and the camera rays' densities are compared on the same footing.
 
 import math
 
+import numpy as np
+
 from . import kernel
+
+
+@kernel
+def camera_ray(cam, width, height, fx, fy):
+    """World-space direction through film position (fx, fy) (pixels, row 0 at top)."""
+    sx = (2.0 * fx / width - 1.0) * cam[12]
+    sy = (1.0 - 2.0 * fy / height) * cam[13]
+    dx = sx * cam[3] + sy * cam[6] + cam[9]
+    dy = sx * cam[4] + sy * cam[7] + cam[10]
+    dz = sx * cam[5] + sy * cam[8] + cam[11]
+    inv = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+    return dx * inv, dy * inv, dz * inv
 
 
 @kernel

@@ -192,3 +192,18 @@ def offset_origin(px, py, pz, nx, ny, nz, side):
     (+1 along n, -1 against it) so the spawned ray does not re-hit it."""
     eps = 1e-7 * (1.0 + max(abs(px), max(abs(py), abs(pz))))
     return px + side * eps * nx, py + side * eps * ny, pz + side * eps * nz
+
+
+@kernel
+def shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist):
+    """A shadow ray from the offset origin to the light point q = h + dist w:
+    (origin, unit direction, tmax). Distance and direction are measured from
+    the *offset* origin, and tmax stops a relative 1e-9 short of q, so the
+    light's own surface never shadows its sample (with dist from h, a 2e-7
+    offset towards an overhead light made q itself an occluder)."""
+    qx, qy, qz = hx + dist * wx, hy + dist * wy, hz + dist * wz
+    sx, sy, sz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
+    dx, dy, dz = qx - sx, qy - sy, qz - sz
+    d = np.sqrt(dx * dx + dy * dy + dz * dz)
+    inv = 1.0 / d
+    return sx, sy, sz, dx * inv, dy * inv, dz * inv, d * (1.0 - 1e-9)

@@ -185,7 +185,7 @@ def form_factor_rays(sc, kind, geo, normal, tri_start, tri_k, cells, sph_start, 
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pdf <= 0.0 or cos_i <= 0.0:
                     continue
-                # the shadow ray of integrators/path.py: measured from the offset origin
+                # the shadow ray of kernels/geometry.py: measured from the offset origin
                 ox, oy, oz = offset_origin(px, py, pz, nx, ny, nz, 1.0)
                 qx, qy, qz = px + dist * wx, py + dist * wy, pz + dist * wz
                 sx, sy, sz = qx - ox, qy - oy, qz - oz

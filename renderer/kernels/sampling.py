@@ -81,3 +81,15 @@ def uniform_triangle(u1, u2):
         b1 = u2 / 2.0
         b0 = u1 - b1
     return b0, b1
+
+
+# Multiple importance sampling heuristics (Veach), by id.
+POWER, BALANCE = 0, 1
+
+
+@kernel
+def mis_weight(pa, pb, heuristic):
+    """Veach's weight of strategy a against b: power (beta = 2) or balance."""
+    if heuristic == BALANCE:
+        return pa / (pa + pb)
+    return pa * pa / (pa * pa + pb * pb)

@@ -3,7 +3,8 @@
 See the package docstring (renderer/samplers/__init__.py) for the contract.
 """
 
-from ..kernels import kernel
+from ..kernels import kernel, kernel_inline
+from ..kernels.rng import uniform as hashed_uniform  # not the `uniform` sampler below
 # Imported in id order: registration order is the order `GET /samplers` lists.
 from . import random  # isort: skip
 from . import uniform  # isort: skip
@@ -81,3 +82,26 @@ def fill_2d(sampler_id, seed, pixel, first, spp, dim, out):
         u, v = sample_2d(sampler_id, seed, pixel, first + k, spp, dim)
         out[k, 0] = u
         out[k, 1] = v
+
+
+# The dimensions a path vertex draws (renderer/integrators/path.py lays them
+# out): path tracing and the specular continuations of photon mapping and
+# radiosity's display pass read the same ones.
+DIMS_PER_BOUNCE = 8
+
+
+@kernel_inline
+def u1d(smp, key, seed, pixel, index, spp, dim):
+    """Dimension `dim` of the sample from sampler `smp` (`random` straight from
+    the sample's precomputed hash key: the common case stays cheap)."""
+    if smp == SAMPLER_RANDOM:
+        return hashed_uniform(key, dim)
+    return sample_1d(smp, seed, pixel, index, spp, dim)
+
+
+@kernel_inline
+def u2d(smp, key, seed, pixel, index, spp, dim):
+    """Dimensions (dim, dim + 1), dim even: one 2D pair of the sampler."""
+    if smp == SAMPLER_RANDOM:
+        return hashed_uniform(key, dim), hashed_uniform(key, dim + 1)
+    return sample_2d(smp, seed, pixel, index, spp, dim)

@@ -1,0 +1,113 @@
+"""The renderer's structure (issue 13): its import graph has no cycle, counting
+imports inside functions too (three of them used to dodge a 21-module cycle
+between the registry and every plugin), and the registry is a plain table
+that the plugins never read back."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = "renderer"
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted((ROOT / PACKAGE).rglob("*.py")):
+        parts = list(path.relative_to(ROOT).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the renderer modules it imports, anywhere in its body. `from
+    .x import name` counts as an import of `x.name` when that is a module, else
+    of `x`; the implicit import of a parent package does not count (every
+    package's __init__ would otherwise close a cycle with its children)."""
+    modules = _modules()
+    graph: dict[str, set[str]] = {name: set() for name in modules}
+    for name, path in modules.items():
+        package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            targets = []
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.split(".")
+                    base = base[:len(base) - node.level + 1]
+                    stem = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    stem = node.module or ""
+                targets = [f"{stem}.{a.name}" if f"{stem}.{a.name}" in modules else stem
+                           for a in node.names]
+            for target in targets:
+                while target and target not in modules:  # a name inside a module
+                    target = target.rpartition(".")[0]
+                if target and target != name:
+                    graph[name].add(target)
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}  # 1: on the stack, 2: done
+    stack: list[str] = []
+
+    def visit(node: str) -> list[str] | None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                return stack[stack.index(nxt):] + [nxt]
+            if nxt not in state:
+                found = visit(nxt)
+                if found:
+                    return found
+        stack.pop()
+        state[node] = 2
+        return None
+
+    for node in sorted(graph):
+        if node not in state:
+            found = visit(node)
+            if found:
+                return found
+    return None
+
+
+def test01_the_renderers_import_graph_is_acyclic():
+    graph = import_graph()
+    assert "renderer.registry" in graph and graph["renderer.integrators"], graph
+    cycle = find_cycle(graph)
+    assert cycle is None, " -> ".join(cycle)
+
+
+def test02_the_cycle_finder_finds_a_cycle():
+    # The check above is only as good as this: a cycle through a function-level
+    # import is found.
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test03_the_registry_imports_no_plugin_and_no_plugin_reads_it_back():
+    graph = import_graph()
+    assert not {m for m in graph["renderer.registry"] if m.startswith("renderer.integrators")}
+    for name, path in _modules().items():
+        if name.startswith("renderer.integrators."):
+            imported = {alias.name for node in ast.walk(ast.parse(path.read_text()))
+                        if isinstance(node, ast.ImportFrom) and (node.module or "").endswith(
+                            "registry") for alias in node.names}
+            assert "METHODS" not in imported, f"{name} reads the registry's METHODS"
+
+
+def test04_material_and_light_ids_are_defined_once():
+    for stem in ("MAT_DIFFUSE", "LIGHT_POINT"):
+        defined = [name for name, path in _modules().items()
+                   if any(isinstance(n, ast.Assign) and any(
+                       isinstance(t, (ast.Name, ast.Tuple)) and stem in ast.unparse(t)
+                       for t in n.targets)
+                       for n in ast.parse(path.read_text()).body)]
+        assert len(defined) == 1, (stem, defined)
