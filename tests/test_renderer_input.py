@@ -10,6 +10,7 @@ import pytest
 
 from renderer import METHODS, RenderSpec, SpecError, build_scene, builtin_scene_names, \
     resolve_document
+from renderer import radiosity_solve as FEM
 from renderer.integrators import radiosity as R
 
 NON_FINITE = [math.nan, math.inf, -math.inf]
@@ -71,8 +72,8 @@ def test04_the_submission_count_is_the_solver_s(name):
     doc = resolve_document(name)
     scene = build_scene(doc)
     tri_p, sph_r, (lo, hi) = R._document_geometry(doc)
-    auto = R.auto_patch_size(scene)
-    assert R._patch_size_of_bounds(lo, hi) == auto
+    auto = FEM.auto_patch_size(scene)
+    assert FEM.patch_size_of_bounds(lo, hi) == auto
     for size in (auto, 0.05, 0.3, 2.0):
-        assert R._patch_total(tri_p, sph_r, size) == R.patch_count(scene, size)
-    assert R.patch_count(scene, auto) == len(R.mesh_patches(scene, auto).kind)
+        assert FEM.patch_total(tri_p, sph_r, size) == FEM.patch_count(scene, size)
+    assert FEM.patch_count(scene, auto) == len(FEM.mesh_patches(scene, auto).kind)

@@ -20,11 +20,14 @@ from scipy.stats import norm
 from renderer import METHODS, RenderSpec, build_scene, load_scene, merge, render_serial, \
     resolve_document
 from renderer.film import PartialFilm
-from renderer.integrators import bdpt
+from renderer.kernels import subpaths
+from renderer.kernels.sampling import BALANCE, POWER
 from renderer.integrators.light import light_batches
 from renderer.kernels.geometry import STACK_SIZE
 from renderer.runtime import run_plan
 from renderer.scene import camera_array
+
+from bdpt_strategies import strategy_weights
 
 ALPHA = 0.01
 PASS_RATE = 0.995
@@ -140,7 +143,7 @@ def test03_furnaces(method, scene_name, depth):
 def _specular_scene():
     """The Cornell box's walls with a mirror, a glass and a glossy sphere, the
     area light and a point light: every kind of vertex BDPT meets."""
-    doc = json.loads((Path(bdpt.__file__).parents[1] / "scenes" / "cornell-box.json").read_text())
+    doc = json.loads((Path(subpaths.__file__).parents[1] / "scenes" / "cornell-box.json").read_text())
     doc["materials"].update(mirror={"type": "mirror"}, glass={"type": "dielectric", "ior": 1.5},
                             gloss={"type": "glossy", "specular": [0.8, 0.8, 0.8],
                                    "roughness": 0.3})
@@ -165,26 +168,26 @@ def test04_bdpt_mis_weights_of_one_path_sum_to_one():
     rng = np.random.default_rng(5)
     paths, with_delta, worst_sum, worst_own = 0, 0, 0.0, 0.0
     for _ in range(150):
-        u = rng.random(bdpt.dims(depth))
-        V = bdpt.workspace(depth)
-        nc, _ = bdpt.camera_subpath(sc, cam, width, height, stack, V, u[0] * width,
+        u = rng.random(subpaths.dims(depth))
+        V = subpaths.workspace(depth)
+        nc, _ = subpaths.camera_subpath(sc, cam, width, height, stack, V, u[0] * width,
                                     u[1] * height, depth + 2, u, 4)
-        nl, _ = bdpt.light_subpath(sc, stack, V, lrow, depth + 1, u, bdpt.light0(depth))
+        nl, _ = subpaths.light_subpath(sc, stack, V, lrow, depth + 1, u, subpaths.light0(depth))
         for t in range(1, nc + 1):
             for s in range(0, nl + 1):
                 if s + t - 2 < 0 or s + t - 2 > depth or (s == 1 and t == 1):
                     continue
-                r, g, b, *_ = bdpt.connect(sc, cam, width, height, stack, V, lrow, srow, s, t,
-                                           u, bdpt.conn0(depth) + 4 * t, 1, False)
+                r, g, b, *_ = subpaths.connect(sc, cam, width, height, stack, V, lrow, srow, s, t,
+                                           u, subpaths.conn0(depth) + 4 * t, 1, False)
                 if r + g + b <= 0.0:
                     continue
                 paths += 1
-                with_delta += bool(V[1:t, bdpt.V_DELTA].any() or
-                                   V[lrow:lrow + s, bdpt.V_DELTA].any())
-                for heuristic in (bdpt.BALANCE, bdpt.POWER):
-                    weights, _ = bdpt.strategy_weights(sc, cam, width, height, depth, heuristic,
+                with_delta += bool(V[1:t, subpaths.V_DELTA].any() or
+                                   V[lrow:lrow + s, subpaths.V_DELTA].any())
+                for heuristic in (BALANCE, POWER):
+                    weights, _ = strategy_weights(sc, cam, width, height, depth, heuristic,
                                                        V, s, t)
-                    own = bdpt.mis_weight(sc, cam, width, height, V, lrow, srow, s, t, heuristic)
+                    own = subpaths.mis_weight(sc, cam, width, height, V, lrow, srow, s, t, heuristic)
                     worst_sum = max(worst_sum, abs(weights.sum() - 1.0))
                     # the walks measure directions from offset ray origins: ~1e-4 apart
                     worst_own = max(worst_own, abs(own - weights[s]) / weights[s])
@@ -242,13 +245,13 @@ def test07_deterministic_and_tile_invariant():
 
 @njit(cache=False)
 def _mlt_splats(sc, cam, width, height, depth, heuristic, n_paths, seed, splat, u, V, stack):
-    """Independent uniform primary samples through `bdpt.mlt_L` (no Markov
+    """Independent uniform primary samples through `subpaths.mlt_L` (no Markov
     chain): their splats estimate the depth-`depth` part of the image."""
     np.random.seed(seed)
     for _ in range(n_paths):
         for d in range(u.shape[0]):
             u[d] = np.random.random()
-        r, g, b, fx, fy, _rays = bdpt.mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack)
+        r, g, b, fx, fy, _rays = subpaths.mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack)
         if r != 0.0 or g != 0.0 or b != 0.0:
             splat[int(fy), int(fx), 0] += r
             splat[int(fy), int(fx), 1] += g
@@ -267,9 +270,9 @@ def test08_mlt_kernel_is_an_unbiased_one_strategy_estimator():
     for b in range(16):
         splat = np.zeros((height, width, 3))
         for depth in range(4):
-            _mlt_splats(scene.arrays, cam, width, height, depth, bdpt.BALANCE, n_paths,
-                        100 * b + depth, splat, np.zeros(bdpt.dims(depth)),
-                        bdpt.workspace(depth), np.empty(STACK_SIZE, np.int64))
+            _mlt_splats(scene.arrays, cam, width, height, depth, BALANCE, n_paths,
+                        100 * b + depth, splat, np.zeros(subpaths.dims(depth)),
+                        subpaths.workspace(depth), np.empty(STACK_SIZE, np.int64))
         batches.append(PartialFilm.splat_batch(splat * (width * height), n_paths))
     mean, var = block_stats(batches, width, height, 4)
     ref_mean, ref_var = block_stats(run_plan(scene, RenderSpec(
@@ -310,10 +313,10 @@ def test10_refraction_scales_radiance_but_not_importance(importance, expected):
         "materials": {"glass": {"type": "dielectric", "ior": 1.5}},
         "shapes": [{"type": "sphere", "material": "glass"}],
         "emitters": [{"type": "point", "position": [0, 3, 0], "intensity": 1}]}))
-    V = bdpt.workspace(2)
+    V = subpaths.workspace(2)
     V[0, :3] = (0.0, 0.0, 5.0)
-    u = np.full(bdpt.dims(2), 0.99)  # u[ubase + 2] >= F: refract
-    n, _ = bdpt.random_walk(scene.arrays, np.empty(STACK_SIZE, np.int64), V, 1, 3, 0.0, 0.0, 5.0,
+    u = np.full(subpaths.dims(2), 0.99)  # u[ubase + 2] >= F: refract
+    n, _ = subpaths.random_walk(scene.arrays, np.empty(STACK_SIZE, np.int64), V, 1, 3, 0.0, 0.0, 5.0,
                             0.0, 0.0, -1.0, 1.0, 1.0, 1.0, 1.0, importance, u, 4)
-    assert n == 3 and V[1, bdpt.V_DELTA] == 1.0
+    assert n == 3 and V[1, subpaths.V_DELTA] == 1.0
     assert np.allclose(V[2, 2], -1.0) and np.allclose(V[2, 6:9], expected, rtol=1e-12)

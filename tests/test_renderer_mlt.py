@@ -15,6 +15,8 @@ from scipy.stats import chi2, t as student_t
 from renderer import METHODS, RenderSpec, SpecError, load_scene, merge, run_plan
 from renderer.integrators import mlt
 
+from mlt_toy import TOY_CONSTANT, TOY_RAMP, toy_chains
+
 Z = 4.5
 Y = np.array([0.212671, 0.715160, 0.072169])  # the luminance MLT targets
 
@@ -170,7 +172,7 @@ def test05_deterministic_and_independent_of_tiles(cornell, monkeypatch):
 
 def _toy(n, mutations, large_step, sigma, kind, x0, perturbation=mlt.NORMAL, seed=1):
     out = np.zeros((n, 3))
-    mlt.toy_chains(seed, n, mutations, large_step, sigma, perturbation, kind,
+    toy_chains(seed, n, mutations, large_step, sigma, perturbation, kind,
                    np.ascontiguousarray(x0, dtype=np.float64), np.zeros(3),
                    np.zeros(3, np.int64), np.zeros(3), np.zeros(3, np.int64), out)
     return out
@@ -191,7 +193,7 @@ def test06_small_steps_keep_the_uniform_distribution():
     n = 20_000
     alpha = 1 - (1 - 0.01) ** (1 / 6)
     for perturbation in (mlt.NORMAL, mlt.EXPONENTIAL):
-        out = _toy(n, 50, 0.0, 0.01, mlt.TOY_CONSTANT, rng.random((n, 3)), perturbation)
+        out = _toy(n, 50, 0.0, 0.01, TOY_CONSTANT, rng.random((n, 3)), perturbation)
         for k in range(3):
             assert _uniform_pvalue(out[:, k]) > alpha, (perturbation, k)
     # from 0.98, the steps cross 1 and must wrap: the wrapped displacement
@@ -201,7 +203,7 @@ def test06_small_steps_keep_the_uniform_distribution():
     L = math.log(s2 / s1)
     for perturbation, var in ((mlt.NORMAL, steps * sigma ** 2),
                               (mlt.EXPONENTIAL, steps * s2 ** 2 * (1 - math.exp(-2 * L)) / (2 * L))):
-        out = _toy(n, steps, 0.0, sigma, mlt.TOY_CONSTANT, np.full((n, 3), 0.98), perturbation)
+        out = _toy(n, steps, 0.0, sigma, TOY_CONSTANT, np.full((n, 3), 0.98), perturbation)
         moved = np.mod(out - 0.98 + 0.5, 1.0) - 0.5
         assert np.all(np.abs(moved.mean(axis=0)) <= Z * math.sqrt(var / n)), perturbation
         assert np.all(np.abs(moved.var(axis=0) - var) <= Z * var * math.sqrt(2 / n)), perturbation
@@ -225,7 +227,7 @@ def test08_chains_sample_the_integrand():
     started at one point follow it (chi-square on a 10 x 10 grid of the two
     dimensions f reads; the third, unread, stays uniform)."""
     n = 40_000
-    out = _toy(n, 200, 0.3, 0.05, mlt.TOY_RAMP, np.full((n, 3), 0.3))
+    out = _toy(n, 200, 0.3, 0.05, TOY_RAMP, np.full((n, 3), 0.3))
     edges = np.linspace(0, 1, 11)
     a, b = edges[:-1], edges[1:]
     g = np.where(a < 0.8, 0.2 * (b - a) + (b * b - a * a) / 2, 0.0)
@@ -244,7 +246,7 @@ def test09_lazy_mutation_readies_every_dimension_mlt_L_reads(cornell, depth):
     """The lazy mutation brings up to date only the dimensions of the
     strategy u[2] selects: mlt_L must not read any other, so redrawing all
     the others never changes its result (checked on random paths)."""
-    from renderer.integrators import bdpt
+    from renderer.kernels import subpaths as bdpt
     from renderer.kernels.geometry import STACK_SIZE
     from renderer.scene import camera_array
 

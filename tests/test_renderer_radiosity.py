@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from renderer import RenderSpec, build_scene, load_scene, merge, resolve_document, run_plan
+from renderer import radiosity_solve as FEM
 from renderer.integrators import radiosity as R
 from renderer.registry import METHODS
 
@@ -32,9 +33,9 @@ Z = 4.5
 @pytest.fixture(autouse=True)
 def cache_dir(tmp_path, monkeypatch):
     monkeypatch.setenv("RAYFARM_CACHE_DIR", str(tmp_path))
-    R.clear_cache()
+    FEM.clear_cache()
     yield tmp_path
-    R.clear_cache()
+    FEM.clear_cache()
 
 
 def options(**kw):
@@ -92,10 +93,10 @@ def test02_closed_box_rows_of_form_factors_sum_to_one(estimator):
     1e-3 we demand less than half the smallest ray weight: one lost ray
     (1/256, or a hemicube pixel, >= 8.7e-5 at res 16) shows."""
     scene = box_scene()
-    patches = R.mesh_patches(scene, 0.25)
+    patches = FEM.mesh_patches(scene, 0.25)
     assert len(patches.kind) == 2 * (2 * 16 + 2 * 64 + 2 * 64)  # k = 4, 8, 8: 2 k^2 per face
     assert np.isclose(patches.area.sum(), 8 * (0.5 + 0.25 + 0.125))
-    hits, weight, _, _ = R.form_factor_hits(scene, patches, ff_options(estimator, res=16), seed=3)
+    hits, weight, _, _ = FEM.form_factor_hits(scene, patches, ff_options(estimator, res=16), seed=3)
     rows = form_factors(hits, weight, len(patches.kind)).sum(axis=1)
     assert np.abs(rows - 1.0).max() <= 1e-3, rows.min()
     assert np.abs(rows - 1.0).max() < 0.5 * weight.min(), rows.min()
@@ -111,7 +112,7 @@ def test03_form_factors_are_reciprocal_within_their_error():
     of freedom). The binomial variance p (1 - p) / n, an upper bound for our
     stratified rays, is 5-10x too wide to be a sharp test."""
     scene = box_scene()
-    patches = R.mesh_patches(scene, 0.25)
+    patches = FEM.mesh_patches(scene, 0.25)
     n_rays, replicas = 64, 16
     # faces by their normal: +-x, +-y, +-z
     face = np.argmax(np.abs(patches.normal), axis=1) * 2 + (patches.normal.sum(axis=1) > 0)
@@ -119,7 +120,7 @@ def test03_form_factors_are_reciprocal_within_their_error():
     a = patches.area
     diffs = np.zeros((replicas, len(pairs)))
     for r in range(replicas):
-        hits, _, _, _ = R.form_factor_hits(scene, patches, ff_options(rays=n_rays), seed=100 + r)
+        hits, _, _, _ = FEM.form_factor_hits(scene, patches, ff_options(rays=n_rays), seed=100 + r)
         hit_face = np.where(hits >= 0, face[np.maximum(hits, 0)], -1)
         for k, (fi, fj) in enumerate(pairs):
             si, sj = face == fi, face == fj
@@ -142,10 +143,10 @@ def test04_coaxial_unit_disks_one_apart():
         "shapes": [{"type": "disk", "material": "grey"},
                    {"type": "disk", "material": "grey", "flip_normals": True,
                     "to_world": [{"translate": [0, 0, 1]}]}]}))
-    patches = R.mesh_patches(scene, 2.0)  # one patch per fan triangle: 256 per disk
+    patches = FEM.mesh_patches(scene, 2.0)  # one patch per fan triangle: 256 per disk
     assert len(patches.kind) == 512
     n_rays = 144 * 144  # 4.5 binomial sigma <= 1e-3 needs >= 4.8e6 rays per disk
-    hits, _, _, _ = R.form_factor_hits(scene, patches, ff_options(rays=n_rays), seed=5)
+    hits, _, _, _ = FEM.form_factor_hits(scene, patches, ff_options(rays=n_rays), seed=5)
     per_patch = (hits[:256] >= 256).mean(axis=1)  # disk 0's patches reaching disk 1
     f = per_patch.mean()  # equal patch areas: the area-weighted mean
     sigma_binomial = math.sqrt(exact * (1 - exact) / (256 * n_rays))
@@ -179,14 +180,14 @@ def test04b_hemicube_point_to_parallel_square(turn):
                     "to_world": [{"scale": [0.5, 0.5, 1]},
                                  {"rotate": {"axis": [0, 0, 1], "angle": turn}},
                                  {"translate": [0, 0, 1]}]}]}))
-    patches = R.mesh_patches(scene, 10.0)  # two triangles each
-    hits, weight, _, _ = R.form_factor_hits(scene, patches, ff_options("hemicube", res=128), 0)
+    patches = FEM.mesh_patches(scene, 10.0)  # two triangles each
+    hits, weight, _, _ = FEM.form_factor_hits(scene, patches, ff_options("hemicube", res=128), 0)
     f = ((hits[:2] >= 2) * weight).sum(axis=1)
     assert np.all(np.abs(f - exact) <= 1e-4), f - exact
 
 
 @pytest.mark.parametrize("estimator", ["montecarlo", "hemicube"])
-@pytest.mark.parametrize("solver", R.SOLVERS)
+@pytest.mark.parametrize("solver", FEM.SOLVERS)
 def test05_closed_emitting_box_gives_e_over_one_minus_rho(solver, estimator):
     """Every face emits Le = 1 (E = pi) with albedo 0.5: B = E / (1 - rho) =
     2 pi on every patch. Every form-factor ray sees the same B, so the only
@@ -194,7 +195,7 @@ def test05_closed_emitting_box_gives_e_over_one_minus_rho(solver, estimator):
     leaving an error <= tol rho / (1 - rho) max(B - E) (geometric series)."""
     scene = box_scene(emit=1.0, albedo=0.5)
     tol = 1e-7
-    history, stats = R.solve(scene, options(patch_size=0.5, ff_rays=64, solver=solver,
+    history, stats = FEM.solve(scene, options(patch_size=0.5, ff_rays=64, solver=solver,
                                             tolerance=tol, direct="formfactor",
                                             form_factors=estimator, hemicube_res=8), seed=1)
     b = history[-1]
@@ -257,7 +258,7 @@ def test08_solutions_are_cached_in_memory_and_on_disk(cache_dir):
     assert len(files) == 1 and files[0].suffix == ".entry"  # no temporary file left behind
     second, films2 = render(scene, **kw)
     assert films2[0].stats["cached"] == "memory" and films2[0].stats["rays"] == 0
-    R.clear_cache()
+    FEM.clear_cache()
     third, films3 = render(scene, **kw)
     assert films3[0].stats["cached"] == "disk"
     for a in (films2, films3):
@@ -272,7 +273,7 @@ def test09_same_bytes_whatever_the_tile_size():
     kw = dict(spp=4, depth=3, width=12, height=12, seed=9,
               options={"patch_size": 0.5, "ff_rays": 16, "final_gather": "on"})
     a, _ = render(scene, tile_size=4, **kw)
-    R.clear_cache()  # solve again: the solution itself is deterministic
+    FEM.clear_cache()  # solve again: the solution itself is deterministic
     b, _ = render(scene, tile_size=12, **kw)
     assert a.sum.tobytes() == b.sum.tobytes() and a.sum_sq.tobytes() == b.sum_sq.tobytes()
 
@@ -284,7 +285,7 @@ def test10_options_are_checked_and_a_lone_tile_finds_its_solution():
         spec = RenderSpec(method="radiosity", spp=1, depth=1, width=4, height=4, options=bad)
         with pytest.raises(SpecError):
             run_plan(scene, spec)
-    assert R.patch_count(scene, 0.1) == len(R.mesh_patches(scene, 0.1).kind)
+    assert FEM.patch_count(scene, 0.1) == len(FEM.mesh_patches(scene, 0.1).kind)
     assert R.resolve_options(METHODS["radiosity"].check_options({}), scene)["patch_size"] == \
         pytest.approx(0.1, rel=0.01)  # auto on a scene of side 2
     # the plain tile plan (no solve unit): the tile solves (or finds) the solution itself
@@ -307,8 +308,8 @@ def test11_uniform_box_shows_its_radiosity_flat_or_smooth(display):
                      options={"patch_size": 0.3, "ff_rays": 16, "direct": "formfactor",
                               "display": display})
     assert np.allclose(film.mean(), (1 - 0.5 ** 4) / 0.5, rtol=0, atol=1e-9)
-    patches = R.mesh_patches(scene, 0.3)
-    patch_vert, n_vert = R.weld_vertices(patches, 1e-7)
+    patches = FEM.mesh_patches(scene, 0.3)
+    patch_vert, n_vert = FEM.weld_vertices(patches, 1e-7)
     # each face's two triangles are split k x k (k = 7, 7, 4 for the 2 x 1,
     # 2 x 0.5 and 1 x 0.5 faces) into one (k + 1)^2 grid of vertices; none is
     # shared across a crease

@@ -111,3 +111,29 @@ def test04_material_and_light_ids_are_defined_once():
                        for t in n.targets)
                        for n in ast.parse(path.read_text()).body)]
         assert len(defined) == 1, (stem, defined)
+
+
+def test05_no_integrator_imports_another():
+    graph = import_graph()
+    integrators = {name for name, path in _modules().items()
+                   if name.startswith("renderer.integrators.")
+                   and "METHODS = (" in path.read_text()}
+    assert {"renderer.integrators.path", "renderer.integrators.bdpt"} <= integrators
+    for name in integrators:
+        assert not graph[name] & integrators, (name, graph[name] & integrators)
+
+
+def test06_test_helpers_live_in_tests():
+    for name, path in _modules().items():
+        text = path.read_text()
+        for helper in ("def strategy_weights(", "def toy_chains("):
+            assert helper not in text, f"{helper[4:-1]} is a test helper, in {name}"
+
+
+def test07_no_renderer_file_is_over_about_600_lines():
+    # Long files were where concepts piled up (BDPT's subpaths inside `bdpt`,
+    # radiosity's solve inside its display): split by concept, not by size,
+    # and this says when to look.
+    long = {name: n for name, path in _modules().items()
+            if (n := len(path.read_text().splitlines())) > 650}
+    assert not long, long

@@ -2,8 +2,9 @@
 them. Each module defines its `Method`s in `METHODS` (a tuple) and knows
 nothing of the registry's table; this module fills it, in the order `GET
 /methods` lists them. Shared pieces that are not methods live beside them
-(`tile`) or in renderer/kernels and renderer/samplers. (One exception is
-left: `light` and `mlt` still import BDPT's subpath machinery from `bdpt`.)"""
+(`tile`) or in renderer/kernels (BDPT's subpaths, which light tracing and
+MLT use too, are `kernels/subpaths.py`) and renderer/samplers: no integrator
+imports another."""
 
 from ..registry import register_method
 from . import bdpt, light, mlt, path, photon, radiosity, raster

@@ -23,7 +23,8 @@ one splat batch over the full frame (`PartialFilm.splat_batch(splat, n)`).
 The frame estimate divides the summed splats by the job's N (the merge does,
 film.py) and the variance of a pixel comes from the K batches. Path p draws
 its numbers from `stream_key(seed, STREAM_LIGHT_PATHS, p)`, dimension j of
-the stream at u[light0(depth) + j] (bdpt.py's layout of the light subpath).
+the stream at u[light0(depth) + j] (the layout of the light subpath in
+renderer/kernels/subpaths.py).
 """
 
 from __future__ import annotations
@@ -35,10 +36,7 @@ from ..kernels import kernel
 from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import STREAM_LIGHT_PATHS, stream_key, uniform
 from ..kernels.sampling import BALANCE
-from ..plan import Unit
-from ..registry import Method
-from ..scene import camera_array
-from .bdpt import (
+from ..kernels.subpaths import (
     NV,
     T_CAMERA,
     V_LIGHT,
@@ -51,6 +49,9 @@ from .bdpt import (
     light_subpath,
     workspace,
 )
+from ..plan import Unit
+from ..registry import Method
+from ..scene import camera_array
 
 MIN_BATCHES, MAX_BATCHES = 8, 64
 PATHS_PER_BATCH = 4096  # below 8 x this many paths, batches shrink instead of dropping below 8

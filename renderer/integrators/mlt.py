@@ -20,8 +20,8 @@ in 0.9 s has an RMSE of 0.066 against path-mis at 1024 spp, path-mis at 64
 spp in 0.7 s 0.030, bdpt at 16 spp in 1.0 s 0.086).
 
 The state of a chain is a depth d (fixed for the chain, as in pbrt-v3) and a
-vector u of primary samples in [0, 1)^D(d); BDPT's `mlt_L` (bdpt.py: the
-layout of u is there) maps it to the MIS-weighted contribution of one
+vector u of primary samples in [0, 1)^D(d); BDPT's `mlt_L`
+(renderer/kernels/subpaths.py: the layout of u is there) maps it to the MIS-weighted contribution of one
 (s, t) strategy of paths with d bounces (the strategy drawn from u[2]),
 times the number of strategies, and the film position it lands on (the
 light subpath's projection for t = 1). The target density is its
@@ -59,7 +59,7 @@ counter; dimensions untouched since an accepted large step are redrawn
 before use. mlt_L reads u as a flat array, so before each evaluation
 `_ready_strategy` brings up to date the dimensions it will read: film and
 strategy first, then those of the strategy u[2] selects (a superset of
-them, from bdpt.py's layout); the others wait, as in pbrt-v3, and catch up
+them, from kernels/subpaths.py's layout); the others wait, as in pbrt-v3, and catch up
 when next used.
 
 Variance (the EXR's var channels): every chain unit is one splat batch.
@@ -101,11 +101,11 @@ from ..kernels import kernel, kernel_parallel
 from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import STREAM_BOOTSTRAP, STREAM_CHAINS, stream_key, uniform
 from ..kernels.sampling import BALANCE, POWER
+from ..kernels.subpaths import NV, conn0, light0, mlt_L
+from ..kernels.subpaths import dims as bdpt_dims
 from ..plan import Unit
 from ..registry import Method, Option
 from ..scene import camera_array
-from .bdpt import NV, conn0, light0, mlt_L
-from .bdpt import dims as bdpt_dims
 
 CHAIN_UNITS = 8  # at most this many chain units: the variance's batches
 BOOTSTRAP_CHUNKS = 64  # prange work items of the bootstrap (each with its buffers)
@@ -219,7 +219,7 @@ def _ready_strategy(x, last_mod, x_backup, mod_backup, depth, iteration, last_la
     """Bring up to date the dimensions mlt_L will read (the lazy part of
     pbrt-v3's MLTSampler): film and strategy first, then, for the strategy
     (s, t) u[2] now selects (mlt_L's rule), the t camera vertices' bounces,
-    the light subpath when s >= 2 and the connection (bdpt.py's layout; test09
+    the light subpath when s >= 2 and the connection (kernels/subpaths.py's layout; test09
     checks mlt_L reads nothing else). Returns ctr."""
     ctr = _mutate(x, last_mod, x_backup, mod_backup, 0, 4, iteration, last_large, large,
                   sigma, perturbation, key, ctr)
@@ -311,53 +311,6 @@ def run_chain(sc, cam, width, height, max_depth, heuristic, seed, chain, start, 
             iteration = _restore(x, last_mod, x_backup, mod_backup, dims, iteration)
         ctr += 1
     return accepted, rays
-
-
-TOY_CONSTANT, TOY_RAMP = 0, 1
-
-
-@kernel
-def _toy_integrand(kind, x):
-    """Test integrands on [0, 1)^3 (x[2] is read by none: it must stay uniform):
-    constant 1, or (0.2 + x0) (0.2 + x1^2) with x0 < 0.8 (zero beyond)."""
-    if kind == TOY_CONSTANT:
-        return 1.0
-    if x[0] >= 0.8:
-        return 0.0
-    return (0.2 + x[0]) * (0.2 + x[1] * x[1])
-
-
-@kernel
-def toy_chains(seed, n_chains, mutations, large_step, sigma, perturbation, kind, x0,
-               x, last_mod, x_backup, mod_backup, out):
-    """For tests of the mutation kernel: run `n_chains` independent chains
-    of `mutations` Metropolis steps (run_chain's exact steps) on a toy
-    integrand over [0, 1)^3, chain c from the state x0[c], and write each
-    chain's final state to out[c]. x, x_backup (float) and last_mod, mod_backup
-    (int64) are buffers of 3."""
-    dims = 3
-    for c in range(n_chains):
-        key = stream_key(seed, STREAM_CHAINS, c)
-        for k in range(dims):
-            x[k] = x0[c, k]
-            last_mod[k] = 0
-        cy = _toy_integrand(kind, x)
-        iteration, last_large, ctr = 0, 0, 1
-        for _ in range(mutations):
-            iteration += 1
-            large = uniform(key, ctr) < large_step
-            ctr = _mutate(x, last_mod, x_backup, mod_backup, 0, dims, iteration, last_large,
-                          large, sigma, perturbation, key, ctr + 1)
-            py = _toy_integrand(kind, x)
-            if uniform(key, ctr) < _acceptance(py, cy):
-                cy = py
-                if large:
-                    last_large = iteration
-            else:
-                iteration = _restore(x, last_mod, x_backup, mod_backup, dims, iteration)
-            ctr += 1
-        for k in range(dims):
-            out[c, k] = x[k]
 
 
 @kernel

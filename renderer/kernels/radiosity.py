@@ -1,6 +1,6 @@
 """Radiosity kernels: patches, Monte Carlo form factors and the linear solvers.
 
-Patches (built by renderer/integrators/radiosity.py) are structure-of-arrays:
+Patches (built by renderer/radiosity_solve.py) are structure-of-arrays:
 `kind` 0 = a flat triangle (geo = v0, e1, e2), 1 = a zone of an analytic
 sphere (geo = centre, radius, z_lo, z_hi, phi0, phi1, +1 or -1 for the
 front side outwards or inwards; z is the sphere's local z, so the zones are

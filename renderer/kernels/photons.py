@@ -1,0 +1,461 @@
+"""Photon mapping's kernels: tracing photons, the camera pass's visible
+points, the hash grid, the SPPM gather and update, and the k-nearest-neighbour
+estimate. The method (its plan, units and the account of the algorithm) is
+renderer/integrators/photon.py.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import prange
+
+from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
+from . import kernel, kernel_inline, kernel_parallel
+from .bsdf import (
+    MAT_DIFFUSE,
+    MAT_GLOSSY,
+    MAT_MIRROR,
+    dielectric_sample,
+    diffuse_eval,
+    diffuse_sample,
+    reflect,
+)
+from .camera import camera_ray
+from .geometry import (
+    intersect_arrays,
+    offset_origin,
+    shadow_ray,
+    surface_at_arrays,
+)
+from .ggx import glossy_eval, glossy_sample
+from .lights import sample_emission, sample_light
+from .rng import STREAM_PHOTONS, sample_key, stream_key, uniform
+from .sampling import INV_PI
+
+__all__ = ["trace_photons", "visible_point", "camera_pass", "build_grid", "gather_pass",
+           "sppm_update", "knn_render", "PHOTON_DIMS", "DIMS_PER_PHOTON_HIT"]
+
+# Random dimensions of a photon: 0 the light, 1-4 the emitted ray, then 4 per
+# hit h >= 1 at 5 + 4 (h - 1): +0..1 the direction, +2 glass, +3 roulette.
+PHOTON_DIMS, DIMS_PER_PHOTON_HIT = 5, 4
+
+
+# ----------------------------------------------------------------- photons
+
+@kernel
+def trace_photons(sc, stack, seed, g0, g1, depth, pos, dirs, power, hits):
+    """Trace photons g0..g1-1 (global indices) and record them at every
+    diffuse or glossy hit from the second on (front side only) up to hit
+    `depth`. Returns (records, rays); records = -1 if the buffers are full."""
+    nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
+    tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
+    sph_flip, sph_mat, sph_light = sc.sph_flip, sc.sph_mat, sc.sph_light
+    mat_type, mat_rgb, mat_param = sc.mat_type, sc.mat_rgb, sc.mat_param
+    cap = pos.shape[0]
+    n = 0
+    rays = 0
+    if sc.light_type.shape[0] == 0 or depth < 2:
+        return 0, 0
+    for g in range(g0, g1):
+        key = stream_key(seed, STREAM_PHOTONS, g)
+        (li, prim, ox, oy, oz, nx, ny, nz, dx, dy, dz, er, eg, eb, pdf_pos, pdf_dir,
+         delta) = sample_emission(sc, uniform(key, 0), uniform(key, 1), uniform(key, 2),
+                                  uniform(key, 3), uniform(key, 4))
+        if pdf_pos <= 0.0 or pdf_dir <= 0.0:
+            continue
+        if delta:
+            k = 1.0 / (pdf_pos * pdf_dir)
+        else:
+            k = abs(nx * dx + ny * dy + nz * dz) / (pdf_pos * pdf_dir)
+            ox, oy, oz = offset_origin(ox, oy, oz, nx, ny, nz, 1.0)
+        br, bg, bb = er * k, eg * k, eb * k
+        for hit in range(1, depth + 1):
+            t, p = intersect_arrays(nodes, info, prims, tri, sph, stack,
+                                    ox, oy, oz, dx, dy, dz, np.inf, False)
+            rays += 1
+            if p < 0:
+                break
+            hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
+            nx, ny, nz, mat, light = surface_at_arrays(tri_n, tri_mat, tri_light, sph, sph_flip,
+                                                       sph_mat, sph_light, p, hx, hy, hz)
+            cos_in = -(dx * nx + dy * ny + dz * nz)
+            mtype = mat_type[mat]
+            base = PHOTON_DIMS + DIMS_PER_PHOTON_HIT * (hit - 1)
+            side = 1.0
+            if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
+                if cos_in <= 0.0:
+                    break  # one-sided: the back of a diffuse or glossy surface absorbs
+                if hit >= 2:
+                    if n >= cap:
+                        return -1, rays
+                    pos[n, 0], pos[n, 1], pos[n, 2] = hx, hy, hz
+                    dirs[n, 0], dirs[n, 1], dirs[n, 2] = dx, dy, dz
+                    power[n, 0], power[n, 1], power[n, 2] = br, bg, bb
+                    hits[n] = hit
+                    n += 1
+                if hit == depth:
+                    break
+                ua, ub = uniform(key, base), uniform(key, base + 1)
+                ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+                if mtype == MAT_DIFFUSE:
+                    wx, wy, wz, cos_w, pdf = diffuse_sample(nx, ny, nz, ua, ub)
+                    sr, sg, sb = ar, ag, ab
+                else:  # GGX is symmetric: sampling about -d gives f |cos wo| / pdf
+                    wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
+                        nx, ny, nz, -dx, -dy, -dz, mat_param[mat, 1], ar, ag, ab, ua, ub)
+                if pdf <= 0.0:
+                    break
+                dx, dy, dz = wx, wy, wz
+            elif mtype == MAT_MIRROR:
+                if cos_in <= 0.0 or hit == depth:
+                    break
+                dx, dy, dz = reflect(dx, dy, dz, nx, ny, nz)
+                sr, sg, sb = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+            else:  # dielectric: importance transport, no 1/eta^2, weight 1
+                if hit == depth:
+                    break
+                dx, dy, dz, w, es, side = dielectric_sample(
+                    dx, dy, dz, nx, ny, nz, mat_param[mat, 0], uniform(key, base + 2))
+                sr, sg, sb = 1.0, 1.0, 1.0
+            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+            m_old = max(br, max(bg, bb))
+            nr, ng, nb = br * sr, bg * sg, bb * sb
+            m_new = max(nr, max(ng, nb))
+            if m_new <= 0.0:
+                break
+            if m_new < m_old:  # roulette: survive with m_new / m_old, power stays level
+                q = m_new / m_old
+                if uniform(key, base + 3) >= q:
+                    break
+                nr, ng, nb = nr / q, ng / q, nb / q
+            br, bg, bb = nr, ng, nb
+    return n, rays
+
+
+# -------------------------------------------------------- visible points
+
+@kernel_inline
+def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, index, spp):
+    """Follow a camera ray through mirrors and glass to the first diffuse or
+    glossy surface. Returns (kmax, p, n, wo, beta, mat, Ld, rays): kmax =
+    depth - specular bounces (the longest photon path k it may gather; -1
+    when there is no visible point), Ld the emission seen along the chain
+    plus direct light at the visible point by light sampling."""
+    nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
+    tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
+    sph_flip, sph_mat, sph_light = sc.sph_flip, sc.sph_mat, sc.sph_light
+    light_rgb, mat_type, mat_rgb, mat_param = sc.light_rgb, sc.mat_type, sc.mat_rgb, sc.mat_param
+    n_lights = sc.light_type.shape[0]
+    lr, lg, lb = 0.0, 0.0, 0.0
+    br, bg, bb = 1.0, 1.0, 1.0
+    rays = 0
+    kmax = -1
+    hx, hy, hz, nx, ny, nz, mat = 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0
+    for bounce in range(depth + 1):
+        t, prim = intersect_arrays(nodes, info, prims, tri, sph, stack,
+                                   ox, oy, oz, dx, dy, dz, np.inf, False)
+        rays += 1
+        if prim < 0:
+            break
+        hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
+        nx, ny, nz, mat, light = surface_at_arrays(tri_n, tri_mat, tri_light, sph, sph_flip,
+                                                   sph_mat, sph_light, prim, hx, hy, hz)
+        cos_o = -(dx * nx + dy * ny + dz * nz)
+        if light >= 0 and cos_o > 0.0:
+            lr += br * light_rgb[light, 0]
+            lg += bg * light_rgb[light, 1]
+            lb += bb * light_rgb[light, 2]
+        if bounce == depth:
+            break
+        base = 2 + DIMS_PER_BOUNCE * bounce
+        mtype = mat_type[mat]
+        if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
+            if cos_o <= 0.0:
+                break
+            if n_lights > 0:
+                ua, ub = u2d(smp, key, seed, pixel, index, spp, base)
+                wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
+                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + 4), ua, ub)
+                cos_i = wx * nx + wy * ny + wz * nz
+                if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
+                    if mtype == MAT_DIFFUSE:
+                        f, pb = diffuse_eval(cos_o, cos_i)
+                        fr, fg, fb = mat_rgb[mat, 0] * f, mat_rgb[mat, 1] * f, mat_rgb[mat, 2] * f
+                    else:
+                        fr, fg, fb, pb = glossy_eval(nx, ny, nz, -dx, -dy, -dz, wx, wy, wz,
+                                                     mat_param[mat, 1], mat_rgb[mat, 0],
+                                                     mat_rgb[mat, 1], mat_rgb[mat, 2])
+                    sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz,
+                                                              dist)
+                    rays += 1
+                    if (fr > 0.0 or fg > 0.0 or fb > 0.0) and intersect_arrays(
+                            nodes, info, prims, tri, sph, stack, sx, sy, sz, tx, ty, tz, tmax,
+                            True)[1] < 0:
+                        w = cos_i / pl
+                        lr += br * fr * er * w
+                        lg += bg * fg * eg * w
+                        lb += bb * fb * eb * w
+            kmax = depth - bounce
+            break
+        elif mtype == MAT_MIRROR:
+            if cos_o <= 0.0:
+                break
+            dx, dy, dz = reflect(dx, dy, dz, nx, ny, nz)
+            br *= mat_rgb[mat, 0]
+            bg *= mat_rgb[mat, 1]
+            bb *= mat_rgb[mat, 2]
+            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
+        else:  # glass: radiance transport on the camera side (1/eta^2)
+            dx, dy, dz, weight, es, side = dielectric_sample(
+                dx, dy, dz, nx, ny, nz, mat_param[mat, 0],
+                u1d(smp, key, seed, pixel, index, spp, base + 5))
+            br *= weight
+            bg *= weight
+            bb *= weight
+            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+    return kmax, hx, hy, hz, nx, ny, nz, -dx, -dy, -dz, br, bg, bb, mat, lr, lg, lb, rays
+
+
+@kernel_parallel
+def camera_pass(sc, cam, x0, y0, x1, y1, width, height, seed, index, spp, smp, depth,
+                vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld, row_rays, stacks):
+    """One camera sample (`index`) per pixel of the tile: its visible point and Ld."""
+    ox, oy, oz = cam[0], cam[1], cam[2]
+    for row in prange(y1 - y0):
+        stack = stacks[row]
+        y = y0 + row
+        rays = 0
+        for x in range(x0, x1):
+            c = x - x0
+            pixel = y * width + x
+            key = sample_key(seed, pixel, index)
+            fu, fv = u2d(smp, key, seed, pixel, index, spp, 0)
+            dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+            (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
+             nr) = visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed,
+                                 pixel, index, spp)
+            rays += nr
+            vp_kmax[row, c] = kmax
+            vp_p[row, c, 0], vp_p[row, c, 1], vp_p[row, c, 2] = px, py, pz
+            vp_n[row, c, 0], vp_n[row, c, 1], vp_n[row, c, 2] = nx, ny, nz
+            vp_wo[row, c, 0], vp_wo[row, c, 1], vp_wo[row, c, 2] = wx, wy, wz
+            vp_beta[row, c, 0], vp_beta[row, c, 1], vp_beta[row, c, 2] = br, bg, bb
+            vp_mat[row, c] = mat
+            ld[row, c, 0], ld[row, c, 1], ld[row, c, 2] = lr, lg, lb
+        row_rays[row] = rays
+
+
+# ------------------------------------------------------------ hash grid
+
+@kernel
+def _hash(ix, iy, iz, mask):
+    return ((ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791)) & mask
+
+
+@kernel
+def build_grid(ppos, inv_h, lo, hi, cell, bucket, start, cursor, order):
+    """Counting-sort the photons inside the box [lo, hi] into hash buckets
+    (table size len(start) - 1, a power of two). cell[i] = photon i's integer
+    cell; order[start[b]:start[b+1]] = the photons of bucket b in index order.
+    Returns the number inserted."""
+    mask = start.shape[0] - 2
+    start[:] = 0
+    n = 0
+    for i in range(ppos.shape[0]):
+        x, y, z = ppos[i, 0], ppos[i, 1], ppos[i, 2]
+        if x < lo[0] or y < lo[1] or z < lo[2] or x > hi[0] or y > hi[1] or z > hi[2]:
+            bucket[i] = -1
+            continue
+        ix = np.int64(math.floor(x * inv_h))
+        iy = np.int64(math.floor(y * inv_h))
+        iz = np.int64(math.floor(z * inv_h))
+        cell[i, 0], cell[i, 1], cell[i, 2] = ix, iy, iz
+        b = _hash(ix, iy, iz, mask)
+        bucket[i] = b
+        start[b + 1] += 1
+        n += 1
+    for b in range(mask + 1):
+        start[b + 1] += start[b]
+    for b in range(mask + 1):
+        cursor[b] = start[b]
+    for i in range(ppos.shape[0]):
+        b = bucket[i]
+        if b >= 0:
+            order[cursor[b]] = i
+            cursor[b] += 1
+    return n
+
+
+@kernel_inline
+def _photon_f(mat_type, mat_rgb, mat_param, mat, nx, ny, nz, wx, wy, wz, ix, iy, iz):
+    """BSDF value at a visible point for a photon arriving along -wi."""
+    if mat_type[mat] == MAT_DIFFUSE:
+        return mat_rgb[mat, 0] * INV_PI, mat_rgb[mat, 1] * INV_PI, mat_rgb[mat, 2] * INV_PI
+    fr, fg, fb, pdf = glossy_eval(nx, ny, nz, wx, wy, wz, ix, iy, iz, mat_param[mat, 1],
+                                  mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2])
+    return fr, fg, fb
+
+
+@kernel_parallel
+def gather_pass(vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, r2, mat_type, mat_rgb, mat_param,
+                ppos, pdir, ppow, phit, cell, start, order, inv_h, out_m, out_phi):
+    """Every visible point sums beta f power over the photons within its
+    radius sqrt(r2) that arrive from its front side with k <= kmax."""
+    mask = start.shape[0] - 2
+    for row in prange(vp_kmax.shape[0]):
+        for c in range(vp_kmax.shape[1]):
+            m = 0.0
+            fr_s, fg_s, fb_s = 0.0, 0.0, 0.0
+            kmax = vp_kmax[row, c]
+            rr = r2[row, c]
+            if kmax >= 2 and ppos.shape[0] > 0:
+                px, py, pz = vp_p[row, c, 0], vp_p[row, c, 1], vp_p[row, c, 2]
+                nx, ny, nz = vp_n[row, c, 0], vp_n[row, c, 1], vp_n[row, c, 2]
+                wx, wy, wz = vp_wo[row, c, 0], vp_wo[row, c, 1], vp_wo[row, c, 2]
+                mat = vp_mat[row, c]
+                r = math.sqrt(rr)
+                lx = np.int64(math.floor((px - r) * inv_h))
+                ly = np.int64(math.floor((py - r) * inv_h))
+                lz = np.int64(math.floor((pz - r) * inv_h))
+                hx = np.int64(math.floor((px + r) * inv_h))
+                hy = np.int64(math.floor((py + r) * inv_h))
+                hz = np.int64(math.floor((pz + r) * inv_h))
+                for ix in range(lx, hx + 1):
+                    for iy in range(ly, hy + 1):
+                        for iz in range(lz, hz + 1):
+                            b = _hash(ix, iy, iz, mask)
+                            for j in range(start[b], start[b + 1]):
+                                q = order[j]
+                                if cell[q, 0] != ix or cell[q, 1] != iy or cell[q, 2] != iz:
+                                    continue
+                                if phit[q] > kmax:
+                                    continue
+                                ex, ey, ez = ppos[q, 0] - px, ppos[q, 1] - py, ppos[q, 2] - pz
+                                if ex * ex + ey * ey + ez * ez > rr:
+                                    continue
+                                ix_, iy_, iz_ = -pdir[q, 0], -pdir[q, 1], -pdir[q, 2]
+                                if ix_ * nx + iy_ * ny + iz_ * nz <= 0.0:
+                                    continue  # from behind the visible point's surface
+                                fr, fg, fb = _photon_f(mat_type, mat_rgb, mat_param, mat,
+                                                       nx, ny, nz, wx, wy, wz, ix_, iy_, iz_)
+                                m += 1.0
+                                fr_s += fr * ppow[q, 0]
+                                fg_s += fg * ppow[q, 1]
+                                fb_s += fb * ppow[q, 2]
+            out_m[row, c] = m
+            out_phi[row, c, 0] = vp_beta[row, c, 0] * fr_s
+            out_phi[row, c, 1] = vp_beta[row, c, 1] * fg_s
+            out_phi[row, c, 2] = vp_beta[row, c, 2] * fb_s
+
+
+@kernel
+def sppm_update(n, r2, tau, m, phi, alpha):
+    """The progressive update of every pixel (Hachisuka & Jensen 2009):
+    N' = N + alpha M, r'^2 = r^2 (N + alpha M) / (N + M),
+    tau' = (tau + Phi) r'^2 / r^2; nothing changes where M = 0."""
+    for i in range(n.shape[0]):
+        for j in range(n.shape[1]):
+            mm = m[i, j]
+            if mm > 0.0:
+                nn = n[i, j] + alpha * mm
+                ratio = nn / (n[i, j] + mm)
+                r2[i, j] = r2[i, j] * ratio
+                for c in range(3):
+                    tau[i, j, c] = (tau[i, j, c] + phi[i, j, c]) * ratio
+                n[i, j] = nn
+
+
+# ------------------------------------------------ k nearest neighbours
+
+@kernel_parallel
+def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, smp, depth,
+               ppos, pdir, ppow, phit, cell, start, order, inv_h, big_r2, k, n_emitted,
+               out_sum, out_sq, out_w, row_rays, stacks, best_d, best_i):
+    """Classic photon map, visualised directly at the visible point: Ld plus
+    the k-nearest-neighbour estimate sum f power / (n_emitted pi r_k^2)."""
+    ox, oy, oz = cam[0], cam[1], cam[2]
+    mat_type, mat_rgb, mat_param = sc.mat_type, sc.mat_rgb, sc.mat_param
+    mask = start.shape[0] - 2
+    big_r = math.sqrt(big_r2)
+    for row in prange(y1 - y0):
+        stack = stacks[row]
+        bd = best_d[row]
+        bi = best_i[row]
+        y = y0 + row
+        rays = 0
+        for x in range(x0, x1):
+            c = x - x0
+            pixel = y * width + x
+            ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            for s in range(spp):
+                key = sample_key(seed, pixel, s)
+                fu, fv = u2d(smp, key, seed, pixel, s, spp, 0)
+                dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+                (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
+                 nr) = visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed,
+                                     pixel, s, spp)
+                rays += nr
+                if kmax >= 2 and ppos.shape[0] > 0:
+                    cnt = 0
+                    worst = big_r2
+                    lx = np.int64(math.floor((px - big_r) * inv_h))
+                    ly = np.int64(math.floor((py - big_r) * inv_h))
+                    lz = np.int64(math.floor((pz - big_r) * inv_h))
+                    hx = np.int64(math.floor((px + big_r) * inv_h))
+                    hy = np.int64(math.floor((py + big_r) * inv_h))
+                    hz = np.int64(math.floor((pz + big_r) * inv_h))
+                    for ix in range(lx, hx + 1):
+                        for iy in range(ly, hy + 1):
+                            for iz in range(lz, hz + 1):
+                                b = _hash(ix, iy, iz, mask)
+                                for j in range(start[b], start[b + 1]):
+                                    q = order[j]
+                                    if cell[q, 0] != ix or cell[q, 1] != iy or cell[q, 2] != iz:
+                                        continue
+                                    if phit[q] > kmax:
+                                        continue
+                                    ex, ey, ez = ppos[q, 0] - px, ppos[q, 1] - py, ppos[q, 2] - pz
+                                    d2 = ex * ex + ey * ey + ez * ez
+                                    if d2 >= worst:
+                                        continue
+                                    if -(pdir[q, 0] * nx + pdir[q, 1] * ny + pdir[q, 2] * nz) <= 0.0:
+                                        continue  # from behind the surface
+                                    # insert into the sorted list (stable: after equals)
+                                    pos_ = cnt if cnt < k else k - 1
+                                    while pos_ > 0 and bd[pos_ - 1] > d2:
+                                        if pos_ < k:
+                                            bd[pos_] = bd[pos_ - 1]
+                                            bi[pos_] = bi[pos_ - 1]
+                                        pos_ -= 1
+                                    bd[pos_] = d2
+                                    bi[pos_] = q
+                                    if cnt < k:
+                                        cnt += 1
+                                    if cnt == k:
+                                        worst = bd[k - 1]
+                    rk2 = bd[k - 1] if cnt == k else big_r2
+                    sr_, sg_, sb_ = 0.0, 0.0, 0.0
+                    for j in range(cnt):
+                        q = bi[j]
+                        fr, fg, fb = _photon_f(mat_type, mat_rgb, mat_param, mat, nx, ny, nz,
+                                               wx, wy, wz, -pdir[q, 0], -pdir[q, 1], -pdir[q, 2])
+                        sr_ += fr * ppow[q, 0]
+                        sg_ += fg * ppow[q, 1]
+                        sb_ += fb * ppow[q, 2]
+                    if rk2 > 0.0:
+                        scale = 1.0 / (n_emitted * math.pi * rk2)
+                        lr += br * sr_ * scale
+                        lg += bg * sg_ * scale
+                        lb += bb * sb_ * scale
+                ar += lr
+                ag += lg
+                ab += lb
+                qr += lr * lr
+                qg += lg * lg
+                qb += lb * lb
+            out_sum[row, c, 0], out_sum[row, c, 1], out_sum[row, c, 2] = ar, ag, ab
+            out_sq[row, c, 0], out_sq[row, c, 1], out_sq[row, c, 2] = qr, qg, qb
+            out_w[row, c] = spp
+        row_rays[row] = rays
