@@ -137,3 +137,17 @@ def test07_no_renderer_file_is_over_about_600_lines():
     long = {name: n for name, path in _modules().items()
             if (n := len(path.read_text().splitlines())) > 650}
     assert not long, long
+
+
+def test08_every_pixel_major_tile_loop_folds_and_stores_through_one_place():
+    # The per-pixel fold and film store are renderer/kernels/tile.py's inline
+    # kernels. (raster is sample-major: one z-buffer pass per sample over the
+    # whole tile, so it accumulates whole blocks, still block by block.)
+    modules = _modules()
+    for name in ("renderer.integrators.path", "renderer.integrators.bdpt",
+                 "renderer.integrators.radiosity", "renderer.kernels.photons"):
+        text = modules[name].read_text()
+        assert "add_sample(" in text and "store_pixel(" in text, name
+    for name, path in modules.items():
+        if name not in ("renderer.kernels.tile", "renderer.integrators.raster"):
+            assert "out_w[row, c] =" not in path.read_text(), f"{name} stores a pixel itself"

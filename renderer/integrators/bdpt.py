@@ -26,7 +26,6 @@ import numpy as np
 
 from ..film import PartialFilm
 from ..kernels import kernel
-from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import sample_key, uniform
 from ..kernels.sampling import BALANCE, POWER
 from ..kernels.subpaths import (
@@ -39,10 +38,10 @@ from ..kernels.subpaths import (
     light_subpath,
     workspace,
 )
+from ..kernels.tile import add_block, add_sample, n_samples, store_pixel
 from ..registry import SAMPLERS, Method, Option
 from ..samplers import u2d
-from ..scene import camera_array
-from .tile import unit_blocks
+from .tile import start_tile
 
 
 @kernel
@@ -58,11 +57,11 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     c0 = conn0(depth)
     nd = u.shape[0]
     rays = 0
+    n = n_samples(blocks)
     for y in range(y0, y1):
         for x in range(x0, x1):
             pixel = y * width + x
             ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            n = 0
             for bi in range(blocks.shape[0]):
                 sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 for si in range(blocks[bi, 0], blocks[bi, 1]):
@@ -101,28 +100,10 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                                 lr += r
                                 lg += g
                                 lb += b
-                    sr += lr
-                    sg += lg
-                    sb += lb
-                    tr += lr * lr
-                    tg += lg * lg
-                    tb += lb * lb
-                ar += sr
-                ag += sg
-                ab += sb
-                qr += tr
-                qg += tg
-                qb += tb
-                n += blocks[bi, 1] - blocks[bi, 0]
-            c = x - x0
-            row = y - y0
-            out_sum[row, c, 0] = ar
-            out_sum[row, c, 1] = ag
-            out_sum[row, c, 2] = ab
-            out_sq[row, c, 0] = qr
-            out_sq[row, c, 1] = qg
-            out_sq[row, c, 2] = qb
-            out_w[row, c] = n
+                    sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, lr, lg, lb)
+                ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
+                                                   sr, sg, sb, tr, tg, tb)
+            store_pixel(out_sum, out_sq, out_w, y - y0, x - x0, ar, ag, ab, qr, qg, qb, n)
     return rays
 
 
@@ -167,19 +148,16 @@ def render_bdpt(scene, spec, unit, inputs, options) -> PartialFilm:
     """One tile unit of `bdpt`: its tile film plus its t = 1 splats as one batch
     (one light subpath per camera sample)."""
     heuristic, only_s = _options(options)
-    w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
-    film = PartialFilm.zeros(unit.x0, unit.y0, w, h)
+    t = start_tile(scene, spec, unit)
     splat = np.zeros((spec.height, spec.width, 3))
-    cam = camera_array(scene.camera, spec.width, spec.height)
     u = np.zeros(dims(spec.depth))
     V = workspace(spec.depth)
-    stack = np.empty(STACK_SIZE, np.int64)
-    rays = _render_tile(scene.arrays, cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
-                        spec.height, unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
-                        spec.seed, spec.depth, SAMPLERS[spec.sampler].id, spec.spp, heuristic,
-                        only_s, film.sum, film.sum_sq, film.weight, splat, u, V, stack)
+    rays = _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
+                        spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
+                        spec.spp, heuristic, only_s, t.film.sum, t.film.sum_sq, t.film.weight,
+                        splat, u, V, t.stacks[0])
+    film = t.finish(unit, rays)
     film.with_splats(PartialFilm.splat_batch(splat, unit.samples))
-    film.stats.update(samples=unit.samples, rays=int(rays))
     return film
 
 

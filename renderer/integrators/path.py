@@ -51,7 +51,6 @@ from ..kernels.bsdf import (
 )
 from ..kernels.camera import camera_ray
 from ..kernels.geometry import (
-    STACK_SIZE,
     intersect_arrays,
     offset_origin,
     shadow_ray,
@@ -68,10 +67,10 @@ from ..kernels.sampling import (
     to_world,
     uniform_hemisphere,
 )
+from ..kernels.tile import add_block, add_sample, n_samples, store_pixel
 from ..registry import SAMPLERS, Method, Option
 from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
-from ..scene import camera_array
-from .tile import tile_plan, unit_blocks
+from .tile import start_tile, tile_plan
 
 # Strategies of the path family (one kernel, switched at run time).
 BSDF_ONLY, NEE, ONE_SAMPLE, MIS, DIRECT = 0, 1, 2, 3, 4
@@ -237,9 +236,9 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
 @kernel_parallel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
                  strategy, heuristic, hemisphere, out_sum, out_sq, out_w, row_rays, stacks):
-    """Accumulate the samples of `blocks` for the pixels of a tile (see film.py
-    for why sums are formed per block). Rows run in parallel under prange."""
+    """The tile loop (integrators/tile.py) over `li_path`; rows in parallel."""
     ox, oy, oz = cam[0], cam[1], cam[2]
+    n = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
         y = y0 + row
@@ -247,7 +246,6 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
         for x in range(x0, x1):
             pixel = y * width + x
             ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            n = 0
             for bi in range(blocks.shape[0]):
                 sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 for s in range(blocks[bi, 0], blocks[bi, 1]):
@@ -258,27 +256,10 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                                           strategy, heuristic, hemisphere, smp, seed, pixel, s,
                                           spp)
                     rays += nr
-                    sr += r
-                    sg += g
-                    sb += b
-                    tr += r * r
-                    tg += g * g
-                    tb += b * b
-                ar += sr
-                ag += sg
-                ab += sb
-                qr += tr
-                qg += tg
-                qb += tb
-                n += blocks[bi, 1] - blocks[bi, 0]
-            c = x - x0
-            out_sum[row, c, 0] = ar
-            out_sum[row, c, 1] = ag
-            out_sum[row, c, 2] = ab
-            out_sq[row, c, 0] = qr
-            out_sq[row, c, 1] = qg
-            out_sq[row, c, 2] = qb
-            out_w[row, c] = n
+                    sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
+                ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
+                                                   sr, sg, sb, tr, tg, tb)
+            store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n)
         row_rays[row] = rays
 
 
@@ -286,17 +267,12 @@ def render_tile(scene, spec, unit, inputs, options, *, strategy: int) -> Partial
     """Run the kernel over one unit's tile and sample range."""
     heuristic = BALANCE if options.get("heuristic") == "balance" else POWER
     hemisphere = UNIFORM if options.get("hemisphere") == "uniform" else COSINE
-    w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
-    film = PartialFilm.zeros(unit.x0, unit.y0, w, h)
-    row_rays = np.zeros(h, np.int64)
-    stacks = np.empty((h, STACK_SIZE), np.int64)  # kernels allocate nothing (see kernels/)
-    cam = camera_array(scene.camera, spec.width, spec.height)
-    _render_tile(scene.arrays, cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width, spec.height,
-                 unit_blocks(spec.spp, unit.sample_start, unit.sample_end), spec.seed, spec.depth,
-                 SAMPLERS[spec.sampler].id, spec.spp, strategy, heuristic, hemisphere,
-                 film.sum, film.sum_sq, film.weight, row_rays, stacks)
-    film.stats.update(samples=unit.samples, rays=int(row_rays.sum()))
-    return film
+    t = start_tile(scene, spec, unit)
+    _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
+                 spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
+                 spec.spp, strategy, heuristic, hemisphere, t.film.sum, t.film.sum_sq,
+                 t.film.weight, t.row_rays, t.stacks)
+    return t.finish(unit)
 
 
 METHODS = (

@@ -135,6 +135,7 @@ from ..kernels.photons import (
 from ..plan import Unit
 from ..registry import SAMPLERS, Method, Option
 from ..scene import camera_array
+from .tile import start_tile
 
 __all__ = ["ALPHA", "plan_photon", "run_photon", "photons_per_iteration", "initial_radius"]
 
@@ -361,23 +362,19 @@ def _estimate_film(st: dict, n: float, n_photons: int, x0: int, y0: int) -> Part
 
 
 def _run_knn(scene, spec, unit, inputs, options) -> PartialFilm:
-    x0, y0, x1, y1 = unit.x0, unit.y0, unit.x1, unit.y1
-    w, h = x1 - x0, y1 - y0
     n_photons = photons_per_iteration(spec, options)
     big_r = initial_radius(scene, options)
     k = int(options["k"])
     ppos, pdir, ppow, phit = _photons_of(inputs, unit.needs, None)
     grid = _Grid(ppos, big_r, np.full(3, -np.inf), np.full(3, np.inf))
-    film = PartialFilm.zeros(x0, y0, w, h)
-    row_rays = np.zeros(h, np.int64)
-    stacks = np.empty((h, STACK_SIZE), np.int64)
-    knn_render(scene.arrays, camera_array(scene.camera, spec.width, spec.height), x0, y0, x1, y1,
-               spec.width, spec.height, spec.seed, spec.spp, SAMPLERS[spec.sampler].id,
-               spec.depth, ppos, pdir, ppow, phit, grid.cell, grid.start, grid.order, grid.inv_h,
-               big_r * big_r, k, float(n_photons), film.sum, film.sum_sq, film.weight, row_rays,
-               stacks, np.empty((h, k)), np.empty((h, k), np.int64))
-    film.stats.update(samples=unit.samples, rays=int(row_rays.sum()))
-    return film
+    t = start_tile(scene, spec, unit)
+    h = unit.y1 - unit.y0
+    knn_render(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width, spec.height,
+               spec.seed, spec.spp, t.blocks, SAMPLERS[spec.sampler].id, spec.depth, ppos, pdir,
+               ppow, phit, grid.cell, grid.start, grid.order, grid.inv_h, big_r * big_r, k,
+               float(n_photons), t.film.sum, t.film.sum_sq, t.film.weight, t.row_rays,
+               t.stacks, np.empty((h, k)), np.empty((h, k), np.int64))
+    return t.finish(unit)
 
 
 def run_photon(scene, spec, unit, inputs, options) -> PartialFilm:

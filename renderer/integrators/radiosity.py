@@ -110,7 +110,6 @@ from ..kernels.bsdf import (
 )
 from ..kernels.camera import camera_ray
 from ..kernels.geometry import (
-    STACK_SIZE,
     intersect_arrays,
     offset_origin,
     shadow_ray,
@@ -122,6 +121,7 @@ from ..kernels.radiosity import (
     patch_of,
 )
 from ..kernels.rng import sample_key
+from ..kernels.tile import add_block, add_sample, n_samples, store_pixel
 from ..plan import Unit
 from ..plan import plan as tile_plan
 from ..primitives import world_mesh
@@ -140,8 +140,7 @@ from ..radiosity_solve import (
 )
 from ..registry import SAMPLERS, Method, Option
 from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
-from ..scene import camera_array
-from .tile import unit_blocks
+from .tile import start_tile
 
 # ---------------------------------------------------------------- display
 
@@ -313,8 +312,9 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
 @kernel_parallel
 def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, height, blocks,
                   seed, depth, smp, spp, gather, out_sum, out_sq, out_w, row_rays, stacks):
-    """The tile loop of integrators/path.py over `li_radiosity`."""
+    """The tile loop (integrators/tile.py) over `li_radiosity`; rows in parallel."""
     ox, oy, oz = cam[0], cam[1], cam[2]
+    n = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
         y = y0 + row
@@ -322,7 +322,6 @@ def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, 
         for x in range(x0, x1):
             pixel = y * width + x
             ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            n = 0
             for bi in range(blocks.shape[0]):
                 sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 for s in range(blocks[bi, 0], blocks[bi, 1]):
@@ -333,27 +332,10 @@ def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, 
                                                dx, dy, dz, key, depth, gather, smp, seed, pixel,
                                                s, spp)
                     rays += nr
-                    sr += r
-                    sg += g
-                    sb += b
-                    tr += r * r
-                    tg += g * g
-                    tb += b * b
-                ar += sr
-                ag += sg
-                ab += sb
-                qr += tr
-                qg += tg
-                qb += tb
-                n += blocks[bi, 1] - blocks[bi, 0]
-            c = x - x0
-            out_sum[row, c, 0] = ar
-            out_sum[row, c, 1] = ag
-            out_sum[row, c, 2] = ab
-            out_sq[row, c, 0] = qr
-            out_sq[row, c, 1] = qg
-            out_sq[row, c, 2] = qb
-            out_w[row, c] = n
+                    sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
+                ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
+                                                   sr, sg, sb, tr, tg, tb)
+            store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n)
         row_rays[row] = rays
 
 
@@ -449,25 +431,18 @@ def run_radiosity(scene, spec, unit, inputs, options) -> PartialFilm:
     if history.shape[1] != len(patches.kind):
         raise ValueError(f"radiosity solution has {history.shape[1]} patches, the mesh "
                          f"{len(patches.kind)}")
-    w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
-    film = PartialFilm.zeros(unit.x0, unit.y0, w, h)
-    row_rays = np.zeros(h, np.int64)
-    stacks = np.empty((h, STACK_SIZE), np.int64)
-    cam = camera_array(scene.camera, spec.width, spec.height)
+    t = start_tile(scene, spec, unit)
     if options["display"] == "smooth":
         patch_vert, n_vert = welded_vertices(scene, options["patch_size"])
         vert_b = vertex_radiosity(history, patches.area, patch_vert, n_vert)
     else:
         patch_vert, vert_b = np.zeros((0, 3), np.int32), np.zeros((history.shape[0], 0, 3))
-    _display_tile(scene.arrays, patches, history, vert_b, patch_vert, cam, unit.x0, unit.y0,
-                  unit.x1, unit.y1,
-                  spec.width, spec.height,
-                  unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
-                  spec.seed, spec.depth, SAMPLERS[spec.sampler].id, spec.spp,
+    _display_tile(scene.arrays, patches, history, vert_b, patch_vert, t.cam, unit.x0, unit.y0,
+                  unit.x1, unit.y1, spec.width, spec.height, t.blocks, spec.seed, spec.depth,
+                  SAMPLERS[spec.sampler].id, spec.spp,
                   1 if options["final_gather"] == "on" else 0,
-                  film.sum, film.sum_sq, film.weight, row_rays, stacks)
-    film.stats.update(samples=unit.samples, rays=int(row_rays.sum()))
-    return film
+                  t.film.sum, t.film.sum_sq, t.film.weight, t.row_rays, t.stacks)
+    return t.finish(unit)
 
 
 METHODS = (Method(

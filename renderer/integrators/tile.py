@@ -1,16 +1,43 @@
-"""What every tile-rendering integrator shares: the tile plan and the
-canonical sample blocks of a unit (the film contract, renderer/film.py: a
-pixel's sums are formed per block, so any tiling and any retry give the same
-bytes)."""
+"""The tile loop's shared pieces: every tile-rendering integrator (path
+family, BDPT's tile part, radiosity's display, photon mapping's k-NN pass)
+keeps only its `prange` shell and its radiance estimate; the plan, the
+canonical sample blocks and the Python side (film, camera, scratch, stats)
+are here, once, and the per-pixel fold and the film store are the inline
+kernels of renderer/kernels/tile.py.
+
+The film contract (renderer/film.py): a pixel's sums of values and of
+squares are formed per canonical sample block, the blocks then added in
+order, so any tiling and any retry give the same bytes. A kernel's loop:
+
+    for x in range(x0, x1):
+        ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        for bi in range(blocks.shape[0]):
+            sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            for s in range(blocks[bi, 0], blocks[bi, 1]):
+                r, g, b = ...                                  # the integrator's Li
+                sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
+            ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb, sr, sg, sb, tr, tg, tb)
+        store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n_samples(blocks))
+
+Numba's on-disk cache cannot keep a kernel that takes another jitted
+function as an argument (numba issues 2956, 2065), so there is no
+higher-order loop: each integrator has its own module-level kernel over
+these inline helpers, which compile to the same instructions as the loop
+written out (bit-identical films).
+"""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-from ..film import sample_blocks
+from ..film import PartialFilm, sample_blocks
+from ..kernels.geometry import STACK_SIZE
 from ..plan import plan
+from ..scene import camera_array
 
-__all__ = ["tile_plan", "unit_blocks"]
+__all__ = ["tile_plan", "unit_blocks", "TileRun", "start_tile"]
 
 
 def tile_plan(spec, progressive: bool = False, options: dict | None = None) -> list:
@@ -25,3 +52,30 @@ def unit_blocks(spp: int, sample_start: int, sample_end: int) -> np.ndarray:
         raise ValueError(f"sample range [{sample_start}, {sample_end}) does not align "
                          "with the canonical sample blocks")
     return np.asarray(blocks, dtype=np.int64).reshape(-1, 2)
+
+
+class TileRun(NamedTuple):
+    """What a tile kernel is handed for one unit (`start_tile`): the unit's
+    zeroed film, its canonical sample blocks, the camera, and per-row scratch
+    (rays traced per row, a BVH traversal stack per row: kernels allocate
+    nothing)."""
+
+    film: PartialFilm
+    blocks: np.ndarray
+    cam: np.ndarray
+    row_rays: np.ndarray
+    stacks: np.ndarray
+
+    def finish(self, unit, rays: int | None = None) -> PartialFilm:
+        """The film with its stats (samples, rays: the rows' sum unless given)."""
+        self.film.stats.update(samples=unit.samples,
+                               rays=int(self.row_rays.sum() if rays is None else rays))
+        return self.film
+
+
+def start_tile(scene, spec, unit) -> TileRun:
+    w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
+    return TileRun(PartialFilm.zeros(unit.x0, unit.y0, w, h),
+                   unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
+                   camera_array(scene.camera, spec.width, spec.height),
+                   np.zeros(h, np.int64), np.empty((h, STACK_SIZE), np.int64))

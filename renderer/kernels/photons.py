@@ -33,6 +33,7 @@ from .ggx import glossy_eval, glossy_sample
 from .lights import sample_emission, sample_light
 from .rng import STREAM_PHOTONS, sample_key, stream_key, uniform
 from .sampling import INV_PI
+from .tile import add_block, add_sample, n_samples, store_pixel
 
 __all__ = ["trace_photons", "visible_point", "camera_pass", "build_grid", "gather_pass",
            "sppm_update", "knn_render", "PHOTON_DIMS", "DIMS_PER_PHOTON_HIT"]
@@ -370,15 +371,17 @@ def sppm_update(n, r2, tau, m, phi, alpha):
 # ------------------------------------------------ k nearest neighbours
 
 @kernel_parallel
-def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, smp, depth,
+def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, depth,
                ppos, pdir, ppow, phit, cell, start, order, inv_h, big_r2, k, n_emitted,
                out_sum, out_sq, out_w, row_rays, stacks, best_d, best_i):
     """Classic photon map, visualised directly at the visible point: Ld plus
-    the k-nearest-neighbour estimate sum f power / (n_emitted pi r_k^2)."""
+    the k-nearest-neighbour estimate sum f power / (n_emitted pi r_k^2). The
+    tile loop of renderer/integrators/tile.py over the sample blocks."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     mat_type, mat_rgb, mat_param = sc.mat_type, sc.mat_rgb, sc.mat_param
     mask = start.shape[0] - 2
     big_r = math.sqrt(big_r2)
+    n_blk = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
         bd = best_d[row]
@@ -389,73 +392,75 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, smp, depth,
             c = x - x0
             pixel = y * width + x
             ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            for s in range(spp):
-                key = sample_key(seed, pixel, s)
-                fu, fv = u2d(smp, key, seed, pixel, s, spp, 0)
-                dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-                (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
-                 nr) = visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed,
-                                     pixel, s, spp)
-                rays += nr
-                if kmax >= 2 and ppos.shape[0] > 0:
-                    cnt = 0
-                    worst = big_r2
-                    lx = np.int64(math.floor((px - big_r) * inv_h))
-                    ly = np.int64(math.floor((py - big_r) * inv_h))
-                    lz = np.int64(math.floor((pz - big_r) * inv_h))
-                    hx = np.int64(math.floor((px + big_r) * inv_h))
-                    hy = np.int64(math.floor((py + big_r) * inv_h))
-                    hz = np.int64(math.floor((pz + big_r) * inv_h))
-                    for ix in range(lx, hx + 1):
-                        for iy in range(ly, hy + 1):
-                            for iz in range(lz, hz + 1):
-                                b = _hash(ix, iy, iz, mask)
-                                for j in range(start[b], start[b + 1]):
-                                    q = order[j]
-                                    if cell[q, 0] != ix or cell[q, 1] != iy or cell[q, 2] != iz:
-                                        continue
-                                    if phit[q] > kmax:
-                                        continue
-                                    ex, ey, ez = ppos[q, 0] - px, ppos[q, 1] - py, ppos[q, 2] - pz
-                                    d2 = ex * ex + ey * ey + ez * ez
-                                    if d2 >= worst:
-                                        continue
-                                    if -(pdir[q, 0] * nx + pdir[q, 1] * ny + pdir[q, 2] * nz) <= 0.0:
-                                        continue  # from behind the surface
-                                    # insert into the sorted list (stable: after equals)
-                                    pos_ = cnt if cnt < k else k - 1
-                                    while pos_ > 0 and bd[pos_ - 1] > d2:
-                                        if pos_ < k:
-                                            bd[pos_] = bd[pos_ - 1]
-                                            bi[pos_] = bi[pos_ - 1]
-                                        pos_ -= 1
-                                    bd[pos_] = d2
-                                    bi[pos_] = q
-                                    if cnt < k:
-                                        cnt += 1
-                                    if cnt == k:
-                                        worst = bd[k - 1]
-                    rk2 = bd[k - 1] if cnt == k else big_r2
-                    sr_, sg_, sb_ = 0.0, 0.0, 0.0
-                    for j in range(cnt):
-                        q = bi[j]
-                        fr, fg, fb = _photon_f(mat_type, mat_rgb, mat_param, mat, nx, ny, nz,
-                                               wx, wy, wz, -pdir[q, 0], -pdir[q, 1], -pdir[q, 2])
-                        sr_ += fr * ppow[q, 0]
-                        sg_ += fg * ppow[q, 1]
-                        sb_ += fb * ppow[q, 2]
-                    if rk2 > 0.0:
-                        scale = 1.0 / (n_emitted * math.pi * rk2)
-                        lr += br * sr_ * scale
-                        lg += bg * sg_ * scale
-                        lb += bb * sb_ * scale
-                ar += lr
-                ag += lg
-                ab += lb
-                qr += lr * lr
-                qg += lg * lg
-                qb += lb * lb
-            out_sum[row, c, 0], out_sum[row, c, 1], out_sum[row, c, 2] = ar, ag, ab
-            out_sq[row, c, 0], out_sq[row, c, 1], out_sq[row, c, 2] = qr, qg, qb
-            out_w[row, c] = spp
+            for blk in range(blocks.shape[0]):
+                sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                for s in range(blocks[blk, 0], blocks[blk, 1]):
+                    key = sample_key(seed, pixel, s)
+                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0)
+                    dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+                    (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
+                     nr) = visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed,
+                                         pixel, s, spp)
+                    rays += nr
+                    if kmax >= 2 and ppos.shape[0] > 0:
+                        cnt = 0
+                        worst = big_r2
+                        lx = np.int64(math.floor((px - big_r) * inv_h))
+                        ly = np.int64(math.floor((py - big_r) * inv_h))
+                        lz = np.int64(math.floor((pz - big_r) * inv_h))
+                        hx = np.int64(math.floor((px + big_r) * inv_h))
+                        hy = np.int64(math.floor((py + big_r) * inv_h))
+                        hz = np.int64(math.floor((pz + big_r) * inv_h))
+                        for ix in range(lx, hx + 1):
+                            for iy in range(ly, hy + 1):
+                                for iz in range(lz, hz + 1):
+                                    b = _hash(ix, iy, iz, mask)
+                                    for j in range(start[b], start[b + 1]):
+                                        q = order[j]
+                                        if cell[q, 0] != ix or cell[q, 1] != iy or cell[q, 2] != iz:
+                                            continue
+                                        if phit[q] > kmax:
+                                            continue
+                                        ex = ppos[q, 0] - px
+                                        ey = ppos[q, 1] - py
+                                        ez = ppos[q, 2] - pz
+                                        d2 = ex * ex + ey * ey + ez * ez
+                                        if d2 >= worst:
+                                            continue
+                                        facing = -(pdir[q, 0] * nx + pdir[q, 1] * ny
+                                                   + pdir[q, 2] * nz)
+                                        if facing <= 0.0:
+                                            continue  # from behind the surface
+                                        # insert into the sorted list (stable: after equals)
+                                        pos_ = cnt if cnt < k else k - 1
+                                        while pos_ > 0 and bd[pos_ - 1] > d2:
+                                            if pos_ < k:
+                                                bd[pos_] = bd[pos_ - 1]
+                                                bi[pos_] = bi[pos_ - 1]
+                                            pos_ -= 1
+                                        bd[pos_] = d2
+                                        bi[pos_] = q
+                                        if cnt < k:
+                                            cnt += 1
+                                        if cnt == k:
+                                            worst = bd[k - 1]
+                        rk2 = bd[k - 1] if cnt == k else big_r2
+                        sr_, sg_, sb_ = 0.0, 0.0, 0.0
+                        for j in range(cnt):
+                            q = bi[j]
+                            fr, fg, fb = _photon_f(mat_type, mat_rgb, mat_param, mat, nx, ny,
+                                                   nz, wx, wy, wz, -pdir[q, 0], -pdir[q, 1],
+                                                   -pdir[q, 2])
+                            sr_ += fr * ppow[q, 0]
+                            sg_ += fg * ppow[q, 1]
+                            sb_ += fb * ppow[q, 2]
+                        if rk2 > 0.0:
+                            scale = 1.0 / (n_emitted * math.pi * rk2)
+                            lr += br * sr_ * scale
+                            lg += bg * sg_ * scale
+                            lb += bb * sb_ * scale
+                    sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, lr, lg, lb)
+                ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
+                                                   sr, sg, sb, tr, tg, tb)
+            store_pixel(out_sum, out_sq, out_w, row, c, ar, ag, ab, qr, qg, qb, n_blk)
         row_rays[row] = rays
