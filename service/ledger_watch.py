@@ -38,6 +38,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from . import states
 from .events import EventHub
 from .models import Job, WorkUnit, utcnow
+from .previews import preview_event
 
 __all__ = ["LedgerWatch"]
 
@@ -138,11 +139,8 @@ class LedgerWatch:
                 if job is None:  # deleted since the first query
                     continue
                 if done and (old is None or old[2] != done):  # the leader rewrote the preview
-                    version_seen = next(self._previews)
-                    self.hub.publish("preview", job_id, {
-                        "job_id": job_id, "version": version_seen, "units": done,
-                        "url": f"/jobs/{job_id}/preview.png?v=w{version_seen}",
-                        "noise_url": f"/jobs/{job_id}/noise.png?v=w{version_seen}"})
+                    self.hub.publish("preview", job_id,
+                                     preview_event(job_id, f"w{next(self._previews)}", done))
                 self.hub.publish("job", job_id,
                                  JobPublic.from_job(job, now).model_dump(mode="json"), owner=owner)
             for job_id in before.keys() - jobs.keys():

@@ -30,7 +30,7 @@ from renderer import Film, PartialFilm
 from .events import EventHub
 from .store import Store
 
-__all__ = ["RunningPreviews", "PREVIEW_INTERVAL", "PREVIEW_BYTES"]
+__all__ = ["RunningPreviews", "PREVIEW_INTERVAL", "PREVIEW_BYTES", "preview_event"]
 
 PREVIEW_INTERVAL = 1.0  # seconds between two writes of a job's running preview
 PREVIEW_BYTES = 256 << 20  # running previews kept in memory (float32: 28 bytes per pixel)
@@ -127,8 +127,13 @@ class RunningPreviews:
 
     def publish(self, job_id: str, units: int) -> None:
         """Announce that the job's preview and noise map were rewritten."""
-        version = next(self._versions)
-        self.events.publish("preview", job_id, {
-            "job_id": job_id, "version": version, "units": units,
+        self.events.publish("preview", job_id,
+                            preview_event(job_id, next(self._versions), units))
+
+
+def preview_event(job_id: str, version: int | str, units: int) -> dict:
+    """The data of a `preview` event (service.events): where the rewritten
+    preview and noise map are, `version` busting the browser's cache."""
+    return {"job_id": job_id, "version": version, "units": units,
             "url": f"/jobs/{job_id}/preview.png?v={version}",
-            "noise_url": f"/jobs/{job_id}/noise.png?v={version}"})
+            "noise_url": f"/jobs/{job_id}/noise.png?v={version}"}

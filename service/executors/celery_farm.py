@@ -207,7 +207,7 @@ class CeleryExecutor(Executor):
         (messages it holds, and units sent to it since presence was read, per
         render process), or None if there is none (the scheduler fails the
         job when every live worker is blocklisted)."""
-        self._tasks_of_lost_workers()  # presence, read at most once a second
+        self._read_presence()  # presence, read at most once a second
         live = [w for w in self._presence if w.state in ("busy", "idle") and not w.disabled]
         blocked = set(blocked)
         if not any(w.name in blocked for w in live):
@@ -235,7 +235,7 @@ class CeleryExecutor(Executor):
             return []
         metas = self._metas([t for f in flights for t in f.task_ids])
         beats = self.redis.mget([heartbeat_key(f.job_id, f.index) for f in flights])
-        lost_tasks = self._tasks_of_lost_workers()
+        lost_tasks = self._read_presence()
         queue_length: int | None = None
         out = []
         for flight, beat in zip(flights, beats):
@@ -255,10 +255,11 @@ class CeleryExecutor(Executor):
             out.append(obs)
         return out
 
-    def _tasks_of_lost_workers(self) -> dict[str, str]:
-        """Task id -> worker, for the units the presence records of lost workers
-        say they were rendering or held (read at most once a second; the tasks
-        live workers hold go to `_held_tasks` on the same read)."""
+    def _read_presence(self) -> dict[str, str]:
+        """Read the workers' presence (at most once a second) and return task id
+        -> worker for the units lost workers were rendering or held; the same
+        read refreshes `_presence`, the tasks live workers hold (`_held_tasks`)
+        and the directed tasks of stopped workers (`_stranded`)."""
         now = time.monotonic()
         if now - self._lost_read >= 1.0:
             lost, held = {}, set()
