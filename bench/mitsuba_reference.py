@@ -66,16 +66,25 @@ def choose_variant(preferred: str | None = None) -> str:
     raise RuntimeError(f"no usable Mitsuba variant among {candidates}")
 
 
-def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1) -> dict:
+def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1, rr_depth: int | None = None) -> dict:
     """A Mitsuba scene dict for a resolved rayfarm scene document (rectangles,
-    cubes, diffuse materials, area emitters, a pinhole camera)."""
+    cubes, spheres; diffuse, glossy, mirror and glass materials; area
+    emitters; a pinhole camera). `rr_depth` None keeps Mitsuba's default
+    Russian roulette (from depth 5); the references here switch it off.
+
+    `glossy` becomes `roughconductor` with a GGX distribution, alpha = our
+    roughness and no Fresnel (`material: none`, times the specular colour):
+    rayfarm's glossy uses Schlick's Fresnel from that colour and Smith's
+    height-correlated G2, Mitsuba a constant colour and the separable G1 G1,
+    so glossy scenes are close, not equal (kernels/ggx.py)."""
     import mitsuba as mi
 
     cam = doc["camera"]
     T = mi.ScalarTransform4f
     scene: dict = {
         "type": "scene",
-        "integrator": {"type": "path", "max_depth": depth + 1, "rr_depth": depth + 2},
+        "integrator": {"type": "path", "max_depth": depth + 1,
+                       **({} if rr_depth is None else {"rr_depth": rr_depth})},
         "sensor": {
             "type": "perspective",
             "fov": float(cam["fov"]),
@@ -89,15 +98,31 @@ def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1) -> dict:
         },
     }
     for name, mat in doc["materials"].items():
-        if mat["type"] != "diffuse":
-            raise ValueError(f"material {name}: only diffuse is translated, got {mat['type']}")
-        scene[f"mat-{name}"] = {"type": "diffuse", "id": f"mat-{name}",
-                                "reflectance": {"type": "rgb", "value": list(mat["albedo"])}}
+        if mat["type"] == "diffuse":
+            bsdf = {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(mat["albedo"])}}
+        elif mat["type"] == "glossy":
+            bsdf = {"type": "roughconductor", "distribution": "ggx", "material": "none",
+                    "alpha": float(mat["roughness"]),
+                    "specular_reflectance": {"type": "rgb", "value": list(mat["specular"])}}
+        elif mat["type"] == "mirror":
+            bsdf = {"type": "conductor", "material": "none",
+                    "specular_reflectance": {"type": "rgb", "value": list(mat["tint"])}}
+        elif mat["type"] == "dielectric":
+            bsdf = {"type": "dielectric", "int_ior": float(mat["ior"]), "ext_ior": 1.0}
+        else:
+            raise ValueError(f"material {name}: type {mat['type']} is not translated")
+        scene[f"mat-{name}"] = {**bsdf, "id": f"mat-{name}"}
     for shape in doc["shapes"]:
-        if shape["type"] not in ("rectangle", "cube"):
+        if shape["type"] not in ("rectangle", "cube", "sphere"):
             raise ValueError(f"shape {shape['name']}: type {shape['type']} is not translated")
-        entry = {"type": shape["type"], "to_world": T(np.array(shape["to_world"], dtype=float)),
-                 "bsdf": {"type": "ref", "id": f"mat-{shape['material']}"}}
+        if shape["type"] == "sphere":
+            if np.any(np.array(shape["to_world"], dtype=float) != np.eye(4)):
+                raise ValueError(f"shape {shape['name']}: a transformed sphere is not translated")
+            entry = {"type": "sphere", "center": list(shape["center"]), "radius": float(shape["radius"]),
+                     "bsdf": {"type": "ref", "id": f"mat-{shape['material']}"}}
+        else:
+            entry = {"type": shape["type"], "to_world": T(np.array(shape["to_world"], dtype=float)),
+                     "bsdf": {"type": "ref", "id": f"mat-{shape['material']}"}}
         if shape.get("emitter"):
             entry["emitter"] = {"type": "area", "radiance": {
                 "type": "rgb", "value": list(shape["emitter"]["radiance"])}}
@@ -179,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
         depth, spp = (int(v) for v in item.split(":"))
         passes = max(1, min(args.seeds, spp))
         spp -= spp % passes
-        scene = mi.load_dict(mitsuba_scene_dict(doc, depth))
+        scene = mi.load_dict(mitsuba_scene_dict(doc, depth, rr_depth=depth + 2))
         if not checked:
             worst = check_scene(scene)
             if worst > 1e-5:

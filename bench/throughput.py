@@ -1,27 +1,37 @@
-"""Throughput of the renderer on `cornell-box`, the farm's overhead, and Mitsuba 3.
+"""How soon rayfarm reaches a given error, next to Mitsuba 3, and what the farm adds.
 
-    python bench/throughput.py                        # depth 7, 256x256, 64 spp, all cores
-    python bench/throughput.py --spp 256 --repeat 3 --workers 2
+    python bench/throughput.py                       # the full table (about 30 min with references)
+    python bench/throughput.py --scenes cornell-box --spp 64 --samplers default --no-farm
 
-Three measurements, each after a warm-up (compilation is never timed), best
-of `--repeat`:
+The figure that counts is efficiency, 1 / (MSE x seconds): a sampler or a
+Russian roulette that makes samples cheap but noisy does not win by it.
 
-1. farm path: the job through plan -> units -> merge on the local process
-   pool (`renderer.render`, one single-threaded renderer per core; the shape
-   of the service's embedded executor). Camera samples/s and rays/s come
-   from the merged film's stats over the wall-clock time.
-1b. service: the same job submitted over HTTP to a `rayfarm serve` process
-   (embedded executor, SQLite ledger, a temporary data dir), timed from the
-   POST until GET /jobs/{id} says done: planning, the ledger, storing unit
-   films, the running preview, merging and writing the EXR and PNGs
-   included; once planned as one pass per tile and once progressively (the
-   default: passes of 1, 1, 2, 4, ... spp per tile, many more units).
-2. kernel: one `renderer.run_unit` over the whole image in this process,
-   Numba threads = all cores. farm overhead = farm wall time / kernel wall time.
-3. Mitsuba 3 (only if importable; `pip install -e '.[mitsuba]'`): the same
-   scene (built by bench/mitsuba_reference.py from our scene document, box
-   filter, independent sampler, max_depth = depth + 1, no Russian roulette)
-   in a subprocess, variant llvm_ad_rgb if it works, else scalar_rgb.
+1. References (cached in --refs, made once): each renderer renders each
+   scene at --ref-spp with i.i.d. samples (rayfarm `path-mis`, sampler
+   `random`; Mitsuba `path`, independent sampler, in 16 passes, no Russian
+   roulette), and keeps the mean and the variance of that mean per pixel.
+   Each renderer is measured against its own reference: the glossy plates of
+   veach-mis are not the same BSDF in both (mitsuba_reference.py). The two
+   cornell-box references are compared with each other as a check.
+2. MSE over the pixels that do not see an emitter directly, minus the
+   reference's own variance of the mean: E[(x - r)^2] = MSE(x) + Var(r) for
+   an independent reference, so the estimate does not flatter the noisier
+   renderer by the reference's noise. Each render is one in-process kernel
+   call over the whole image on --workers Numba threads, warm (compilation
+   is never timed); median time and mean MSE of --repeat renders with
+   different seeds.
+3. Mitsuba 3 (`pip install -e '.[mitsuba]'`, `llvm_ad_rgb` when it JITs,
+   else `scalar_rgb`) with its default settings (independent sampler,
+   Russian roulette from depth 5), max_depth = depth + 1, box filter, in a
+   child process: Dr.Jit's LLVM and Numba's stay apart.
+4. Scaling: the default's samples/s on 1 thread and on --workers threads,
+   and through the local process pool with 1 and --workers processes.
+5. Farm overhead: a job of about 10 s and one of about 1 s submitted over
+   HTTP to `rayfarm serve` (embedded executor, SQLite, a temporary data
+   dir), timed from the POST until the job is done, against the kernel's
+   time for the same image (one pass and progressive plans).
+
+The table goes to stdout and, in Markdown, to --out (docs/throughput.md).
 """
 
 from __future__ import annotations
@@ -30,42 +40,147 @@ import argparse
 import importlib.util
 import json
 import os
+import platform
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+SIZES = {"cornell-box": (256, 256), "veach-mis": (256, 144)}
+REF_SEED = 987654
 
 
-def best_of(repeat: int, fn):
-    """Run fn() `repeat` times; return (shortest wall time, result of that run)."""
-    best = None
-    for _ in range(repeat):
+def median(values):
+    return float(np.median(np.asarray(values, dtype=float)))
+
+
+# -- rayfarm ------------------------------------------------------------------------------
+
+class Rayfarm:
+    """In-process renders of whole images (one unit, rows over Numba threads)."""
+
+    def __init__(self, scene_name: str, size: tuple[int, int], depth: int, threads: int):
+        import numba
+
+        from renderer import load_scene, warm_up
+
+        numba.set_num_threads(threads)
+        warm_up()
+        self.name, (self.width, self.height), self.depth = scene_name, size, depth
+        self.scene = load_scene(scene_name)
+
+    def render(self, spp: int, sampler: str, seed: int, method: str = "path-mis", depth=None):
+        from renderer import RenderSpec, Unit, run_unit
+
+        spec = RenderSpec(method=method, spp=spp, depth=self.depth if depth is None else depth,
+                          width=self.width, height=self.height,
+                          tile_size=max(self.width, self.height), seed=seed, sampler=sampler).validate()
+        whole = Unit(0, 0, 0, self.width, self.height, 0, spp)
         t0 = time.perf_counter()
-        result = fn()
+        film = run_unit(self.scene, spec, whole)
         seconds = time.perf_counter() - t0
-        if best is None or seconds < best[0]:
-            best = (seconds, result)
-    return best
+        mean = film.sum / film.weight[..., None]
+        var = film.sum_sq / film.weight[..., None] - mean * mean
+        var = np.maximum(var, 0.0) * film.weight[..., None] / np.maximum(film.weight[..., None] - 1, 1)
+        return mean, var / film.weight[..., None], seconds, float(film.stats["rays"])
 
 
-def bench_farm(spec, workers: int, repeat: int) -> dict:
+def rayfarm_reference(rf: Rayfarm, ref_spp: int, refs: Path):
+    path = refs / f"rayfarm_{rf.name}_{rf.width}x{rf.height}_d{rf.depth}_spp{ref_spp}.npz"
+    if not path.exists():
+        print(f"  rendering rayfarm's reference: {ref_spp} spp ...", flush=True)
+        mean, var, seconds, _ = rf.render(ref_spp, "random", REF_SEED)
+        np.savez(path, mean=mean, var=var)
+        print(f"  ... {seconds:.0f} s", flush=True)
+    z = np.load(path)
+    return z["mean"], z["var"]
+
+
+def emitter_mask(rf: Rayfarm) -> np.ndarray:
+    """True where no emitter is seen directly (a depth-0 render is black there)."""
+    mean, _, _, _ = rf.render(4, "random", 1, depth=0)
+    return mean.max(axis=2) <= 0.0
+
+
+def mse_against(image, ref_mean, ref_var, mask) -> float:
+    return float(((image - ref_mean)[mask] ** 2).mean() - ref_var[mask].mean())
+
+
+# -- Mitsuba (child process) --------------------------------------------------------------
+
+def mitsuba_child(args) -> None:
+    """Render the reference if missing, then each spp --repeat times; print JSON."""
+    sys.path.insert(0, str(HERE))
+    import mitsuba as mi
+    from mitsuba_reference import choose_variant, mitsuba_scene_dict
+
+    from renderer import resolve_document
+
+    variant = choose_variant(args.mitsuba_variant)
+    width, height = SIZES[args.scene]
+    doc = resolve_document(args.scene)
+    doc["camera"]["width"], doc["camera"]["height"] = width, height
+    out = Path(args.mitsuba_child)
+    ref = Path(args.refs) / f"mitsuba_{args.scene}_{width}x{height}_d{args.depth}_spp{args.ref_spp}.npz"
+    if not ref.exists():
+        scene = mi.load_dict(mitsuba_scene_dict(doc, args.depth, rr_depth=args.depth + 2))
+        passes = 16
+        images = [np.array(mi.render(scene, spp=args.ref_spp // passes, seed=REF_SEED + k),
+                           dtype=np.float64)[..., :3] for k in range(passes)]
+        stack = np.stack(images)
+        np.savez(ref, mean=stack.mean(axis=0), var=stack.var(axis=0, ddof=1) / passes)
+    scene = mi.load_dict(mitsuba_scene_dict(doc, args.depth))  # its default Russian roulette
+    np.array(mi.render(scene, spp=4, seed=0))  # warm-up: JIT compilation
+    rows = []
+    for spp in args.spp:
+        for rep in range(args.repeat):
+            t0 = time.perf_counter()
+            image = np.array(mi.render(scene, spp=spp, seed=1 + rep), dtype=np.float64)[..., :3]
+            seconds = time.perf_counter() - t0
+            name = out / f"mitsuba_{spp}_{rep}.npy"
+            np.save(name, image)
+            rows.append({"spp": spp, "rep": rep, "seconds": seconds, "image": str(name)})
+    print(json.dumps({"variant": variant, "version": mi.__version__, "reference": str(ref),
+                      "rows": rows}))
+
+
+def run_mitsuba(args, scene_name: str, tmp: Path) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--mitsuba-child", str(tmp),
+           "--scenes", scene_name, "--spp", ",".join(map(str, args.spp)), "--depth", str(args.depth),
+           "--repeat", str(args.repeat), "--ref-spp", str(args.ref_spp), "--refs", str(args.refs)]
+    if args.mitsuba_variant:
+        cmd += ["--mitsuba-variant", args.mitsuba_variant]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        return {"error": (proc.stderr.strip().splitlines() or ["no output"])[-1]}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+# -- the farm -----------------------------------------------------------------------------
+
+def pool_rate(scene_name: str, size, depth: int, spp: int, processes: int, sampler: str) -> float:
+    """Camera samples/s of a job through plan -> units -> merge on the local pool."""
     from renderer import LocalPool, RenderSpec, render
 
-    with LocalPool(workers) as pool:
-        warm = RenderSpec(method=spec.method, spp=1, depth=spec.depth, width=spec.width,
-                          height=spec.height, tile_size=spec.tile_size, seed=spec.seed)
-        render("cornell-box", warm, pool=pool)  # every child has loaded its kernels
-        seconds, film = best_of(repeat, lambda: render("cornell-box", spec, pool=pool))
-    return {"seconds": seconds, "samples": film.stats["samples"], "rays": film.stats["rays"],
-            "unit_seconds": film.stats["seconds"], "mean": film.mean().mean(axis=(0, 1)).tolist()}
+    spec = RenderSpec(method="path-mis", spp=spp, depth=depth, width=size[0], height=size[1],
+                      tile_size=64, seed=1, sampler=sampler)
+    with LocalPool(processes) as pool:
+        render(scene_name, RenderSpec(**{**spec.__dict__, "spp": 1}), pool=pool)  # warm children
+        t0 = time.perf_counter()
+        render(scene_name, spec, pool=pool)
+        seconds = time.perf_counter() - t0
+    return size[0] * size[1] * spp / seconds
 
 
-def bench_service(spec, workers: int, repeat: int) -> dict:
-    """Submit the job to a fresh `rayfarm serve` and time it until done."""
+def service_times(scene_name: str, size, depth: int, spp_list: list[int], workers: int) -> dict:
+    """Submit-to-done seconds of jobs on a fresh `rayfarm serve` (embedded executor):
+    {spp: (one pass, progressive)}."""
     import socket
-    import tempfile
 
     import httpx
 
@@ -73,15 +188,16 @@ def bench_service(spec, workers: int, repeat: int) -> dict:
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
     data_dir = tempfile.mkdtemp(prefix="rayfarm-bench-")
+    token = "rf_bench_" + os.urandom(24).hex()  # the first admin's token (auth stays on)
     env = {**os.environ, "RAYFARM_DATA_DIR": data_dir, "RAYFARM_LOCAL_WORKERS": str(workers),
-           "RAYFARM_BROKER_URL": "", "RAYFARM_DATABASE_URL": ""}
+           "RAYFARM_BROKER_URL": "", "RAYFARM_DATABASE_URL": "", "RAYFARM_ADMIN_TOKEN": token}
     rayfarm = Path(sys.executable).with_name("rayfarm")
     server = subprocess.Popen([str(rayfarm), "serve", "--host", "127.0.0.1", "--port", str(port)],
                               env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    base = f"http://127.0.0.1:{port}"
     try:
-        with httpx.Client(base_url=base, timeout=30) as client:
-            deadline = time.monotonic() + 300
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30,
+                          headers={"Authorization": f"Bearer {token}"}) as client:
+            deadline = time.monotonic() + 600
             while True:
                 try:
                     if client.get("/healthz").status_code == 200:
@@ -92,10 +208,10 @@ def bench_service(spec, workers: int, repeat: int) -> dict:
                     raise RuntimeError("rayfarm serve did not come up")
                 time.sleep(0.2)
 
-            def run(spp: int, seed: int, progressive: bool = False) -> float:
-                body = {"scene": "cornell-box", "method": spec.method, "spp": spp, "depth": spec.depth,
-                        "tile_size": spec.tile_size, "seed": seed, "width": spec.width,
-                        "height": spec.height, "progressive": progressive}
+            def run(spp: int, seed: int, progressive: bool) -> float:
+                body = {"scene": scene_name, "method": "path-mis", "spp": spp, "depth": depth,
+                        "tile_size": 64, "seed": seed, "width": size[0], "height": size[1],
+                        "progressive": progressive}
                 t0 = time.perf_counter()
                 job = client.post("/jobs", json=body).raise_for_status().json()
                 while True:
@@ -104,129 +220,154 @@ def bench_service(spec, workers: int, repeat: int) -> dict:
                         return time.perf_counter() - t0
                     if state["status"] in ("failed", "canceled"):
                         raise RuntimeError(f"benchmark job {state['status']}: {state.get('error')}")
-                    time.sleep(0.02)
+                    time.sleep(0.01)
 
-            run(1, 0)  # warm-up: every pool process has loaded its kernels
-            seconds = min(run(spec.spp, spec.seed) for _ in range(repeat))
-            progressive = min(run(spec.spp, spec.seed, True) for _ in range(repeat))
+            run(1, 0, False)  # warm-up: every pool process has loaded its kernels
+            return {spp: (run(spp, 1, False), run(spp, 2, True)) for spp in spp_list}
     finally:
         server.terminate()
         server.wait(60)
-    return {"seconds": seconds, "progressive_seconds": progressive,
-            "samples": spec.width * spec.height * spec.spp}
 
 
-def bench_kernel(spec, threads: int, repeat: int) -> dict:
-    import numba
+# -- the report ---------------------------------------------------------------------------
 
-    from renderer import RenderSpec, Unit, load_scene, run_unit, warm_up
+class Report:
+    def __init__(self):
+        self.lines: list[str] = []
 
-    numba.set_num_threads(threads)
-    warm_up()
-    scene = load_scene("cornell-box")
-    warm = RenderSpec(method=spec.method, spp=1, depth=spec.depth, width=spec.width,
-                      height=spec.height, tile_size=spec.tile_size, seed=spec.seed)
-    run_unit(scene, warm, Unit(0, 0, 0, spec.width, spec.height, 0, 1))
-    whole = Unit(0, 0, 0, spec.width, spec.height, 0, spec.spp)
-    seconds, film = best_of(repeat, lambda: run_unit(scene, spec, whole))
-    return {"seconds": seconds, "samples": film.stats["samples"], "rays": film.stats["rays"]}
-
-
-def bench_mitsuba(args) -> dict:
-    """Run Mitsuba in a child process (Dr.Jit's LLVM and Numba's stay apart)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--mitsuba-child", "--spp", str(args.spp),
-           "--depth", str(args.depth), "--size", str(args.size), "--repeat", str(args.repeat)]
-    if args.mitsuba_variant:
-        cmd += ["--mitsuba-variant", args.mitsuba_variant]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        return {"error": (proc.stderr.strip().splitlines() or ["no output"])[-1]}
-    return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-def mitsuba_child(args) -> None:
-    sys.path.insert(0, str(HERE))
-    from mitsuba_reference import choose_variant, mitsuba_scene_dict
-
-    import mitsuba as mi
-    import numpy as np
-
-    from renderer import resolve_document
-
-    variant = choose_variant(args.mitsuba_variant)
-    doc = resolve_document("cornell-box")
-    doc["camera"]["width"] = doc["camera"]["height"] = args.size
-    scene = mi.load_dict(mitsuba_scene_dict(doc, args.depth))
-    np.array(mi.render(scene, spp=args.spp, seed=0))  # warm-up: JIT compilation
-    seed = iter(range(1, 1 + args.repeat))
-    seconds, image = best_of(args.repeat, lambda: np.array(mi.render(scene, spp=args.spp,
-                                                                     seed=next(seed))))
-    print(json.dumps({"variant": variant, "version": mi.__version__, "seconds": seconds,
-                      "samples": args.size * args.size * args.spp,
-                      "mean": image[..., :3].mean(axis=(0, 1)).tolist()}))
+    def __call__(self, line: str = "") -> None:
+        print(line, flush=True)
+        self.lines.append(line)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--spp", type=int, default=64)
+    parser.add_argument("--scenes", default="cornell-box,veach-mis")
+    parser.add_argument("--spp", default="16,64,256", type=lambda s: [int(v) for v in s.split(",")])
     parser.add_argument("--depth", type=int, default=7)
-    parser.add_argument("--size", type=int, default=256, help="image width and height")
-    parser.add_argument("--repeat", type=int, default=1, help="timed runs; the best is reported")
+    parser.add_argument("--samplers", default="all", help="all, default, or a comma list")
+    parser.add_argument("--repeat", type=int, default=3, help="renders per row (median time, mean MSE)")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                        help="pool processes and kernel threads (default: all cores)")
-    parser.add_argument("--tile-size", type=int, default=64)
+                        help="Numba threads and pool processes (default: all cores)")
+    parser.add_argument("--ref-spp", type=int, default=8192)
+    parser.add_argument("--refs", default=str(Path.home() / ".cache" / "rayfarm-bench"))
+    parser.add_argument("--out", default=str(ROOT / "docs" / "throughput.md"),
+                        help="the Markdown report ('' for none)")
     parser.add_argument("--no-mitsuba", action="store_true", help="skip Mitsuba even if installed")
+    parser.add_argument("--no-farm", action="store_true", help="skip scaling and farm overhead")
     parser.add_argument("--mitsuba-variant", default=None)
-    parser.add_argument("--mitsuba-child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--mitsuba-child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    Path(args.refs).mkdir(parents=True, exist_ok=True)
     if args.mitsuba_child:
+        args.scene = args.scenes
         mitsuba_child(args)
         return 0
 
-    from renderer import RenderSpec
+    from renderer import SAMPLERS, RenderSpec
 
-    spec = RenderSpec(method="path", spp=args.spp, depth=args.depth, width=args.size,
-                      height=args.size, tile_size=args.tile_size, seed=1).validate()
-    print(f"cornell-box, method path, depth {args.depth}, {args.size}x{args.size}, "
-          f"{args.spp} spp, {args.workers} workers/threads, best of {args.repeat}")
+    default = RenderSpec().sampler
+    samplers = (list(SAMPLERS) if args.samplers == "all" else
+                [default] if args.samplers == "default" else args.samplers.split(","))
+    samplers = [default] + [s for s in samplers if s != default]
+    report = Report()
+    report("# Throughput and efficiency: rayfarm and Mitsuba 3")
+    report()
+    report(f"`python bench/throughput.py` on {platform.machine()} with {os.cpu_count()} cores "
+           f"({platform.processor() or 'cpu'}), {time.strftime('%Y-%m-%d')}: `path-mis`, depth "
+           f"{args.depth} (Mitsuba max_depth {args.depth + 1}), box filter, {args.workers} "
+           f"threads. RMSE over the pixels that do not see an emitter, against each renderer's "
+           f"own {args.ref_spp}-spp reference, corrected for the reference's variance; "
+           f"efficiency = 1 / (MSE x seconds), and its ratio to Mitsuba's at the same spp. "
+           f"Median seconds and mean MSE of {args.repeat} renders. Default sampler: `{default}`.")
+    mts_available = not args.no_mitsuba and importlib.util.find_spec("mitsuba") is not None
+    if not mts_available:
+        report()
+        report("Mitsuba: " + ("skipped (--no-mitsuba)" if args.no_mitsuba else
+                              "not installed (pip install -e '.[mitsuba]'): no ratio column"))
 
-    farm = bench_farm(spec, args.workers, args.repeat)
-    print(f"farm path (local pool): {farm['seconds']:.3f} s  "
-          f"{farm['samples'] / farm['seconds'] / 1e6:.3f} M camera samples/s  "
-          f"{farm['rays'] / farm['seconds'] / 1e6:.3f} M rays/s  "
-          f"(sum of unit times {farm['unit_seconds']:.3f} s)")
-    print(f"  image mean R G B = {' '.join(f'{v:.6f}' for v in farm['mean'])}")
+    for scene_name in args.scenes.split(","):
+        size = SIZES[scene_name]
+        report()
+        report(f"## {scene_name}, {size[0]}x{size[1]}")
+        report()
+        rf = Rayfarm(scene_name, size, args.depth, args.workers)
+        mask = emitter_mask(rf)
+        ref_mean, ref_var = rayfarm_reference(rf, args.ref_spp, Path(args.refs))
+        mts_eff: dict[int, float] = {}
+        rows = []
+        with tempfile.TemporaryDirectory() as tmp:
+            if mts_available:
+                mts = run_mitsuba(args, scene_name, Path(tmp))
+                if "error" in mts:
+                    report(f"Mitsuba failed: {mts['error']}")
+                else:
+                    zref = np.load(mts["reference"])
+                    for spp in args.spp:
+                        runs = [r for r in mts["rows"] if r["spp"] == spp]
+                        seconds = median([r["seconds"] for r in runs])
+                        mse = float(np.mean([mse_against(np.load(r["image"]), zref["mean"],
+                                                         zref["var"], mask) for r in runs]))
+                        mts_eff[spp] = 1.0 / (mse * seconds)
+                        rows.append((f"Mitsuba {mts['version']} {mts['variant']}, independent", spp,
+                                     size[0] * size[1] * spp / seconds, None, mse, mts_eff[spp]))
+                    if scene_name == "cornell-box":
+                        both = mse_against(zref["mean"], ref_mean, ref_var + zref["var"], mask)
+                        report(f"The two references differ by RMSE {max(both, 0.0) ** 0.5:.5f} beyond "
+                               f"their noise (image mean {ref_mean[mask].mean():.4f}).")
+                        report()
+        for sampler in samplers:
+            rf.render(1, sampler, 0)  # every sampler's branch compiled and warm
+            for spp in args.spp:
+                runs = [rf.render(spp, sampler, 1 + rep) for rep in range(args.repeat)]
+                seconds = median([r[2] for r in runs])
+                mse = float(np.mean([mse_against(r[0], ref_mean, ref_var, mask) for r in runs]))
+                label = f"rayfarm, {sampler}" + (" (default)" if sampler == default else "")
+                rows.append((label, spp, size[0] * size[1] * spp / seconds,
+                             runs[0][3] / seconds / args.workers, mse, 1.0 / (mse * seconds)))
+                print(f"  {label:28s} {spp:4d} spp  {rows[-1][2] / 1e6:.2f} M samples/s  "
+                      f"RMSE {mse ** 0.5:.5f}", flush=True)
+        report("| renderer, sampler | spp | samples/s | rays/s per core | RMSE | efficiency | vs Mitsuba |")
+        report("|---|---|---|---|---|---|---|")
+        for label, spp, rate, rays, mse, eff in sorted(rows, key=lambda r: (r[1], r[0][0] != "M")):
+            ratio = f"{eff / mts_eff[spp]:.2f}" if spp in mts_eff else "-"
+            report(f"| {label} | {spp} | {rate / 1e6:.2f} M | "
+                   f"{'-' if rays is None else f'{rays / 1e6:.2f} M'} | {max(mse, 0.0) ** 0.5:.5f} | "
+                   f"{eff:.4g} | {ratio} |")
 
-    service = bench_service(spec, args.workers, args.repeat)
-    print(f"service (rayfarm serve, embedded executor, submit -> done), one pass: "
-          f"{service['seconds']:.3f} s  "
-          f"{service['samples'] / service['seconds'] / 1e6:.3f} M camera samples/s")
-    print(f"service, progressive passes: {service['progressive_seconds']:.3f} s  "
-          f"{service['samples'] / service['progressive_seconds'] / 1e6:.3f} M camera samples/s")
-
-    kernel = bench_kernel(spec, args.workers, args.repeat)
-    print(f"kernel, whole image in-process: {kernel['seconds']:.3f} s  "
-          f"{kernel['samples'] / kernel['seconds'] / 1e6:.3f} M camera samples/s  "
-          f"{kernel['rays'] / kernel['seconds'] / 1e6:.3f} M rays/s")
-    print(f"farm overhead: local pool time / kernel time = {farm['seconds'] / kernel['seconds']:.2f}x; "
-          f"service time / kernel time = {service['seconds'] / kernel['seconds']:.2f}x "
-          f"(progressive {service['progressive_seconds'] / kernel['seconds']:.2f}x)")
-
-    if args.no_mitsuba:
-        return 0
-    if importlib.util.find_spec("mitsuba") is None:
-        print("mitsuba: not installed (pip install -e '.[mitsuba]'); skipped")
-        return 0
-    mts = bench_mitsuba(args)
-    if "error" in mts:
-        print(f"mitsuba: failed: {mts['error']}")
-        return 0
-    mts_rate = mts["samples"] / mts["seconds"]
-    farm_rate = farm["samples"] / farm["seconds"]
-    print(f"mitsuba {mts['version']} ({mts['variant']}): {mts['seconds']:.3f} s  "
-          f"{mts_rate / 1e6:.3f} M camera samples/s")
-    print(f"  image mean R G B = {' '.join(f'{v:.6f}' for v in mts['mean'])}")
-    print(f"rayfarm farm path / mitsuba samples/s = {farm_rate / mts_rate:.3f}")
+    if not args.no_farm:
+        scene_name = args.scenes.split(",")[0]
+        size = SIZES[scene_name]
+        report()
+        report(f"## Scaling and farm overhead ({scene_name}, `{default}`)")
+        report()
+        rf = Rayfarm(scene_name, size, args.depth, 1)
+        one = size[0] * size[1] * 64 / median([rf.render(64, default, s)[2] for s in (1, 2)])
+        import numba
+        numba.set_num_threads(args.workers)
+        many = size[0] * size[1] * 64 / median([rf.render(64, default, s)[2] for s in (1, 2)])
+        pool_one = pool_rate(scene_name, size, args.depth, 64, 1, default)
+        pool_many = pool_rate(scene_name, size, args.depth, 64, args.workers, default)
+        report(f"Samples/s at 64 spp: Numba threads 1 -> {args.workers}: {one / 1e6:.2f} M -> "
+               f"{many / 1e6:.2f} M ({many / one:.2f}x); local pool processes 1 -> {args.workers}: "
+               f"{pool_one / 1e6:.2f} M -> {pool_many / 1e6:.2f} M ({pool_many / pool_one:.2f}x).")
+        report()
+        # spp for jobs of about 10 s and 1 s of kernel time on all cores
+        spp_for = {target: max(1, int(round(target * many / (size[0] * size[1]))))
+                   for target in (10.0, 1.0)}
+        kernel = {spp: median([rf.render(spp, default, s)[2] for s in (1, 2)])
+                  for spp in spp_for.values()}
+        service = service_times(scene_name, size, args.depth, list(spp_for.values()), args.workers)
+        report("| job | kernel (in-process) | service, one pass | overhead | service, progressive | overhead |")
+        report("|---|---|---|---|---|---|")
+        for target, spp in spp_for.items():
+            k, (one_pass, progressive) = kernel[spp], service[spp]
+            report(f"| {spp} spp (~{target:g} s) | {k:.2f} s | {one_pass:.2f} s | "
+                   f"{100 * (one_pass / k - 1):+.1f} % | {progressive:.2f} s | "
+                   f"{100 * (progressive / k - 1):+.1f} % |")
+    if args.out:
+        Path(args.out).write_text("\n".join(report.lines) + "\n")
+        print(f"wrote {args.out}")
     return 0
 
 

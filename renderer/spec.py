@@ -43,7 +43,7 @@ class RenderSpec:
     height: int = 256
     tile_size: int = 64
     seed: int = 0
-    sampler: str = "random"
+    sampler: str = "sobol"
     options: dict[str, Any] = field(default_factory=dict)
 
     def validate(self, max_work: int = DEFAULT_MAX_WORK, scene: dict | None = None) -> "RenderSpec":

@@ -154,6 +154,12 @@ class Scheduler:
             self._thread.join(timeout)
             self._thread = None
 
+    def wake(self) -> None:
+        """Tick now rather than at the next poll (a job was submitted or changed
+        here): a short job does not wait up to poll_interval to start. Safe from
+        any thread; a standby's wake only re-checks that it does not lead."""
+        self._wake.set()
+
     @property
     def alive(self) -> bool:
         return self._thread is not None and self._thread.is_alive()

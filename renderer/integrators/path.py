@@ -27,8 +27,9 @@ surviving throughput by the survival probability, so it adds noise, not bias.
 Random dimensions of a camera sample (drawn from the job's pixel sampler,
 renderer/samplers/): 0-1 the film position, then 8 per bounce b at 2 + 8 b:
 the 2D pairs +0..1 the point on a light, +2..3 the BSDF direction; then the
-1D decisions +4 which light, +5 glass reflect/refract, +6 Russian roulette,
-+7 the one-sample strategy choice.
+1D decisions +4 which light, +5 Russian roulette (one pair: a stratified
+sampler evaluates it once), +6 glass reflect/refract, +7 the one-sample
+strategy choice (samplers/dispatch.py names them).
 """
 
 from __future__ import annotations
@@ -69,7 +70,8 @@ from ..kernels.sampling import (
 )
 from ..kernels.tile import add_block, add_sample, n_samples, store_pixel
 from ..registry import SAMPLERS, Method, Option
-from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
+from ..samplers import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIM_RR, DIM_STRATEGY,
+                        DIMS_PER_BOUNCE, u1d, u2d)
 from .tile import start_tile, tile_plan
 
 # Strategies of the path family (one kernel, switched at run time).
@@ -135,6 +137,8 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
         if bounce == depth:
             break
         base = 2 + DIMS_PER_BOUNCE * bounce
+        have_rr = False  # the Russian roulette number, drawn with the light pick
+        u_rr = 0.0
         mtype = mat_type[mat]
         if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
             if cos_o <= 0.0:
@@ -144,13 +148,14 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             use_light = strategy == NEE or strategy == MIS or strategy == DIRECT
             light_scale = 1.0
             if strategy == ONE_SAMPLE:
-                chose_bsdf = u1d(smp, key, seed, pixel, index, spp, base + 7) >= 0.5
+                chose_bsdf = u1d(smp, key, seed, pixel, index, spp, base + DIM_STRATEGY) >= 0.5
                 use_light = not chose_bsdf
                 light_scale = 2.0  # the light strategy was drawn with probability 1/2
             if use_light and n_lights > 0:
-                ua, ub = u2d(smp, key, seed, pixel, index, spp, base)
-                wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
-                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + 4), ua, ub)
+                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT)
+                u_pick, u_rr = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK)
+                have_rr = True
+                wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, u_pick, ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
                     if mtype == MAT_DIFFUSE:
@@ -178,7 +183,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
                         lb += bb * fb * eb * weight
             if strategy == DIRECT:
                 break  # Whitted: light stops at the first non-specular surface
-            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + 2)
+            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF)
             if mtype == MAT_GLOSSY:
                 wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
                     nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab, ua, ub)
@@ -213,7 +218,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
         else:  # MAT_DIELECTRIC
             dx, dy, dz, weight, es, side = dielectric_sample(
                 dx, dy, dz, nx, ny, nz, mat_param[mat, 0],
-                u1d(smp, key, seed, pixel, index, spp, base + 5))
+                u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS))
             br *= weight
             bg *= weight
             bb *= weight
@@ -224,7 +229,9 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             m = max(br, max(bg, bb)) * eta_scale
             if m < 1.0:
                 q = max(0.0, 1.0 - m)
-                if u1d(smp, key, seed, pixel, index, spp, base + 6) < q:
+                if not have_rr:
+                    u_rr = u1d(smp, key, seed, pixel, index, spp, base + DIM_RR)
+                if u_rr < q:
                     break
                 s = 1.0 / (1.0 - q)
                 br *= s

@@ -139,7 +139,7 @@ from ..radiosity_solve import (
     welded_vertices,
 )
 from ..registry import SAMPLERS, Method, Option
-from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
+from ..samplers import DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIMS_PER_BOUNCE, u1d, u2d
 from .tile import start_tile
 
 # ---------------------------------------------------------------- display
@@ -214,9 +214,9 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
             lb += bb * pt.emit[p, 2] * inv_pi
             ar, ag, ab = pt.rho[p, 0], pt.rho[p, 1], pt.rho[p, 2]
             if n_lights > 0:
-                ua, ub = u2d(smp, key, seed, pixel, index, spp, base)
+                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT)
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
-                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + 4), ua, ub)
+                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK), ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0:
                     sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz,
@@ -228,7 +228,7 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                         lr += br * ar * er * w
                         lg += bg * ag * eg * w
                         lb += bb * ab * eb * w
-            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + 2)
+            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF)
             gx, gy, gz, cos_g, pdf = diffuse_sample(nx, ny, nz, ua, ub)
             br, bg, bb = br * ar, bg * ag, bb * ab  # f cos / pdf = albedo
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
@@ -270,7 +270,7 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                 elif mtype == MAT_DIELECTRIC:
                     dx, dy, dz, w, es, side = dielectric_sample(
                         dx, dy, dz, nx, ny, nz, sc.mat_param[mat, 0],
-                        u1d(smp, key, seed, pixel, index, spp, 2 + DIMS_PER_BOUNCE * g + 5))
+                        u1d(smp, key, seed, pixel, index, spp, 2 + DIMS_PER_BOUNCE * g + DIM_GLASS))
                     br, bg, bb = br * w, bg * w, bb * w
                     ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
                 else:
@@ -291,11 +291,11 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
         elif mtype == MAT_DIELECTRIC:
             dx, dy, dz, w, es, side = dielectric_sample(
                 dx, dy, dz, nx, ny, nz, sc.mat_param[mat, 0],
-                u1d(smp, key, seed, pixel, index, spp, base + 5))
+                u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS))
             br, bg, bb = br * w, bg * w, bb * w
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
         elif mtype == MAT_GLOSSY:
-            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + 2)
+            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF)
             wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
                 nx, ny, nz, -dx, -dy, -dz, sc.mat_param[mat, 1], sc.mat_rgb[mat, 0],
                 sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2], ua, ub)

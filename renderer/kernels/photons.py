@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numba import prange
 
-from ..samplers import DIMS_PER_BOUNCE, u1d, u2d
+from ..samplers import DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIMS_PER_BOUNCE, u1d, u2d
 from . import kernel, kernel_inline, kernel_parallel
 from .bsdf import (
     MAT_DIFFUSE,
@@ -176,9 +176,9 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
             if cos_o <= 0.0:
                 break
             if n_lights > 0:
-                ua, ub = u2d(smp, key, seed, pixel, index, spp, base)
+                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT)
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
-                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + 4), ua, ub)
+                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK), ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
                     if mtype == MAT_DIFFUSE:
@@ -211,7 +211,7 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
         else:  # glass: radiance transport on the camera side (1/eta^2)
             dx, dy, dz, weight, es, side = dielectric_sample(
                 dx, dy, dz, nx, ny, nz, mat_param[mat, 0],
-                u1d(smp, key, seed, pixel, index, spp, base + 5))
+                u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS))
             br *= weight
             bg *= weight
             bb *= weight

@@ -52,11 +52,13 @@ import numpy as np
 
 # Numba's stale-cache guard for these modules lives with the others in
 # renderer/kernels/__init__.py (imported by every sampler module first).
-from .dispatch import (DIMS_PER_BOUNCE, SAMPLER_BLUENOISE, SAMPLER_HALTON, SAMPLER_HAMMERSLEY,
+from .dispatch import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIM_RR, DIM_STRATEGY,
+                       DIMS_PER_BOUNCE, SAMPLER_BLUENOISE, SAMPLER_HALTON, SAMPLER_HAMMERSLEY,
                        SAMPLER_JITTERED, SAMPLER_MULTIJITTER, SAMPLER_NROOKS, SAMPLER_RANDOM,
                        SAMPLER_SOBOL, SAMPLER_UNIFORM, fill_2d, sample_1d, sample_2d, u1d, u2d)
 
-__all__ = ["DIMS_PER_BOUNCE", "SAMPLER_BLUENOISE", "SAMPLER_HALTON", "SAMPLER_HAMMERSLEY", "SAMPLER_JITTERED",
+__all__ = ["DIM_BSDF", "DIM_GLASS", "DIM_LIGHT", "DIM_LIGHT_PICK", "DIM_RR", "DIM_STRATEGY",
+           "DIMS_PER_BOUNCE", "SAMPLER_BLUENOISE", "SAMPLER_HALTON", "SAMPLER_HAMMERSLEY", "SAMPLER_JITTERED",
            "SAMPLER_MULTIJITTER", "SAMPLER_NROOKS", "SAMPLER_RANDOM", "SAMPLER_SOBOL",
            "SAMPLER_UNIFORM", "fill_2d", "points", "sample_1d", "sample_2d", "u1d", "u2d"]
 

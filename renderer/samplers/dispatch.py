@@ -84,10 +84,18 @@ def fill_2d(sampler_id, seed, pixel, first, spp, dim, out):
         out[k, 1] = v
 
 
-# The dimensions a path vertex draws (renderer/integrators/path.py lays them
-# out): path tracing and the specular continuations of photon mapping and
-# radiosity's display pass read the same ones.
+# The dimensions a path vertex draws, at 2 + DIMS_PER_BOUNCE * bounce + the
+# offsets below: path tracing and the specular continuations of photon
+# mapping and radiosity's display pass read the same ones. The light pick and
+# Russian roulette share a pair, so a diffuse vertex costs a stratified
+# sampler three pair evaluations, not four.
 DIMS_PER_BOUNCE = 8
+DIM_LIGHT = 0  # 2D: the point on the light
+DIM_BSDF = 2  # 2D: the BSDF-sampled direction
+DIM_LIGHT_PICK = 4  # 1D: which light (first of a pair with DIM_RR)
+DIM_RR = 5  # 1D: Russian roulette
+DIM_GLASS = 6  # 1D: reflect or refract at glass
+DIM_STRATEGY = 7  # 1D: one-sample MIS's choice of strategy
 
 
 @kernel_inline
@@ -96,6 +104,9 @@ def u1d(smp, key, seed, pixel, index, spp, dim):
     the sample's precomputed hash key: the common case stays cheap)."""
     if smp == SAMPLER_RANDOM:
         return hashed_uniform(key, dim)
+    if smp == SAMPLER_SOBOL:
+        u, v = _sobol_pair(seed, pixel, index, spp, dim >> 1)
+        return v if dim & 1 else u
     return sample_1d(smp, seed, pixel, index, spp, dim)
 
 
@@ -104,4 +115,6 @@ def u2d(smp, key, seed, pixel, index, spp, dim):
     """Dimensions (dim, dim + 1), dim even: one 2D pair of the sampler."""
     if smp == SAMPLER_RANDOM:
         return hashed_uniform(key, dim), hashed_uniform(key, dim + 1)
+    if smp == SAMPLER_SOBOL:
+        return _sobol_pair(seed, pixel, index, spp, dim >> 1)
     return sample_2d(smp, seed, pixel, index, spp, dim)

@@ -20,13 +20,12 @@ block. 32-bit precision: indices are taken mod 2^32.
 
 import numpy as np
 
-from ..kernels import kernel
+from ..kernels import kernel, kernel_inline
 from ..registry import Sampler, register_sampler
-from .common import (INV_2_32, MASK32, U1, U16, U31, block_key, hash32, pair_key, permute,
+from .common import (INV_2_32, MASK32, U1, U8, U16, U32, block_key, hash32, pair_key, permute,
                      reverse_bits32, split_block)
 
 SAMPLER_SOBOL = 7
-_TOP = np.uint64(1) << U31
 _H1 = np.uint64(0x3D20ADEA)
 _H2 = np.uint64(0x05526C56)
 _H3 = np.uint64(0x53A22864)
@@ -37,40 +36,86 @@ register_sampler(Sampler(
     "scramble and sample order (pbrt-v4 PaddedSobolSampler)."))
 
 
+def _sobol1_bits_slow(j: int) -> int:
+    """Sobol' dimension 1 at index j by its generator (the Pascal matrix mod 2):
+    bit k of j adds column k, and column k+1 is column k xor itself >> 1."""
+    x, v = 0, 1 << 31
+    while j:
+        if j & 1:
+            x ^= v
+        j >>= 1
+        v ^= v >> 1
+    return x
+
+
+def _reversed_byte_tables() -> np.ndarray:
+    """table[k, b] = the bit-reversed Sobol' dimension-1 value of b << 8k.
+
+    The generator is linear over GF(2), so sobol1(j) is the xor of the values
+    of j's bytes: four lookups instead of a loop over j's bits. Stored
+    bit-reversed because the Owen scramble works on reversed bits (below)."""
+    table = np.zeros((4, 256), dtype=np.uint64)
+    for k in range(4):
+        for b in range(256):
+            table[k, b] = int(f"{_sobol1_bits_slow(b << (8 * k)):032b}"[::-1], 2)
+    return table
+
+
+_REV_SOBOL1 = _reversed_byte_tables()
+_BYTE = np.uint64(0xFF)
+
+
+@kernel_inline
+def _reversed_sobol1(j):
+    """reverse_bits32(sobol_bits(j, 1)) by table, for j < 2^32."""
+    x = _REV_SOBOL1[0, j & _BYTE]
+    j >>= U8
+    if j != 0:
+        x ^= _REV_SOBOL1[1, j & _BYTE]
+        j >>= U8
+        if j != 0:
+            x ^= _REV_SOBOL1[2, j & _BYTE] ^ _REV_SOBOL1[3, (j >> U8) & _BYTE]
+    return x
+
+
 @kernel
 def sobol_bits(j, d):
     """The 32-bit fraction of Sobol' dimension `d` (0 or 1) at index `j`."""
     bits = np.uint64(j) & MASK32
     if d == 0:
         return reverse_bits32(bits)
-    x = np.uint64(0)
-    v = _TOP
-    while bits != 0:
-        if bits & U1:
-            x ^= v
-        bits >>= U1
-        v ^= v >> U1
+    return reverse_bits32(_reversed_sobol1(bits))
+
+
+@kernel_inline
+def _scramble_reversed(x, seed):
+    """The Laine-Karras style hash of Burley (2020) on bit-reversed bits: a
+    nested uniform scramble of the fraction whose reversed bits are `x`."""
+    s = np.uint64(seed) & MASK32
+    x ^= (x * _H1) & MASK32
+    x = (x + s) & MASK32
+    x = (x * ((s >> U16) | U1)) & MASK32
+    x ^= (x * _H2) & MASK32
+    x ^= (x * _H3) & MASK32
     return x
 
 
 @kernel
 def owen_scramble(v, seed):
     """Nested uniform (Owen) scramble of the 32-bit fraction `v` (Burley 2020)."""
-    s = np.uint64(seed) & MASK32
-    x = reverse_bits32(v)
-    x ^= (x * _H1) & MASK32
-    x = (x + s) & MASK32
-    x = (x * ((s >> U16) | U1)) & MASK32
-    x ^= (x * _H2) & MASK32
-    x ^= (x * _H3) & MASK32
-    return reverse_bits32(x)
+    return reverse_bits32(_scramble_reversed(reverse_bits32(v), seed))
 
 
-@kernel
+@kernel_inline
 def sample_pair(seed, pixel, index, spp, pair):
     b, i, n = split_block(index, spp, spp)
     key = pair_key(seed, pixel, pair, 7)
-    j = b * (spp if spp > 0 else 1) + permute(i, n, block_key(key, b))
-    u = float(owen_scramble(sobol_bits(j, 0), hash32(key, 1))) * INV_2_32
-    v = float(owen_scramble(sobol_bits(j, 1), hash32(key, 2))) * INV_2_32
+    j = np.uint64(b * (spp if spp > 0 else 1) + permute(i, n, block_key(key, b))) & MASK32
+    # dimension 0 is the van der Corput sequence, the reversed bits of j: the
+    # scramble works on reversed bits, so j goes in as it is
+    # three independent 32-bit words per pair: the low half of `key` orders
+    # block 0's samples (permute reads it), its high half and one more hash
+    # scramble the two coordinates
+    u = float(reverse_bits32(_scramble_reversed(j, hash32(key, 1)))) * INV_2_32
+    v = float(reverse_bits32(_scramble_reversed(_reversed_sobol1(j), key >> U32))) * INV_2_32
     return u, v

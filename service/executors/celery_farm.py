@@ -54,6 +54,7 @@ import json
 import logging
 import math
 import re
+import threading
 import time
 import uuid
 from collections import Counter
@@ -68,6 +69,9 @@ from worker.keys import (FILM_TTL, QUEUE, TASK_RENDER_UNIT, cancel_key, heartbea
                          scene_key, unit_log_key)
 from worker.presence import forget_worker, read_workers, set_disabled
 from celery.utils.nodenames import worker_direct
+
+# The Redis result backend's key (and pub/sub channel) of a task's state.
+RESULT_KEY_PREFIX = "celery-task-meta-"
 
 from ..settings import Settings
 from .base import Executor, Flight, Observation, RunningUnit, Ticket, WorkerInfo
@@ -133,6 +137,8 @@ class CeleryExecutor(Executor):
         self.poll_interval = settings.poll_interval
         self._unit_seconds = 0.1  # a running mean of render seconds per unit (see limit)
         self._processes, self._processes_read = 0, -1e9
+        self._listener: threading.Thread | None = None  # on_progress's pub/sub thread
+        self._listening = threading.Event()
 
     # -- submitting ------------------------------------------------------------
     def _publish_scene(self, scene_hash: str) -> None:
@@ -499,7 +505,44 @@ class CeleryExecutor(Executor):
             broker = f"unreachable: {exc}"
         return {"executor": self.name, "broker": broker}
 
+    # -- landing ---------------------------------------------------------------
+    def on_progress(self, callback) -> None:
+        """Call `callback` whenever a task's state is stored: Celery's Redis
+        result backend PUBLISHes every result on the channel named by its key
+        (celery-task-meta-<id>), so the scheduler collects a landed unit at
+        once instead of at its next poll (poll_interval). Pub/sub channels are
+        server-wide, so another farm on the same Redis only wakes us early."""
+        if self._listener is not None:
+            return
+        self._listening.set()
+        self._listener = threading.Thread(target=self._listen, args=(callback,),
+                                          name="rayfarm-landing", daemon=True)
+        self._listener.start()
+
+    def _listen(self, callback) -> None:
+        while self._listening.is_set():
+            pubsub = self.redis.pubsub(ignore_subscribe_messages=True)
+            try:
+                pubsub.psubscribe(f"{RESULT_KEY_PREFIX}*")
+                while self._listening.is_set():
+                    if pubsub.get_message(timeout=1.0) is not None:
+                        callback()
+            except (redis.RedisError, OSError, ValueError) as exc:
+                # Redis gone or restarting: the scheduler polls meanwhile
+                if self._listening.is_set():
+                    log.info("landing listener: %s; retrying", exc)
+                    time.sleep(1.0)
+            finally:
+                try:
+                    pubsub.close()
+                except (redis.RedisError, OSError):
+                    pass
+
     def close(self) -> None:
+        self._listening.clear()
+        if self._listener is not None:
+            self._listener.join(5.0)
+            self._listener = None
         self.redis.close()
         self.app.close()
 

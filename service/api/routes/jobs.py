@@ -31,6 +31,7 @@ def create_job(body: JobCreate, session: SessionDep, farm: FarmDep, actor: Actor
     admission.check_submission_rate(farm.limiter, farm.settings, actor)
     job = jobs.create_job(session, farm.store, farm.settings, actor, body, utcnow())
     session.commit()
+    farm.scheduler.wake()
     response.headers["Location"] = f"/jobs/{job.id}"
     return JobPublic.from_job(job, utcnow())
 
@@ -97,8 +98,9 @@ def _clear(session, actor, job_id: str, worker: str):
 def cancel_job(job_id: str, farm: FarmDep, actor: ActorDep) -> JobPublic:
     """Cancel a queued, running or paused job: its unfinished units are dropped
     (409 if it already finished)."""
-    return JobPublic.from_job(jobs.cancel_job_retrying(farm.sessions, actor, job_id, utcnow),
-                              utcnow())
+    job = jobs.cancel_job_retrying(farm.sessions, actor, job_id, utcnow)
+    farm.scheduler.wake()  # its tasks are canceled and its slots go to others at once
+    return JobPublic.from_job(job, utcnow())
 
 
 @router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses=_CHANGE)
@@ -134,6 +136,7 @@ def resume_job(job_id: str, farm: FarmDep, actor: ActorDep) -> JobPublic:
     """Continue a paused job (409 if it is not paused)."""
     job = jobs.retrying(farm.sessions, job_id,
                         lambda session: jobs.resume_job(session, actor, job_id, utcnow()))
+    farm.scheduler.wake()
     return JobPublic.from_job(job, utcnow())
 
 
@@ -143,6 +146,7 @@ def retry_job(job_id: str, farm: FarmDep, actor: ActorDep) -> JobPublic:
     (409 if there is nothing to retry)."""
     job = jobs.retrying(farm.sessions, job_id,
                         lambda session: jobs.retry_job(session, actor, job_id, utcnow()))
+    farm.scheduler.wake()
     return JobPublic.from_job(job, utcnow())
 
 
@@ -152,6 +156,7 @@ def requeue_job(job_id: str, farm: FarmDep, actor: ActorDep) -> JobPublic:
     (409 if it is queued already)."""
     job = jobs.retrying(farm.sessions, job_id, lambda session: jobs.requeue_job(
         session, farm.store, actor, job_id, utcnow()))
+    farm.scheduler.wake()
     return JobPublic.from_job(job, utcnow())
 
 
