@@ -126,7 +126,7 @@ def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1, rr_depth: int | None
         if shape.get("emitter"):
             entry["emitter"] = {"type": "area", "radiance": {
                 "type": "rgb", "value": list(shape["emitter"]["radiance"])}}
-        scene[shape["name"]] = entry
+        scene[shape["name"].replace(".", "_")] = entry  # "." delimits Mitsuba object paths
     if doc.get("emitters"):
         raise ValueError("standalone emitters are not translated")
     return scene

@@ -301,7 +301,9 @@ class Film(PartialFilm):
 
         path = Path(path)
         tmp = path.with_name(path.name + ".part")
-        Image.fromarray(tonemap_srgb8(self.mean())).save(tmp, format="PNG")
+        # compress_level 1: previews are rewritten while a job renders; zlib's
+        # default level 6 takes longer for files about as small
+        Image.fromarray(tonemap_srgb8(self.mean())).save(tmp, format="PNG", compress_level=1)
         tmp.replace(path)
 
     def write_noise_png(self, path: str | Path) -> None:
@@ -310,7 +312,8 @@ class Film(PartialFilm):
 
         path = Path(path)
         tmp = path.with_name(path.name + ".part")
-        Image.fromarray(noise_srgb8(self.mean(), self.variance_of_mean())).save(tmp, format="PNG")
+        Image.fromarray(noise_srgb8(self.mean(), self.variance_of_mean())).save(
+            tmp, format="PNG", compress_level=1)
         tmp.replace(path)
 
 

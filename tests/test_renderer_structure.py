@@ -151,3 +151,26 @@ def test08_every_pixel_major_tile_loop_folds_and_stores_through_one_place():
     for name, path in modules.items():
         if name not in ("renderer.kernels.tile", "renderer.integrators.raster"):
             assert "out_w[row, c] =" not in path.read_text(), f"{name} stores a pixel itself"
+
+
+def _calls(path: Path, function: str | None = None) -> set[str]:
+    """Names called in a module (or in one of its functions)."""
+    tree = ast.parse(path.read_text(), str(path))
+    if function is not None:
+        tree = next(node for node in ast.walk(tree)
+                    if isinstance(node, ast.FunctionDef) and node.name == function)
+    return {node.func.id for node in ast.walk(tree)
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name)}
+
+
+def test09_camera_side_specular_chains_take_one_step():
+    """Path tracing, photon mapping's visible points and radiosity's display
+    follow mirrors and glass through kernels/bsdf.specular_step, not each with
+    its own copy of reflect / dielectric_sample (there were four)."""
+    renderer = ROOT / PACKAGE
+    for path, function in ((renderer / "integrators" / "path.py", None),
+                           (renderer / "integrators" / "radiosity.py", None),
+                           (renderer / "kernels" / "photons.py", "visible_point")):
+        calls = _calls(path, function)
+        assert "specular_step" in calls, path
+        assert not calls & {"reflect", "dielectric_sample"}, (path, function)

@@ -45,10 +45,9 @@ from ..kernels.bsdf import (
     MAT_DIFFUSE,
     MAT_GLOSSY,
     MAT_MIRROR,
-    dielectric_sample,
     diffuse_eval,
     diffuse_sample,
-    reflect,
+    specular_step,
 )
 from ..kernels.camera import camera_ray
 from ..kernels.geometry import (
@@ -206,25 +205,18 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             vx, vy, vz = hx, hy, hz
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
             dx, dy, dz = wx, wy, wz
-        elif mtype == MAT_MIRROR:
-            if cos_o <= 0.0:
+        else:  # a mirror or glass
+            if mtype == MAT_MIRROR and cos_o <= 0.0:
                 break
-            dx, dy, dz = reflect(dx, dy, dz, nx, ny, nz)
-            br *= mat_rgb[mat, 0]
-            bg *= mat_rgb[mat, 1]
-            bb *= mat_rgb[mat, 2]
-            specular = True
-            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
-        else:  # MAT_DIELECTRIC
-            dx, dy, dz, weight, es, side = dielectric_sample(
-                dx, dy, dz, nx, ny, nz, mat_param[mat, 0],
-                u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS))
-            br *= weight
-            bg *= weight
-            bb *= weight
+            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS)
+            dx, dy, dz, ox, oy, oz, wr, wg, wb, es = specular_step(
+                mtype, mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2], mat_param[mat, 0],
+                hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+            br *= wr
+            bg *= wg
+            bb *= wb
             eta_scale *= es
             specular = True
-            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
         if bounce >= 1:
             m = max(br, max(bg, bb)) * eta_scale
             if m < 1.0:

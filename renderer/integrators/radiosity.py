@@ -104,9 +104,8 @@ from ..kernels.bsdf import (
     MAT_DIELECTRIC,
     MAT_GLOSSY,
     MAT_MIRROR,
-    dielectric_sample,
     diffuse_sample,
-    reflect,
+    specular_step,
 )
 from ..kernels.camera import camera_ray
 from ..kernels.geometry import (
@@ -261,18 +260,13 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                 if g == depth:
                     break
                 mtype = sc.mat_type[mat]
-                if mtype == MAT_MIRROR and cos_o > 0.0:
-                    dx, dy, dz = reflect(dx, dy, dz, nx, ny, nz)
-                    br *= sc.mat_rgb[mat, 0]
-                    bg *= sc.mat_rgb[mat, 1]
-                    bb *= sc.mat_rgb[mat, 2]
-                    ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
-                elif mtype == MAT_DIELECTRIC:
-                    dx, dy, dz, w, es, side = dielectric_sample(
-                        dx, dy, dz, nx, ny, nz, sc.mat_param[mat, 0],
-                        u1d(smp, key, seed, pixel, index, spp, 2 + DIMS_PER_BOUNCE * g + DIM_GLASS))
-                    br, bg, bb = br * w, bg * w, bb * w
-                    ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+                if (mtype == MAT_MIRROR and cos_o > 0.0) or mtype == MAT_DIELECTRIC:
+                    u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
+                                                            2 + DIMS_PER_BOUNCE * g + DIM_GLASS)
+                    dx, dy, dz, ox, oy, oz, wr, wg, wb, _es = specular_step(
+                        mtype, sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2],
+                        sc.mat_param[mat, 0], hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+                    br, bg, bb = br * wr, bg * wg, bb * wb
                 else:
                     break  # glossy ends a gather ray (documented)
                 specular = True
@@ -280,20 +274,14 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
         if left == 0:
             break
         mtype = sc.mat_type[mat]
-        if mtype == MAT_MIRROR:
-            if cos_o <= 0.0:
+        if mtype == MAT_MIRROR or mtype == MAT_DIELECTRIC:
+            if mtype == MAT_MIRROR and cos_o <= 0.0:
                 break
-            dx, dy, dz = reflect(dx, dy, dz, nx, ny, nz)
-            br *= sc.mat_rgb[mat, 0]
-            bg *= sc.mat_rgb[mat, 1]
-            bb *= sc.mat_rgb[mat, 2]
-            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
-        elif mtype == MAT_DIELECTRIC:
-            dx, dy, dz, w, es, side = dielectric_sample(
-                dx, dy, dz, nx, ny, nz, sc.mat_param[mat, 0],
-                u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS))
-            br, bg, bb = br * w, bg * w, bb * w
-            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS)
+            dx, dy, dz, ox, oy, oz, wr, wg, wb, _es = specular_step(
+                mtype, sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2],
+                sc.mat_param[mat, 0], hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+            br, bg, bb = br * wr, bg * wg, bb * wb
         elif mtype == MAT_GLOSSY:
             ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF)
             wx, wy, wz, sr, sg, sb, pdf = glossy_sample(

@@ -9,7 +9,8 @@ both wo and wi are on the front side. The dielectric is two-sided.
 
 import math
 
-from . import kernel
+from . import kernel, kernel_inline
+from .geometry import offset_origin
 from .sampling import INV_PI, cosine_hemisphere, to_world
 
 MAT_DIFFUSE, MAT_MIRROR, MAT_DIELECTRIC, MAT_GLOSSY = 0, 1, 2, 3
@@ -86,3 +87,21 @@ def dielectric_sample(dx, dy, dz, nx, ny, nz, ior, u):
     tx, ty, tz = dx / eta + k * fx, dy / eta + k * fy, dz / eta + k * fz
     inv = 1.0 / math.sqrt(tx * tx + ty * ty + tz * tz)
     return tx * inv, ty * inv, tz * inv, 1.0 / (eta * eta), eta * eta, -side_in
+
+
+@kernel_inline
+def specular_step(mtype, tint_r, tint_g, tint_b, ior, hx, hy, hz, nx, ny, nz, dx, dy, dz, u):
+    """The one continuation through a delta lobe (a mirror, `mtype` MAT_MIRROR,
+    or glass), shared by every method that follows specular chains from the
+    camera (path tracing, photon mapping's visible points, radiosity's
+    display): (new direction, the offset origin it leaves from, throughput
+    factor r g b, eta scale). `u` decides reflection or refraction at glass;
+    a mirror ignores it (callers draw it only for glass). The one-sided
+    mirror's back (cos_o <= 0) is the caller's to stop at."""
+    if mtype == MAT_MIRROR:
+        rx, ry, rz = reflect(dx, dy, dz, nx, ny, nz)
+        ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
+        return rx, ry, rz, ox, oy, oz, tint_r, tint_g, tint_b, 1.0
+    wx, wy, wz, weight, eta_scale, side = dielectric_sample(dx, dy, dz, nx, ny, nz, ior, u)
+    ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+    return wx, wy, wz, ox, oy, oz, weight, weight, weight, eta_scale

@@ -21,6 +21,7 @@ from .bsdf import (
     diffuse_eval,
     diffuse_sample,
     reflect,
+    specular_step,
 )
 from .camera import camera_ray
 from .geometry import (
@@ -200,22 +201,16 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
                         lb += bb * fb * eb * w
             kmax = depth - bounce
             break
-        elif mtype == MAT_MIRROR:
-            if cos_o <= 0.0:
+        else:  # a mirror or glass: radiance transport on the camera side (1/eta^2)
+            if mtype == MAT_MIRROR and cos_o <= 0.0:
                 break
-            dx, dy, dz = reflect(dx, dy, dz, nx, ny, nz)
-            br *= mat_rgb[mat, 0]
-            bg *= mat_rgb[mat, 1]
-            bb *= mat_rgb[mat, 2]
-            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
-        else:  # glass: radiance transport on the camera side (1/eta^2)
-            dx, dy, dz, weight, es, side = dielectric_sample(
-                dx, dy, dz, nx, ny, nz, mat_param[mat, 0],
-                u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS))
-            br *= weight
-            bg *= weight
-            bb *= weight
-            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS)
+            dx, dy, dz, ox, oy, oz, wr, wg, wb, _es = specular_step(
+                mtype, mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2], mat_param[mat, 0],
+                hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+            br *= wr
+            bg *= wg
+            bb *= wb
     return kmax, hx, hy, hz, nx, ny, nz, -dx, -dy, -dz, br, bg, bb, mat, lr, lg, lb, rays
 
 
@@ -253,6 +248,15 @@ def camera_pass(sc, cam, x0, y0, x1, y1, width, height, seed, index, spp, smp, d
 @kernel
 def _hash(ix, iy, iz, mask):
     return ((ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791)) & mask
+
+
+@kernel_inline
+def cell_range(px, py, pz, r, inv_h):
+    """The integer cells (lo xyz, hi xyz, inclusive) that a ball of radius r
+    around p overlaps: the range a photon search walks."""
+    return (np.int64(math.floor((px - r) * inv_h)), np.int64(math.floor((py - r) * inv_h)),
+            np.int64(math.floor((pz - r) * inv_h)), np.int64(math.floor((px + r) * inv_h)),
+            np.int64(math.floor((py + r) * inv_h)), np.int64(math.floor((pz + r) * inv_h)))
 
 
 @kernel
@@ -317,12 +321,7 @@ def gather_pass(vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, r2, mat_type, mat_r
                 wx, wy, wz = vp_wo[row, c, 0], vp_wo[row, c, 1], vp_wo[row, c, 2]
                 mat = vp_mat[row, c]
                 r = math.sqrt(rr)
-                lx = np.int64(math.floor((px - r) * inv_h))
-                ly = np.int64(math.floor((py - r) * inv_h))
-                lz = np.int64(math.floor((pz - r) * inv_h))
-                hx = np.int64(math.floor((px + r) * inv_h))
-                hy = np.int64(math.floor((py + r) * inv_h))
-                hz = np.int64(math.floor((pz + r) * inv_h))
+                lx, ly, lz, hx, hy, hz = cell_range(px, py, pz, r, inv_h)
                 for ix in range(lx, hx + 1):
                     for iy in range(ly, hy + 1):
                         for iz in range(lz, hz + 1):
@@ -405,12 +404,7 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, d
                     if kmax >= 2 and ppos.shape[0] > 0:
                         cnt = 0
                         worst = big_r2
-                        lx = np.int64(math.floor((px - big_r) * inv_h))
-                        ly = np.int64(math.floor((py - big_r) * inv_h))
-                        lz = np.int64(math.floor((pz - big_r) * inv_h))
-                        hx = np.int64(math.floor((px + big_r) * inv_h))
-                        hy = np.int64(math.floor((py + big_r) * inv_h))
-                        hz = np.int64(math.floor((pz + big_r) * inv_h))
+                        lx, ly, lz, hx, hy, hz = cell_range(px, py, pz, big_r, inv_h)
                         for ix in range(lx, hx + 1):
                             for iy in range(ly, hy + 1):
                                 for iz in range(lz, hz + 1):
