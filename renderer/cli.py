@@ -31,7 +31,7 @@ def build_parser(prog: str = "rayfarm render") -> argparse.ArgumentParser:
     p.add_argument("--method", default="path", choices=sorted(METHODS))
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="a method option, e.g. --option heuristic=balance (repeatable)")
-    p.add_argument("--sampler", default="random", choices=sorted(SAMPLERS))
+    p.add_argument("--sampler", default=RenderSpec().sampler, choices=sorted(SAMPLERS))
     p.add_argument("--spp", type=int, default=16, help="samples per pixel")
     p.add_argument("--depth", type=int, default=5,
                    help="surface bounces: 0 = emitters only, 1 = direct light")

@@ -206,7 +206,7 @@ def reference_channels(tmp_path_factory):
                               width=body.get("width", doc["camera"]["width"]),
                               height=body.get("height", doc["camera"]["height"]),
                               tile_size=body.get("tile_size", 64), seed=body.get("seed", 0),
-                              sampler=body.get("sampler", "random")).validate()
+                              sampler=body.get("sampler", RenderSpec().sampler)).validate()
             scene = build_scene(doc)
             film = merge(spec.width, spec.height,
                          [run_unit(scene, spec, u) for u in plan(spec)])

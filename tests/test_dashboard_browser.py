@@ -136,6 +136,8 @@ def test01_submit_through_the_form_then_watch_progress_and_preview_change(page):
     page.select_option("#f-scene", "cornell-box")
     page.select_option("#f-method", "path-mis")
     page.wait_for_selector("#f-opt-heuristic")  # the method's options come from GET /methods
+    page.wait_for_selector("#f-sampler option[value='sobol']", state="attached")
+    assert page.input_value("#f-sampler") == "sobol"  # the API's default is preselected
     page.select_option("#f-sampler", "sobol")
     for name, value in (("spp", "256"), ("depth", "5"), ("width", "128"), ("height", "128"),
                         ("tile_size", "32"), ("seed", "5")):

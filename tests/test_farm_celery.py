@@ -242,3 +242,17 @@ def test06_a_higher_priority_job_overtakes_the_units_already_in_the_broker(
         # yet seen land) finish first: the high job's four units jumped the queue.
         assert low_first <= done_before + 2 < 20, (low_first, done_before)
         assert client.post(f"/jobs/{low['id']}/cancel").status_code == 200
+
+
+def test07_the_scheduler_collects_landed_units_without_waiting_for_its_poll(
+        spawn_serve, spawn_worker, tmp_path, reference_channels):
+    """With a 600 s poll interval a progressive job of 48 units still finishes:
+    the scheduler ticks when the job is submitted and whenever Celery's result
+    backend publishes a task's state (the executor listens on those channels).
+    Without the wakes it would wait 600 s after the first tick."""
+    spawn_worker(concurrency=2)
+    _serve, base = spawn_serve(RAYFARM_POLL_INTERVAL="600")
+    with httpx.Client(base_url=base, timeout=30, headers=ADMIN_HEADERS) as client:
+        job = run_job(client, TINY, tmp_path / "woken.exr", timeout=240)
+        assert job["progress"]["units_done"] == 48
+    assert_bit_identical(channels_of(tmp_path / "woken.exr"), reference_channels(TINY))

@@ -201,7 +201,9 @@ def test14_registries_scenes_docs_and_dashboard(local_client):
     methods = local_client.get("/methods").json()
     assert [m["name"] for m in methods] == [m.name for m in dict.fromkeys(METHODS.values())]
     assert methods[0] == next(iter(METHODS.values())).describe()
-    assert [s["name"] for s in local_client.get("/samplers").json()] == list(SAMPLERS)
+    samplers = local_client.get("/samplers").json()
+    assert [s["name"] for s in samplers] == list(SAMPLERS)
+    assert [s["name"] for s in samplers if s["default"]] == ["sobol"]  # what a job gets unasked
     scenes = local_client.get("/scenes").json()
     assert [s["name"] for s in scenes if s["kind"] == "builtin"] == builtin_scene_names()
     assert local_client.get("/docs").status_code == 200

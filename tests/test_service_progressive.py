@@ -214,3 +214,24 @@ def test08_retry_runs_the_failed_units_again(settings, reference_channels):
         job, units = rows(farm, job_id)
         assert job.units_done == job.units_total == 48 and job.samples == 32 * 32 * 4
         assert_bit_identical(channels_of(farm.store.result_path(job_id)), reference_channels(TINY))
+
+
+def test09_a_submitted_job_starts_without_waiting_for_the_poll(tmp_path, reference_channels):
+    """With a 600 s poll interval a job submitted after the scheduler's first
+    tick still runs at once: the submit wakes the scheduler, and each unit the
+    local pool finishes wakes it again (until the submit woke it, a job waited
+    up to poll_interval to start: a fifth of a 1-s job at the default 0.2 s)."""
+    import httpx
+
+    from conftest import ADMIN_HEADERS, embedded_env, start_serve
+
+    child, base = start_serve(embedded_env(tmp_path / "data", RAYFARM_POLL_INTERVAL="600"),
+                              tmp_path / "serve.log")
+    try:
+        with httpx.Client(base_url=base, timeout=30, headers=ADMIN_HEADERS) as client:
+            job = poll_job(get_json(client), submit(client, TINY)["id"], timeout=240)
+            assert job["status"] == "done", job
+            (tmp_path / "woken.exr").write_bytes(client.get(job["result_url"]).content)
+    finally:
+        child.stop()
+    assert_bit_identical(channels_of(tmp_path / "woken.exr"), reference_channels(TINY))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from renderer import METHODS, SAMPLERS
+from renderer import METHODS, SAMPLERS, RenderSpec
 
 router = APIRouter(tags=["registry"])
 
@@ -17,5 +17,6 @@ def list_methods() -> list[dict]:
 
 @router.get("/samplers")
 def list_samplers() -> list[dict]:
-    """Pixel samplers."""
-    return [s.describe() for s in SAMPLERS.values()]
+    """Pixel samplers; `default` marks the one a job gets without naming one."""
+    default = RenderSpec().sampler
+    return [{**s.describe(), "default": s.name == default} for s in SAMPLERS.values()]

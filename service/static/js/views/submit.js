@@ -135,7 +135,8 @@ export function submitView(root) {
   }
 
   function renderSamplers(samplers) {
-    replace(samplerSelect, samplers.map((s) => h("option", { value: s.name, "data-doc": s.description }, s.name)));
+    replace(samplerSelect, samplers.map((s) => h("option", { value: s.name, "data-doc": s.description,
+      selected: Boolean(s.default) }, s.name)));
     const showDoc = () => replace(samplerDoc, samplerSelect.selectedOptions[0]
       ? [h("b", {}, `${samplerSelect.value}: `), samplerSelect.selectedOptions[0].dataset.doc] : "");
     samplerSelect.addEventListener("change", showDoc);
