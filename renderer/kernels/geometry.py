@@ -17,7 +17,7 @@ STACK_SIZE = 64
 BARY_EPS = 1e-12
 
 
-@kernel
+@kernel_inline
 def tri_hit(tri, i, ox, oy, oz, dx, dy, dz, tmax):
     """Moller-Trumbore against row i of `tri_isect` (v0, e1, e2); t in (0, tmax) or -1."""
     ax, ay, az = tri[i, 0], tri[i, 1], tri[i, 2]
@@ -75,7 +75,7 @@ def sphere_hit(sph, i, ox, oy, oz, dx, dy, dz, tmax):
     return -1.0
 
 
-@kernel
+@kernel_inline
 def _prim_hit(tri, sph, prim, ox, oy, oz, dx, dy, dz, tmax):
     n_tri = tri.shape[0]
     if prim < n_tri:
