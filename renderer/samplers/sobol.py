@@ -16,6 +16,12 @@ scrambled (0, 2)-sequence. For spp = 2^m they form a (0, m, 2)-net: one point
 in every elementary interval 2^-a x 2^-b with a + b = m (tested); for other
 spp the prefix is still well spread, the guarantee holds per power-of-two
 block. 32-bit precision: indices are taken mod 2^32.
+
+Cost (it is the default sampler, so it has to be cheap): about 17 ns a pair,
+against 32 ns before the byte tables of dimension 1 and the scramble on
+reversed bits (which give the same values), and 5 ns for `random`'s two
+hashes. The light pick and Russian roulette share a pair (dispatch.py), and
+u1d/u2d call this module directly.
 """
 
 import numpy as np
