@@ -51,6 +51,7 @@ __all__ = ["Event", "EventHub", "Subscription", "note", "publish_commits", "sse_
 log = logging.getLogger(__name__)
 
 _PENDING = "rayfarm.events.pending"
+_SNAPSHOT = "rayfarm.events.snapshot"  # (keys, events) read at the last flush
 QUEUE_LIMIT = 2000
 JOB_KINDS = frozenset({"job", "deleted"})  # what a stream of every job carries
 
@@ -177,27 +178,47 @@ def publish_commits(sessions: sessionmaker[Session], hub: EventHub) -> None:
     from .models import utcnow
     from .schemas import JobPublic, UnitPublic
 
+    def events_of(pending: dict) -> list[tuple[str, str, dict, str | None]]:
+        now = utcnow()
+        # A job deleted in this transaction (canceled on the way) is announced
+        # by its `deleted` event alone.
+        objects = [o for o in pending.values() if not sa_inspect(o).was_deleted]
+        out = [("unit", unit.job_id, {"job_id": unit.job_id,
+                                      **UnitPublic.from_unit(unit).model_dump(mode="json")}, None)
+               for unit in objects if hasattr(unit, "index")]
+        out += [("job", job.id, JobPublic.from_job(job, now).model_dump(mode="json"), job.owner)
+                for job in objects if not hasattr(job, "index")]
+        return out
+
+    def after_flush(session: Session, _context) -> None:
+        # The state to publish is read here, inside the transaction: read after
+        # the commit, an expired attribute is loaded again and may already show
+        # another thread's later commit (a new job announced as `running`
+        # because the scheduler planned it in between).
+        pending = session.info.get(_PENDING)
+        if pending:
+            try:
+                session.info[_SNAPSHOT] = (set(pending), events_of(pending))
+            except Exception:  # read again after the commit instead
+                log.exception("reading events at flush failed")
+                session.info.pop(_SNAPSHOT, None)
+
     def after_commit(session: Session) -> None:
         pending = session.info.pop(_PENDING, None)
+        keys, events = session.info.pop(_SNAPSHOT, None) or (set(), [])
         if not pending:
             return
         try:
-            now = utcnow()
-            # A job deleted in this transaction (canceled on the way) is announced
-            # by its `deleted` event alone.
-            objects = [o for o in pending.values() if not sa_inspect(o).was_deleted]
-            for unit in (o for o in objects if hasattr(o, "index")):
-                hub.publish("unit", unit.job_id,
-                            {"job_id": unit.job_id,
-                             **UnitPublic.from_unit(unit).model_dump(mode="json")})
-            for job in (o for o in objects if not hasattr(o, "index")):
-                hub.publish("job", job.id, JobPublic.from_job(job, now).model_dump(mode="json"),
-                            owner=job.owner)
+            late = {k: o for k, o in pending.items() if k not in keys}  # noted after it
+            for kind, job_id, data, owner in events + (events_of(late) if late else []):
+                hub.publish(kind, job_id, data, owner=owner)
         except Exception:  # an event is a courtesy; the commit stands
             log.exception("publishing events failed")
 
     def forget(session: Session, *_args) -> None:
         session.info.pop(_PENDING, None)
+        session.info.pop(_SNAPSHOT, None)
 
+    sa_event.listen(sessions, "after_flush_postexec", after_flush)
     sa_event.listen(sessions, "after_commit", after_commit)
     sa_event.listen(sessions, "after_soft_rollback", forget)

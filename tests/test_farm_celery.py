@@ -214,7 +214,9 @@ def test06_a_higher_priority_job_overtakes_the_units_already_in_the_broker(
     spawn_worker(concurrency=1)
     with TestClient(create_app(settings), headers=ADMIN_HEADERS) as client:
         get = get_json(client)
-        low = submit(client, dict(TINY, width=64, height=64, spp=2048, tile_size=8,
+        # 64 units of ~0.2 s: units that land faster (the scheduler now wakes on
+        # each result) left 18 of them done before the high job was sent
+        low = submit(client, dict(TINY, width=64, height=64, spp=4096, tile_size=8,
                                   progressive=False, priority=-10))  # 64 units
         wait_for(lambda: get(f"/jobs/{low['id']}")["progress"]["units_done"] >= 2, 120,
                  "the low job to be under way")
