@@ -71,8 +71,12 @@ def spec_for(scene: str, method: str, spp: int, depth: int, seed: int, size: int
     cam = resolve_document(scene)["camera"]
     width = size
     height = max(1, round(size * cam["height"] / cam["width"]))
+    # `random`, not the default `sobol`: the estimators are compared with
+    # independent samples, so the reference's var channel is its variance
+    # (the z of part 2) and plain Monte Carlo's error falls as spp^-1/2 (the
+    # slopes), as when docs/methods.md was measured
     return RenderSpec(method=method, spp=spp, depth=depth, width=width, height=height,
-                      tile_size=32, seed=seed, options=options or {})
+                      tile_size=32, seed=seed, sampler="random", options=options or {})
 
 
 def run(pool, scene, spec):
