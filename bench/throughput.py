@@ -98,19 +98,17 @@ class Rayfarm:
         self.scene = load_scene(scene_name)
 
     def render(self, spp: int, sampler: str, seed: int, method: str = "path-mis", depth=None):
-        from renderer import RenderSpec, Unit, run_unit
+        from renderer import RenderSpec, Unit, merge, run_unit
 
         spec = RenderSpec(method=method, spp=spp, depth=self.depth if depth is None else depth,
                           width=self.width, height=self.height,
                           tile_size=max(self.width, self.height), seed=seed, sampler=sampler).validate()
         whole = Unit(0, 0, 0, self.width, self.height, 0, spp)
         t0 = time.perf_counter()
-        film = run_unit(self.scene, spec, whole)
+        part = run_unit(self.scene, spec, whole)
         seconds = time.perf_counter() - t0
-        mean = film.sum / film.weight[..., None]
-        var = film.sum_sq / film.weight[..., None] - mean * mean
-        var = np.maximum(var, 0.0) * film.weight[..., None] / np.maximum(film.weight[..., None] - 1, 1)
-        return mean, var / film.weight[..., None], seconds, float(film.stats["rays"])
+        film = merge(self.width, self.height, [part])
+        return film.mean(), film.variance_of_mean(), seconds, float(part.stats["rays"])
 
 
 def rayfarm_reference(rf: Rayfarm, ref_spp: int, refs: Path):
