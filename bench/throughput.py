@@ -26,7 +26,9 @@ Russian roulette that makes samples cheap but noisy does not win by it.
    child process: Dr.Jit's LLVM and Numba's stay apart.
 4. Scaling: the default's samples/s on 1 thread and on --workers threads,
    and through the local process pool with 1 and --workers processes.
-5. Farm overhead: a job of about 10 s and one of about 1 s submitted over
+5. BVH traversal alone, rays/s per core (bench/traversal.py), on the
+   scenes here and on a 100 k-triangle mesh scene (bench/heavy_mesh.py).
+6. Farm overhead: a job of about 10 s and one of about 1 s submitted over
    HTTP to `rayfarm serve` (embedded executor, SQLite, a temporary data
    dir), timed from the POST until the job is done, against the kernel's
    time for the same image (one pass and progressive plans).
@@ -280,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="the Markdown report ('' for none)")
     parser.add_argument("--no-mitsuba", action="store_true", help="skip Mitsuba even if installed")
     parser.add_argument("--no-farm", action="store_true", help="skip scaling and farm overhead")
+    parser.add_argument("--no-traversal", action="store_true", help="skip the BVH traversal table")
     parser.add_argument("--mitsuba-variant", default=None)
     parser.add_argument("--mitsuba-child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -361,6 +364,19 @@ def main(argv: list[str] | None = None) -> int:
             report(f"| {label} | {spp} | {rate / 1e6:.2f} M | "
                    f"{'-' if rays is None else f'{rays / 1e6:.2f} M'} | {max(mse, 0.0) ** 0.5:.5f} | "
                    f"{eff:.4g} | {ratio} |")
+
+    if not args.no_traversal:
+        import traversal
+        report()
+        report("## BVH traversal alone (one thread, bench/traversal.py)")
+        report()
+        report("Camera rays, one cosine bounce from each camera hit (closest hit) and a shadow ray "
+               "from there to a sampled light point (any hit), traced on one thread. "
+               f"`{traversal.HEAVY}` is cornell-box with a bumpy ball of about 100 k triangles "
+               "in place of the tall box (bench/heavy_mesh.py).")
+        report()
+        for line in traversal.table(traversal.SIZES, repeat=3):
+            report(line)
 
     if not args.no_farm:
         scene_name = args.scenes.split(",")[0]

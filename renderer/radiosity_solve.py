@@ -405,8 +405,7 @@ def solution(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
 def auto_patch_size(scene) -> float:
     """The default patch size: the bounding-box diagonal / (20 sqrt 3), so a
     scene as large as a cube of side 2 (cornell-box) gets 0.1."""
-    bounds = scene.arrays.bvh_nodes[0]
-    return patch_size_of_bounds(bounds[:3], bounds[3:])
+    return patch_size_of_bounds(*scene.bounds)
 
 
 def patch_size_of_bounds(lo: np.ndarray, hi: np.ndarray) -> float:

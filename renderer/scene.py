@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bvh import build_bvh
+from .bvh import build_bvh, collapse_wide, wide_bounds
 from .kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR
 from .kernels.lights import LIGHT_MESH, LIGHT_POINT, LIGHT_SPHERE
 from .primitives import DISK_SEGMENTS, FIXED, world_mesh  # noqa: F401 (DISK_SEGMENTS: re-exported)
@@ -50,8 +50,8 @@ SceneArrays = namedtuple("SceneArrays", [
     "light_sphere",  # (L,) int32 sphere index (sphere lights)
     "light_tris",   # (K,) int32 triangle ids of mesh lights, grouped per light
     "light_tri_cdf",  # (K,) float64 area CDF within each light's group, ending at 1
-    "bvh_nodes",    # (N, 6) node bounds: min xyz, max xyz
-    "bvh_info",     # (N, 3) int32: leaf: [first, count, -1]; inner: [right child, 0, axis]
+    "bvh_nodes",    # (N, 24) a 4-wide BVH's child boxes, lanes side by side (bvh.collapse_wide)
+    "bvh_info",     # (N, 4) int32 its children: a node (>= 0) or a leaf -(first * 8 + count) - 1
     "bvh_prims",    # (P,) int32 primitive ids in leaf order
 ])
 
@@ -71,6 +71,11 @@ class Scene:
     @property
     def triangle_count(self) -> int:
         return len(self.arrays.tri_mat)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The bounding box of everything in the scene: (lo xyz, hi xyz)."""
+        return wide_bounds(self.arrays.bvh_nodes)
 
 
 def _apply(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -175,6 +180,7 @@ def build_scene(doc: dict) -> Scene:
     valid = np.concatenate([keep, np.ones(len(sph_arr), bool)])
     prim_ids = np.nonzero(valid)[0].astype(np.int32)
     bvh_min, bvh_max, bvh_info, bvh_prims = build_bvh(lo, hi, prim_ids)
+    wide_boxes, wide_kids = collapse_wide(bvh_min, bvh_max, bvh_info)
     tri_isect = np.concatenate([tri_p[:, 0], tri_p[:, 1] - tri_p[:, 0], tri_p[:, 2] - tri_p[:, 0]],
                                axis=1).reshape(-1, 9)
 
@@ -191,8 +197,7 @@ def build_scene(doc: dict) -> Scene:
         light_start=light_start, light_count=light_count, light_area=light_area,
         light_sphere=np.asarray(light_sphere, np.int32),
         light_tris=np.asarray(light_tris, np.int32), light_tri_cdf=np.asarray(light_cdf, np.float64),
-        bvh_nodes=np.ascontiguousarray(np.concatenate([bvh_min, bvh_max], axis=1)),
-        bvh_info=bvh_info, bvh_prims=bvh_prims,
+        bvh_nodes=wide_boxes, bvh_info=wide_kids, bvh_prims=bvh_prims,
     )
     return Scene(doc=doc, hash=scene_hash(doc), arrays=arrays)
 

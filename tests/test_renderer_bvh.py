@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from renderer import build_scene, load_scene, resolve_document
-from renderer.kernels.geometry import _prim_hit, intersect, occluded
+from renderer.kernels.geometry import STACK_SIZE, _prim_hit, intersect, occluded
 
 
 def brute_force(arrays, o, d, tmax=np.inf):
@@ -31,7 +31,7 @@ def random_soup(rng, n_tri=300, n_sph=20):
 def test01_closest_hit_and_any_hit_agree_with_brute_force(scene):
     rng = np.random.default_rng(5)
     arrays = random_soup(rng) if scene == "soup" else load_scene(scene).arrays
-    stack = np.empty(64, np.int64)
+    stack = np.empty(STACK_SIZE, np.int64)
     hits = 0
     for _ in range(3000):
         o = rng.uniform(-6, 6, 3) if scene == "soup" else rng.uniform(-0.99, 0.99, 3)
@@ -50,3 +50,59 @@ def test01_closest_hit_and_any_hit_agree_with_brute_force(scene):
             assert occluded(arrays, stack, *o, *d, t * 1.0001)
             assert not occluded(arrays, stack, *o, *d, t * 0.9999)
     assert hits > 500
+
+
+def binary_depth(info: np.ndarray) -> int:
+    """Levels of a binary BVH from build_bvh (inner: [right, 0, axis], left = node + 1)."""
+    depth, todo = 0, [(0, 1)]
+    while todo:
+        n, d = todo.pop()
+        depth = max(depth, d)
+        if info[n, 2] >= 0:
+            todo += [(n + 1, d + 1), (int(info[n, 0]), d + 1)]
+    return depth
+
+
+def wide_depth(kids: np.ndarray) -> int:
+    """Levels of the wide BVH (children >= 0 are nodes, < 0 leaves)."""
+    depth, level = 0, [0]
+    while level:
+        depth += 1
+        level = [int(c) for n in level for c in kids[n] if c >= 0]
+    return depth
+
+
+def test02_a_scene_that_drives_sah_deep_stays_within_the_traversal_stack():
+    """Triangles twice as large and twice as far at each step: SAH cuts off
+    one or two at a time, so the tree would be about as deep as there are
+    triangles. The builder switches to median splits at depth
+    bvh.MAX_SAH_DEPTH, so the traversal stack (3 entries per level) cannot
+    overflow, and traversal still finds what brute force finds."""
+    from renderer.bvh import MAX_SAH_DEPTH, build_bvh
+
+    n = 100
+    x = 1e-24 * 2.0 ** np.arange(n)  # up to 6e5: within MAX_COORDINATE
+    s = 0.2 * x
+    v = np.stack([np.stack([x, np.zeros(n), np.zeros(n)], 1),
+                  np.stack([x + s, np.zeros(n), s], 1),
+                  np.stack([x, s, s], 1)], 1)
+    arrays = build_scene(resolve_document({
+        "camera": {"origin": [0, 0, 20], "target": [0, 0, 0], "fov": 40},
+        "materials": {"m": {"type": "diffuse"}},
+        "shapes": [{"type": "mesh", "material": "m", "vertices": v.reshape(-1, 3).tolist(),
+                    "faces": np.arange(3 * n).reshape(-1, 3).tolist()}]})).arrays
+    tri = v.reshape(n, 3, 3)
+    info = build_bvh(tri.min(axis=1), tri.max(axis=1), np.arange(n, dtype=np.int32))[2]
+    assert MAX_SAH_DEPTH < binary_depth(info) <= 55  # SAH went deep; median splits from there
+    depth = wide_depth(arrays.bvh_info)
+    assert 3 * depth + 1 <= STACK_SIZE
+    rng = np.random.default_rng(3)
+    stack = np.full(STACK_SIZE + 8, -7, np.int64)
+    for _ in range(1500):
+        i = rng.integers(n)
+        target = v[i].mean(axis=0) + rng.normal(0, 0.3, 3) * s[i]
+        o = target + rng.normal(0, 1, 3) * 5 * x[i]  # at the triangle's own scale
+        d = (target - o) / np.linalg.norm(target - o)
+        t, prim = intersect(arrays, stack, *o, *d, np.inf)
+        assert (t, prim) == brute_force(arrays, o, d)
+    assert np.all(stack[STACK_SIZE:] == -7)  # nothing written past the stack

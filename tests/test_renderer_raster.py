@@ -8,7 +8,7 @@ import pytest
 from renderer import RenderSpec, build_scene, load_scene, merge, plan, resolve_document, run_unit
 from renderer.kernels.camera import camera_ray
 from renderer.integrators.raster import depth_at_pixel_centres
-from renderer.kernels.geometry import intersect
+from renderer.kernels.geometry import STACK_SIZE, intersect
 from renderer.scene import camera_array
 
 
@@ -20,7 +20,7 @@ def test01_depth_buffer_equals_primary_ray_hit_distance():
     scene = load_scene("cornell-box")
     spec = RenderSpec(method="raster", spp=1, depth=1, width=64, height=64, tile_size=32)
     cam = camera_array(scene.camera, 64, 64)
-    stack = np.empty(64, np.int64)
+    stack = np.empty(STACK_SIZE, np.int64)
     for unit in plan(spec):
         z = depth_at_pixel_centres(scene, spec, unit)
         ref = np.array([[intersect(scene.arrays, stack, *cam[:3],
@@ -39,7 +39,7 @@ def test02_near_plane_clipping_keeps_what_is_in_front():
     spec = RenderSpec(method="raster", spp=1, depth=1, width=32, height=32, tile_size=32)
     z = depth_at_pixel_centres(scene, spec, plan(spec)[0])
     cam = camera_array(scene.camera, 32, 32)
-    stack = np.empty(64, np.int64)
+    stack = np.empty(STACK_SIZE, np.int64)
     ref = np.array([[intersect(scene.arrays, stack, *cam[:3], *camera_ray(cam, 32, 32, x + 0.5, y + 0.5),
                                np.inf)[0] for x in range(32)] for y in range(32)])
     assert np.isfinite(ref).sum() > 300

@@ -167,8 +167,8 @@ def initial_radius(scene, options: dict) -> float:
     diagonal: 1/100 for SPPM's initial radius, 1/40 for the k-NN search."""
     if options["radius"] > 0:
         return float(options["radius"])
-    box = scene.arrays.bvh_nodes[0]
-    diag = float(np.linalg.norm(box[3:6] - box[0:3]))
+    lo, hi = scene.bounds
+    diag = float(np.linalg.norm(hi - lo))
     return diag * (0.025 if options["mode"] == PHOTONMAP else 0.01)
 
 
