@@ -77,7 +77,33 @@ NOTES = """## Reading the table
   cornell-box its MSE is 45 % lower than `random`'s at 16 spp, 56 % at 64
   and 68 % at 256.
 - The var channels are the variance of the mean of independent samples:
-  exact for `random`, an overstatement for stratified samplers (README)."""
+  exact for `random`, an overstatement for stratified samplers (README).
+- The BVH is 4-wide, collapsed from a binned-SAH binary tree (renderer/
+  bvh.py). Measured on one thread against the binary tree, whole renders
+  at 16 spp: +12 % samples/s on cornell-box, +5 % on veach-mis, +20 % on
+  cornell-mesh; float32 boxes were slower on all three (kept float64).
+  Numba compiles with LLVM's SLP vectorizer off (numba PR 8852: it
+  miscompiled), so the four slab tests of a node run as four scalar ones;
+  enabled (NUMBA_SLP_VECTORIZE=1) they do compile to packed min/max, which
+  the project does not rely on."""
+
+
+def cpu_description() -> str:
+    """The CPU's model and widest vector extension: Mitsuba's LLVM backend
+    uses the vector width the CPU has (AVX-512 doubles it over AVX2), rayfarm's
+    scalar kernels do not, so the ratio between them depends on it."""
+    model, flags = platform.processor() or "cpu", set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and model == (platform.processor() or "cpu"):
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    except OSError:
+        pass
+    simd = next((f for f in ("avx512f", "avx2", "avx", "sse4_2", "asimd") if f in flags), "")
+    return f"{model}, {simd}" if simd else model
 
 
 def median(values):
@@ -302,7 +328,7 @@ def main(argv: list[str] | None = None) -> int:
     report("# Throughput and efficiency: rayfarm and Mitsuba 3")
     report()
     report(f"`python bench/throughput.py` on {platform.machine()} with {os.cpu_count()} cores "
-           f"({platform.processor() or 'cpu'}), {time.strftime('%Y-%m-%d')}: `path-mis`, depth "
+           f"({cpu_description()}), {time.strftime('%Y-%m-%d')}: `path-mis`, depth "
            f"{args.depth} (Mitsuba max_depth {args.depth + 1}), box filter, {args.workers} "
            f"threads. RMSE over the pixels that do not see an emitter, against each renderer's "
            f"own {args.ref_spp}-spp reference, corrected for the reference's variance; "
