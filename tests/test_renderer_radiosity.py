@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from renderer import RenderSpec, build_scene, load_scene, merge, resolve_document, run_plan
+from renderer import cache as renderer_cache
 from renderer import radiosity_solve as FEM
 from renderer.integrators import radiosity as R
 from renderer.registry import METHODS
@@ -33,6 +34,9 @@ Z = 4.5
 @pytest.fixture(autouse=True)
 def cache_dir(tmp_path, monkeypatch):
     monkeypatch.setenv("RAYFARM_CACHE_DIR", str(tmp_path))
+    # an embedded service started earlier in this process pointed the caches at its
+    # data dir (settings.configure_renderer), which outranks the environment
+    monkeypatch.setattr(renderer_cache, "_configured", None)
     FEM.clear_cache()
     yield tmp_path
     FEM.clear_cache()
