@@ -30,8 +30,14 @@ Russian roulette that makes samples cheap but noisy does not win by it.
    scenes here and on a 100 k-triangle mesh scene (bench/heavy_mesh.py).
 6. Farm overhead: a job of about 10 s and one of about 1 s submitted over
    HTTP to `rayfarm serve` (embedded executor, SQLite, a temporary data
-   dir), timed from the POST until the job is done, against the kernel's
-   time for the same image (one pass and progressive plans).
+   dir), timed from the POST until the job is done (median of 3), one pass
+   and progressive, with the service process's CPU seconds. Against two
+   baselines: the kernel rendering the same image in-process on --workers
+   Numba threads, and `renderer.render` running the job's plan on a local
+   pool of --workers processes without the service. Service / pool - 1 is
+   the service's own share (HTTP, the ledger, storing films, previews,
+   events); service / kernel - 1 the whole farm's (tiles, processes, the
+   pool idling at the end as well).
 
 The table goes to stdout and, in Markdown, to --out (docs/throughput.md).
 """
@@ -226,9 +232,45 @@ def pool_rate(scene_name: str, size, depth: int, spp: int, processes: int, sampl
     return size[0] * size[1] * spp / seconds
 
 
+def process_cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of process `pid` so far (Linux /proc; NaN elsewhere)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return float("nan")
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def pool_seconds(scene_name: str, size, depth: int, spp_list: list[int], processes: int,
+                 sampler: str) -> dict:
+    """Seconds of the service's jobs rendered by `renderer.render` on a local pool of
+    `processes`, without the service (same plan of 64-pixel tiles, same merge),
+    medians of 3: {spp: (one pass, progressive)}."""
+    from renderer import LocalPool, RenderSpec, render
+
+    out = {}
+    with LocalPool(processes) as pool:
+        render(scene_name, RenderSpec(method="path-mis", spp=1, depth=depth, width=size[0],
+                                      height=size[1], tile_size=64, seed=0, sampler=sampler),
+               pool=pool)  # warm children
+        for spp in spp_list:
+            times = []
+            for progressive in (False, True):
+                runs = []
+                for seed in (1, 2, 3):
+                    spec = RenderSpec(method="path-mis", spp=spp, depth=depth, width=size[0],
+                                      height=size[1], tile_size=64, seed=seed, sampler=sampler)
+                    t0 = time.perf_counter()
+                    render(scene_name, spec, pool=pool, progressive=progressive)
+                    runs.append(time.perf_counter() - t0)
+                times.append(median(runs))
+            out[spp] = tuple(times)
+    return out
+
+
 def service_times(scene_name: str, size, depth: int, spp_list: list[int], workers: int) -> dict:
-    """Submit-to-done seconds of jobs on a fresh `rayfarm serve` (embedded executor):
-    {spp: (one pass, progressive)}."""
+    """Jobs on a fresh `rayfarm serve` (embedded executor), medians of 3:
+    {spp: ((one pass seconds, the service process's CPU seconds), (progressive ditto))}."""
     import socket
 
     import httpx
@@ -261,6 +303,7 @@ def service_times(scene_name: str, size, depth: int, spp_list: list[int], worker
                 body = {"scene": scene_name, "method": "path-mis", "spp": spp, "depth": depth,
                         "tile_size": 64, "seed": seed, "width": size[0], "height": size[1],
                         "progressive": progressive}
+                cpu0 = process_cpu_seconds(server.pid)
                 t0 = time.perf_counter()
                 job = client.post("/jobs", json=body).raise_for_status().json()
                 # the job's event stream says `end` when it is final: no polling
@@ -270,13 +313,21 @@ def service_times(scene_name: str, size, depth: int, spp_list: list[int], worker
                         if line == "event: end":
                             break
                 seconds = time.perf_counter() - t0
+                service_cpu.append(process_cpu_seconds(server.pid) - cpu0)
                 state = client.get(f"/jobs/{job['id']}").raise_for_status().json()
                 if state["status"] != "done":
                     raise RuntimeError(f"benchmark job {state['status']}: {state.get('error')}")
                 return seconds
 
+            def medians(spp: int, progressive: bool) -> tuple[float, float]:
+                service_cpu.clear()
+                runs = [run(spp, seed, progressive) for seed in (1, 2, 3)]
+                return median(runs), median(service_cpu)
+
+            service_cpu: list[float] = []
+
             run(1, 0, False)  # warm-up: every pool process has loaded its kernels
-            return {spp: (run(spp, 1, False), run(spp, 2, True)) for spp in spp_list}
+            return {spp: (medians(spp, False), medians(spp, True)) for spp in spp_list}
     finally:
         server.terminate()
         server.wait(60)
@@ -424,16 +475,30 @@ def main(argv: list[str] | None = None) -> int:
         # spp for jobs of about 10 s and 1 s of kernel time on all cores
         spp_for = {target: max(1, int(round(target * many / (size[0] * size[1]))))
                    for target in (10.0, 1.0)}
-        kernel = {spp: median([rf.render(spp, default, s)[2] for s in (1, 2)])
+        kernel = {spp: median([rf.render(spp, default, s)[2] for s in (1, 2, 3)])
                   for spp in spp_for.values()}
         service = service_times(scene_name, size, args.depth, list(spp_for.values()), args.workers)
-        report("| job | kernel (in-process) | service, one pass | overhead | service, progressive | overhead |")
-        report("|---|---|---|---|---|---|")
+        pool = pool_seconds(scene_name, size, args.depth, list(spp_for.values()), args.workers,
+                            default)
+        report(f"Seconds of one image, medians of 3: *kernel*, one unit in-process on "
+               f"{args.workers} Numba threads; *pool*, `renderer.render` on a local pool of "
+               f"{args.workers} processes (the job's plan of 64-pixel tiles, each a unit, "
+               f"merged), no service; *service*, submit-to-done through `rayfarm serve` "
+               f"(embedded executor, SQLite, {args.workers} render processes), with the "
+               f"service process's CPU seconds (on {os.cpu_count()} cores, CPU the service "
+               f"uses is CPU a render process waits for). *Service's share* = service / "
+               f"pool - 1; *farm* = service / kernel - 1.")
+        report()
+        report("| job | plan | kernel | pool | service | service CPU | service's share | farm |")
+        report("|---|---|---|---|---|---|---|---|")
         for target, spp in spp_for.items():
-            k, (one_pass, progressive) = kernel[spp], service[spp]
-            report(f"| {spp} spp (~{target:g} s) | {k:.2f} s | {one_pass:.2f} s | "
-                   f"{100 * (one_pass / k - 1):+.1f} % | {progressive:.2f} s | "
-                   f"{100 * (progressive / k - 1):+.1f} % |")
+            k = kernel[spp]
+            for i, plan in enumerate(("one pass", "progressive")):
+                wall, cpu = service[spp][i]
+                alone = pool[spp][i]
+                report(f"| {spp} spp (~{target:g} s) | {plan} | {k:.2f} s | {alone:.2f} s | "
+                       f"{wall:.2f} s | {cpu:.2f} s | {100 * (wall / alone - 1):+.1f} % | "
+                       f"{100 * (wall / k - 1):+.1f} % |")
     report()
     report(NOTES)
     if args.out:

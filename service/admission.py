@@ -65,7 +65,9 @@ def unit_floor(spec: RenderSpec, progressive: bool) -> int:
     method = METHODS[spec.method]
     tiles = math.ceil(spec.width / spec.tile_size) * math.ceil(spec.height / spec.tile_size)
     if method.family in ("tile", "radiosity") or method.name == "bdpt":  # tiles x passes
-        return tiles * len(sample_passes(spec.spp, progressive))
+        # (bdpt keeps every small pass: its count is at least this)
+        pixels = min(spec.tile_size, spec.width) * min(spec.tile_size, spec.height)
+        return tiles * len(sample_passes(spec.spp, progressive, pixels))
     if method.family == "photons":
         return spec.spp
     return 1  # light tracing and MLT: a few dozen units whatever the job

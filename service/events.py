@@ -90,11 +90,12 @@ class Subscription:
                 and (self.kinds is None or event.kind in self.kinds)
                 and (self.owner is None or event.owner == self.owner))
 
-    def _put(self, event: Event) -> None:  # runs in the subscriber's loop
-        if self.queue.qsize() >= QUEUE_LIMIT:
-            self.overflowed = True
-            return
-        self.queue.put_nowait(event)
+    def _put(self, events: list[Event]) -> None:  # runs in the subscriber's loop
+        for event in events:
+            if self.queue.qsize() >= QUEUE_LIMIT:
+                self.overflowed = True
+                return
+            self.queue.put_nowait(event)
 
     async def next(self, timeout: float) -> Event | None:
         """The next event, or None after `timeout` seconds of silence."""
@@ -136,21 +137,40 @@ class EventHub:
 
     def publish(self, kind: str, job_id: str, data: dict, owner: str | None = None) -> None:
         """Send an event to the streams of every replica (of this one, without a relay)."""
-        if self.relay is not None and self.relay.send(kind, job_id, data, owner):
-            return
-        self.deliver(kind, job_id, data, owner)
+        self.publish_many([(kind, job_id, data, owner)])
+
+    def publish_many(self, events: list[tuple[str, str, dict, str | None]]) -> None:
+        """`publish` each of (kind, job_id, data, owner), in order."""
+        if self.relay is not None:
+            events = [e for e in events if not self.relay.send(*e)]
+        self.deliver_many(events)
 
     def deliver(self, kind: str, job_id: str, data: dict, owner: str | None = None) -> Event:
         """Put an event on this replica's matching subscriptions."""
+        return self.deliver_many([(kind, job_id, data, owner)])[0]
+
+    def deliver_many(self, items: list[tuple[str, str, dict, str | None]]) -> list[Event]:
+        """`deliver` each of (kind, job_id, data, owner), in order, with one wake-up
+        of each subscriber's loop: a commit that lands a unit changes a unit and
+        its job, and a wake-up (a write to the loop's self-pipe, and the GIL
+        handed to the loop's thread) per event cost the scheduler's thread more
+        than the events themselves."""
+        if not items:
+            return []
+        by_sub: dict[Subscription, list[Event]] = {}
         with self._lock:
-            event = Event(next(self._ids), kind, job_id, data, owner)
-            targets = [s for s in self._subscriptions if s.wants(event)]
-        for sub in targets:
+            events = [Event(next(self._ids), kind, job_id, data, owner)
+                      for kind, job_id, data, owner in items]
+            for sub in self._subscriptions:
+                wanted = [e for e in events if sub.wants(e)]
+                if wanted:
+                    by_sub[sub] = wanted
+        for sub, wanted in by_sub.items():
             try:
-                sub.loop.call_soon_threadsafe(sub._put, event)
+                sub.loop.call_soon_threadsafe(sub._put, wanted)
             except RuntimeError:  # its loop is closed: the stream is gone
                 self.unsubscribe(sub)
-        return event
+        return events
 
 
     def resync_all(self) -> None:
@@ -210,8 +230,7 @@ def publish_commits(sessions: sessionmaker[Session], hub: EventHub) -> None:
             return
         try:
             late = {k: o for k, o in pending.items() if k not in keys}  # noted after it
-            for kind, job_id, data, owner in events + (events_of(late) if late else []):
-                hub.publish(kind, job_id, data, owner=owner)
+            hub.publish_many(events + (events_of(late) if late else []))
         except Exception:  # an event is a courtesy; the commit stands
             log.exception("publishing events failed")
 

@@ -374,10 +374,12 @@ class Scheduler:
     def _ready_units(self, session: Session, job: Job, limit: int) -> list[WorkUnit]:
         """Up to `limit` pending units of the job whose needs are all done, in
         unit order. Tile jobs need nothing; a DAG's later stages wait here.
-        Read in batches: a huge job's pending units are never all loaded."""
+        Read in batches: a huge job's pending units are never all loaded, and a
+        tile job's dispatch of one slot loads a few rows, not 64 (each a JSON
+        document to decode: that was most of a busy scheduler's CPU)."""
         ready: list[WorkUnit] = []
         done: set[int] | None = None
-        after, batch_size = -1, max(2 * limit, 64)
+        after, batch_size = -1, max(2 * limit, 16)
         while len(ready) < limit:
             batch = list(session.scalars(
                 select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending",

@@ -113,8 +113,10 @@ class Store:
     def put_unit_log(self, job_id: str, index: int, task: int, entry: dict) -> None:
         """Keep what unit `index`'s `task`-th task logged (one file per task, so
         a retry never overwrites the attempt before it)."""
+        # not fsynced: a log is a diagnostic, and one lost to a power cut loses
+        # no render (readers skip a missing or cut-short file); the film is.
         self._write_atomic(self.unit_log_dir(job_id, index) / f"{int(task)}.json",
-                           json.dumps(entry).encode())
+                           json.dumps(entry).encode(), durable=False)
 
     def unit_logs(self, job_id: str, index: int) -> list[dict]:
         """Unit `index`'s kept logs, oldest task first (none: an empty list)."""
@@ -141,14 +143,17 @@ class Store:
         shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
 
     @staticmethod
-    def _write_atomic(path: Path, data: bytes) -> None:
+    def _write_atomic(path: Path, data: bytes, durable: bool = True) -> None:
+        """Readers see the old file or all of `data`, never part of it; `durable`:
+        on disk before this returns (fsync), not only in the page cache."""
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as fh:
                 fh.write(data)
-                fh.flush()
-                os.fsync(fh.fileno())
+                if durable:
+                    fh.flush()
+                    os.fsync(fh.fileno())
             os.replace(tmp, path)
         except BaseException:
             Path(tmp).unlink(missing_ok=True)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from renderer import RenderSpec, build_scene, load_scene, merge, plan, render, resolve_document, run_unit
+from renderer.plan import MIN_PASS_SAMPLES
 
 Z = 4.5
 CORNELL_LIGHT = (18.387, 13.9873, 6.75357)
@@ -126,6 +127,23 @@ def test06_progressive_passes_merge_to_the_same_bits(cornell):
     assert len(plan(spec, progressive=True)) > len(plan(spec))
     assert np.array_equal(whole.sum, passes.sum)
     assert np.array_equal(whole.sum_sq, passes.sum_sq)
+    # the first pass took two canonical blocks (64-pixel tiles are far below the floor,
+    # a quarter of spp caps it): the bytes are the same whatever the passes
+    assert sorted({(u.sample_start, u.sample_end) for u in plan(spec, progressive=True)}) == [
+        (0, 2), (2, 4), (4, 8), (8, 11)]
+
+
+def test06_a_progressive_first_pass_renders_enough_to_outweigh_a_units_cost():
+    # 64 x 64 tiles: 8 samples (32768 per tile) before the passes double
+    spec = RenderSpec(spp=390, width=256, height=200, tile_size=64)
+    passes = sorted({(u.sample_start, u.sample_end) for u in plan(spec, progressive=True)})
+    assert passes[:4] == [(0, 8), (8, 16), (16, 32), (32, 64)]
+    assert 64 * 64 * 8 >= MIN_PASS_SAMPLES > 64 * 64 * 4
+    # a whole-frame tile of 256 x 200 pixels: one sample is enough
+    whole = RenderSpec(spp=390, width=256, height=200, tile_size=256)
+    assert plan(whole, progressive=True)[0].sample_end == 1
+    # bdpt wants every small pass (its splat batches)
+    assert plan(spec, progressive=True, small_passes=True)[0].sample_end == 1
 
 
 def test07_local_process_pool_equals_inline(cornell):

@@ -138,9 +138,9 @@ def plan_bdpt(spec, progressive: bool = False, options: dict | None = None) -> l
     samples: the progressive passes), when spp allows."""
     from ..plan import plan
 
-    units = plan(spec, progressive=progressive)
+    units = plan(spec, progressive=progressive, small_passes=True)
     if len(units) < MIN_BATCHES and not progressive:
-        units = plan(spec, progressive=True)
+        units = plan(spec, progressive=True, small_passes=True)
     return units
 
 
