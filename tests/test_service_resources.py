@@ -67,11 +67,11 @@ def test02_a_full_disk_is_visible_and_loses_nothing(tmp_path, monkeypatch, refer
     refused: list[Path] = []
     write = Store._write_atomic
 
-    def write_or_enospc(path, data):
+    def write_or_enospc(path, data, **kwargs):
         if full.is_set() and Path(path).suffix == ".film":
             refused.append(Path(path))
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-        return write(path, data)
+        return write(path, data, **kwargs)
 
     monkeypatch.setattr(Store, "_write_atomic", staticmethod(write_or_enospc))
     settings = Settings(data_dir=tmp_path / "data", local_workers=1, poll_interval=0.05,
