@@ -108,6 +108,11 @@ def sample_passes(spp: int, progressive: bool, tile_pixels: int = 0) -> list[tup
     return [(0, blocks[first - 1][1])] + blocks[first:]
 
 
+def tile_pixels(spec: RenderSpec) -> int:
+    """Pixels of the job's full tile (what `sample_passes` sizes the first pass by)."""
+    return min(spec.tile_size, spec.width) * min(spec.tile_size, spec.height)
+
+
 def plan(spec: RenderSpec, *, progressive: bool = False, small_passes: bool = False) -> list[Unit]:
     """Units of a tile-local job, pass-major: every tile of pass 0, then pass 1...
     (`small_passes`: every canonical block its own pass, however few samples
@@ -117,9 +122,8 @@ def plan(spec: RenderSpec, *, progressive: bool = False, small_passes: bool = Fa
     16
     """
     units: list[Unit] = []
-    tile_pixels = 0 if small_passes else (min(spec.tile_size, spec.width)
-                                          * min(spec.tile_size, spec.height))
-    for p, (s0, s1) in enumerate(sample_passes(spec.spp, progressive, tile_pixels)):
+    pixels = 0 if small_passes else tile_pixels(spec)
+    for p, (s0, s1) in enumerate(sample_passes(spec.spp, progressive, pixels)):
         for (x0, y0, x1, y1) in _tiles(spec.width, spec.height, spec.tile_size):
             units.append(Unit(len(units), x0, y0, x1, y1, s0, s1, p))
     return units

@@ -60,14 +60,13 @@ def unit_floor(spec: RenderSpec, progressive: bool) -> int:
     tiles x passes for tile, BDPT and radiosity plans (exact for tile plans),
     an iteration's photon unit for SPPM. A request for millions of units is
     refused on this, before `planned_units` would build them (seconds of CPU)."""
-    from renderer.plan import sample_passes
+    from renderer.plan import sample_passes, tile_pixels
 
     method = METHODS[spec.method]
     tiles = math.ceil(spec.width / spec.tile_size) * math.ceil(spec.height / spec.tile_size)
     if method.family in ("tile", "radiosity") or method.name == "bdpt":  # tiles x passes
         # (bdpt keeps every small pass: its count is at least this)
-        pixels = min(spec.tile_size, spec.width) * min(spec.tile_size, spec.height)
-        return tiles * len(sample_passes(spec.spp, progressive, pixels))
+        return tiles * len(sample_passes(spec.spp, progressive, tile_pixels(spec)))
     if method.family == "photons":
         return spec.spp
     return 1  # light tracing and MLT: a few dozen units whatever the job

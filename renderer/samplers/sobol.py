@@ -29,8 +29,9 @@ but it pairs the strata of two pairs less randomly: on integrands coupling
 two pairs its MSE was 1.3-2x Kensler's (tests/test_renderer_samplers.py
 test04_sobol_pairs_are_padded), on cornell-box 1-2 % higher, on veach-mis
 within noise; efficiency +2 % at 64 spp is not worth a weaker sampler. Two
-rounds of xor-multiply-xorshift were cheaper still and failed that test. The light pick and Russian roulette share a pair (dispatch.py), and
-u1d/u2d call this module directly.
+rounds of xor-multiply-xorshift were cheaper still and failed that test.
+The light pick and Russian roulette share a pair (dispatch.py), and u1d/u2d
+call this module directly.
 """
 
 import numpy as np
