@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -57,6 +58,12 @@ def choose_variant(preferred: str | None = None) -> str:
     for variant in candidates:
         if variant not in mi.variants():
             continue
+        if variant.startswith("llvm") and not _renders_in_child(variant):
+            # an LLVM too old for Dr.Jit aborts the process ("LLVM ERROR: Cannot
+            # select: fminimum", libLLVM 14/15 with Dr.Jit 1.5): no exception to catch
+            print(f"mitsuba variant {variant} unusable: its JIT aborted a test render "
+                  "(libLLVM >= 19 needed)", file=sys.stderr)
+            continue
         try:
             mi.set_variant(variant)
             mi.render(mi.load_dict(mi.cornell_box()), spp=1)  # a variant may load yet fail to JIT
@@ -64,6 +71,17 @@ def choose_variant(preferred: str | None = None) -> str:
         except Exception as exc:  # noqa: BLE001 - report and fall back
             print(f"mitsuba variant {variant} unusable: {exc}", file=sys.stderr)
     raise RuntimeError(f"no usable Mitsuba variant among {candidates}")
+
+
+def _renders_in_child(variant: str) -> bool:
+    """Does `variant` render a tiny Cornell box in a child process?"""
+    code = ("import mitsuba as mi; mi.set_variant(%r); "
+            "mi.render(mi.load_dict(mi.cornell_box()), spp=1)" % variant)
+    try:
+        return subprocess.run([sys.executable, "-c", code], capture_output=True,
+                              timeout=600).returncode == 0
+    except subprocess.TimeoutExpired:
+        return False
 
 
 def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1, rr_depth: int | None = None) -> dict:

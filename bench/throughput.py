@@ -78,10 +78,23 @@ NOTES = """## Reading the table
   Fresnel and height-correlated G2 here, no Fresnel and separable G in
   Mitsuba's `roughconductor`), so each renderer is measured against its own
   reference.
-- `sobol` costs about 17 % of `random`'s samples/s (the Owen scramble and
-  the padding permutation of each 2D pair; 40 % before this round); on
-  cornell-box its MSE is 45 % lower than `random`'s at 16 spp, 56 % at 64
-  and 68 % at 256.
+- `sobol` costs about 13 % of `random`'s samples/s on one thread (1.14 M
+  against 1.30 M on cornell-box at 64 spp, 2026-11-26): its pairs below
+  spp share one hashed permutation per pixel at rotated positions, which
+  the tile kernels memoize per row (samplers/sobol.py), where every pair
+  of every sample used to hash its own (22 %; 40 % before 2026-11-24). Its
+  MSE is unchanged by that (cornell-box RMSE 0.02468 / 0.01076 / 0.00497
+  at 16 / 64 / 256 spp against 0.02459 / 0.01078 / 0.00497 before), 45 %,
+  56 % and 68 % lower than `random`'s.
+- Where cornell-box's error is (`python bench/error_budget.py`, 64 spp,
+  variance over 6 seeds): with `sobol`, direct light 8 % of the MSE, the
+  second bounce 15 %, the third 24 %, bounces 4-7 52 %; with `random`,
+  direct light 39 %. `sobol` divides the error of direct light by 11 and
+  the second bounce's by 3, the deeper ones by 1.2-1.4: what is left is
+  deep indirect light, where no 2D stratification reaches. Russian
+  roulette from the fifth vertex instead of the third (measured with
+  `sobol`, 64 spp) lowers the MSE by 24 % and costs 32 % more time: the
+  same efficiency (kept as it is).
 - The var channels are the variance of the mean of independent samples:
   exact for `random`, an overstatement for stratified samplers (README).
 - The BVH is 4-wide, collapsed from a binned-SAH binary tree (renderer/

@@ -16,8 +16,8 @@ from numba import njit
 
 from renderer.kernels.rng import sample_key, uniform
 from renderer.registry import SAMPLERS
-from renderer.samplers import (SAMPLER_RANDOM, bluenoise, fill_2d, halton, naive, points,
-                               sample_1d, sample_2d, sobol)
+from renderer.samplers import (SAMPLER_RANDOM, SAMPLER_SOBOL, bluenoise, fill_2d, halton,
+                               memo_rows, naive, points, sample_1d, sample_2d, sobol, u2d)
 from renderer.samplers.common import permute
 
 SEED = 20261122
@@ -111,6 +111,36 @@ def test02_consistent_values_in_any_order(name):
     one = np.empty((1, 2))
     fill_2d(sid, SEED, 37, 11, spp, 2, one)
     assert tuple(one[0]) == (forward[37, 11, 2], forward[37, 11, 3])
+
+
+@njit
+def _sobol_memo_draws(seed, spp, visits, memo, out):
+    """u2d's sobol path with a memo, over (pixel, index, dim) visits in the given order."""
+    for k in range(visits.shape[0]):
+        out[k, 0], out[k, 1] = u2d(SAMPLER_SOBOL, np.uint64(0), seed, visits[k, 0], visits[k, 1],
+                                   spp, visits[k, 2], memo)
+
+
+@pytest.mark.parametrize("spp", [1, 16, 10, 64])
+def test02_sobol_memo_gives_the_same_values(spp):
+    # The tile kernels keep one pixel's sample order in a per-row memo
+    # (samplers/dispatch.py memo_rows); the values must be those of the plain
+    # kernel whatever the order of the visits: pixel-major as a tile walks,
+    # pixels interleaved (one row's memo shared by all of them, entries
+    # overwritten back and forth), indices past spp (later blocks, other
+    # tags), and pairs past spp (their own permutations).
+    pixels, dims = [0, 1, 4096], range(0, 2 * (spp + 3), 2)
+    walk = [(px, i, d) for px in pixels for i in range(2 * spp) for d in dims]
+    rng = np.random.default_rng(2)
+    for order in (walk, [walk[k] for k in rng.permutation(len(walk))]):
+        visits = np.asarray(order, np.int64)
+        memo = memo_rows(SAMPLER_SOBOL, spp, 1)[0]
+        assert memo.shape == (2 * spp,)
+        out = np.empty((len(visits), 2))
+        _sobol_memo_draws(SEED, spp, visits, memo, out)
+        plain = [sample_2d(SAMPLER_SOBOL, SEED, px, i, spp, d) for px, i, d in order]
+        assert [tuple(o) for o in out] == plain
+    assert memo_rows(SAMPLER_RANDOM, spp, 3).shape == (3, 0)  # other samplers keep none
 
 
 def _point_set(p):

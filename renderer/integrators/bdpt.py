@@ -46,7 +46,7 @@ from .tile import start_tile
 
 @kernel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
-                 heuristic, only_s, out_sum, out_sq, out_w, splat, u, V, stack):
+                 heuristic, only_s, out_sum, out_sq, out_w, splat, u, V, stack, memo):
     """BDPT over a tile's pixels and the sample blocks `blocks` (summed per
     block as in path.py, so tile films merge bit-identically); t = 1
     strategies add to the full-frame `splat`. A plain loop, no prange: two
@@ -67,7 +67,7 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                 for si in range(blocks[bi, 0], blocks[bi, 1]):
                     key = sample_key(seed, pixel, si)
                     for d in range(0, l0, 2):
-                        u[d], u[d + 1] = u2d(smp, key, seed, pixel, si, spp, d)
+                        u[d], u[d + 1] = u2d(smp, key, seed, pixel, si, spp, d, memo)
                     for d in range(l0, nd):
                         u[d] = uniform(key, d)
                     nc, nr = camera_subpath(sc, cam, width, height, stack, V, x + u[0], y + u[1],
@@ -155,7 +155,7 @@ def render_bdpt(scene, spec, unit, inputs, options) -> PartialFilm:
     rays = _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
                         spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
                         spec.spp, heuristic, only_s, t.film.sum, t.film.sum_sq, t.film.weight,
-                        splat, u, V, t.stacks[0])
+                        splat, u, V, t.stacks[0], t.memos[0])
     film = t.finish(unit, rays)
     film.with_splats(PartialFilm.splat_batch(splat, unit.samples))
     return film

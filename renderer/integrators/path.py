@@ -80,7 +80,7 @@ COSINE, UNIFORM = 0, 1
 
 @kernel_inline
 def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, hemisphere,
-            smp, seed, pixel, index, spp):
+            smp, seed, pixel, index, spp, memo):
     """Radiance arriving at o from direction -d: (r, g, b, rays traced).
 
     `strategy` decides how direct light is estimated at non-specular vertices:
@@ -93,7 +93,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
     specular chains continue). `hemisphere` picks cosine or uniform sampling of diffuse
     lobes. Random numbers come from the pixel sampler `smp` for sample
     `index` of `pixel` (`key` is that sample's hash key, the fast path of the
-    `random` sampler).
+    `random` sampler; `memo` the row's sampler scratch, samplers/dispatch.py).
     """
     lr, lg, lb = 0.0, 0.0, 0.0
     br, bg, bb = 1.0, 1.0, 1.0
@@ -147,12 +147,13 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             use_light = strategy == NEE or strategy == MIS or strategy == DIRECT
             light_scale = 1.0
             if strategy == ONE_SAMPLE:
-                chose_bsdf = u1d(smp, key, seed, pixel, index, spp, base + DIM_STRATEGY) >= 0.5
+                chose_bsdf = u1d(smp, key, seed, pixel, index, spp, base + DIM_STRATEGY,
+                                 memo) >= 0.5
                 use_light = not chose_bsdf
                 light_scale = 2.0  # the light strategy was drawn with probability 1/2
             if use_light and n_lights > 0:
-                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT)
-                u_pick, u_rr = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK)
+                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
+                u_pick, u_rr = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK, memo)
                 have_rr = True
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, u_pick, ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
@@ -182,7 +183,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
                         lb += bb * fb * eb * weight
             if strategy == DIRECT:
                 break  # Whitted: light stops at the first non-specular surface
-            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF)
+            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF, memo)
             if mtype == MAT_GLOSSY:
                 wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
                     nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab, ua, ub)
@@ -208,7 +209,8 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
         else:  # a mirror or glass
             if mtype == MAT_MIRROR and cos_o <= 0.0:
                 break
-            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS)
+            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
+                                                    base + DIM_GLASS, memo)
             dx, dy, dz, ox, oy, oz, wr, wg, wb, es = specular_step(
                 mtype, mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2], mat_param[mat, 0],
                 hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
@@ -222,7 +224,7 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
             if m < 1.0:
                 q = max(0.0, 1.0 - m)
                 if not have_rr:
-                    u_rr = u1d(smp, key, seed, pixel, index, spp, base + DIM_RR)
+                    u_rr = u1d(smp, key, seed, pixel, index, spp, base + DIM_RR, memo)
                 if u_rr < q:
                     break
                 s = 1.0 / (1.0 - q)
@@ -234,12 +236,13 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
 
 @kernel_parallel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
-                 strategy, heuristic, hemisphere, out_sum, out_sq, out_w, row_rays, stacks):
+                 strategy, heuristic, hemisphere, out_sum, out_sq, out_w, row_rays, stacks, memos):
     """The tile loop (integrators/tile.py) over `li_path`; rows in parallel."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     n = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
+        memo = memos[row]
         y = y0 + row
         rays = 0
         for x in range(x0, x1):
@@ -249,11 +252,11 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                 sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 for s in range(blocks[bi, 0], blocks[bi, 1]):
                     key = sample_key(seed, pixel, s)
-                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0)
+                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
                     r, g, b, nr = li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth,
                                           strategy, heuristic, hemisphere, smp, seed, pixel, s,
-                                          spp)
+                                          spp, memo)
                     rays += nr
                     sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
                 ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
@@ -270,7 +273,7 @@ def render_tile(scene, spec, unit, inputs, options, *, strategy: int) -> Partial
     _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
                  spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
                  spec.spp, strategy, heuristic, hemisphere, t.film.sum, t.film.sum_sq,
-                 t.film.weight, t.row_rays, t.stacks)
+                 t.film.weight, t.row_rays, t.stacks, t.memos)
     return t.finish(unit)
 
 

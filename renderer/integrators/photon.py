@@ -134,6 +134,7 @@ from ..kernels.photons import (
 )
 from ..plan import Unit
 from ..registry import SAMPLERS, Method, Option
+from ..samplers import NO_MEMO
 from ..scene import camera_array
 from .tile import start_tile
 
@@ -316,7 +317,7 @@ def _run_gather(scene, spec, unit, inputs, options) -> PartialFilm:
     for it in range(unit.sample_start, unit.sample_end):
         camera_pass(sc, cam, x0, y0, x1, y1, spec.width, spec.height, spec.seed, it, spec.spp,
                     smp, spec.depth, vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld, row_rays,
-                    stacks)
+                    stacks, NO_MEMO)
         rays += int(row_rays.sum())
         ppos, pdir, ppow, phit = _photons_of(inputs, unit.needs, it)
         valid = vp_kmax >= 2
@@ -373,7 +374,7 @@ def _run_knn(scene, spec, unit, inputs, options) -> PartialFilm:
                spec.seed, spec.spp, t.blocks, SAMPLERS[spec.sampler].id, spec.depth, ppos, pdir,
                ppow, phit, grid.cell, grid.start, grid.order, grid.inv_h, big_r * big_r, k,
                float(n_photons), t.film.sum, t.film.sum_sq, t.film.weight, t.row_rays,
-               t.stacks, np.empty((h, k)), np.empty((h, k), np.int64))
+               t.stacks, t.memos, np.empty((h, k)), np.empty((h, k), np.int64))
     return t.finish(unit)
 
 

@@ -166,7 +166,7 @@ def _patch_uv(geo, p, hx, hy, hz):
 
 @kernel_inline
 def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key, depth,
-                 gather, smp, seed, pixel, index, spp):
+                 gather, smp, seed, pixel, index, spp, memo):
     """Radiance arriving at o from -d through the patch solution: (r, g, b, rays)."""
     k_last = hist.shape[0] - 1
     br, bg, bb = 1.0, 1.0, 1.0
@@ -213,9 +213,10 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
             lb += bb * pt.emit[p, 2] * inv_pi
             ar, ag, ab = pt.rho[p, 0], pt.rho[p, 1], pt.rho[p, 2]
             if n_lights > 0:
-                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT)
+                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
-                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK), ua, ub)
+                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK,
+                                        memo), ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0:
                     sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz,
@@ -227,7 +228,7 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                         lr += br * ar * er * w
                         lg += bg * ag * eg * w
                         lb += bb * ab * eb * w
-            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF)
+            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF, memo)
             gx, gy, gz, cos_g, pdf = diffuse_sample(nx, ny, nz, ua, ub)
             br, bg, bb = br * ar, bg * ag, bb * ab  # f cos / pdf = albedo
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
@@ -262,7 +263,8 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                 mtype = sc.mat_type[mat]
                 if (mtype == MAT_MIRROR and cos_o > 0.0) or mtype == MAT_DIELECTRIC:
                     u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
-                                                            2 + DIMS_PER_BOUNCE * g + DIM_GLASS)
+                                                            2 + DIMS_PER_BOUNCE * g + DIM_GLASS,
+                                                            memo)
                     dx, dy, dz, ox, oy, oz, wr, wg, wb, _es = specular_step(
                         mtype, sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2],
                         sc.mat_param[mat, 0], hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
@@ -277,13 +279,14 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
         if mtype == MAT_MIRROR or mtype == MAT_DIELECTRIC:
             if mtype == MAT_MIRROR and cos_o <= 0.0:
                 break
-            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS)
+            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
+                                                    base + DIM_GLASS, memo)
             dx, dy, dz, ox, oy, oz, wr, wg, wb, _es = specular_step(
                 mtype, sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2],
                 sc.mat_param[mat, 0], hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
             br, bg, bb = br * wr, bg * wg, bb * wb
         elif mtype == MAT_GLOSSY:
-            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF)
+            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF, memo)
             wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
                 nx, ny, nz, -dx, -dy, -dz, sc.mat_param[mat, 1], sc.mat_rgb[mat, 0],
                 sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2], ua, ub)
@@ -299,12 +302,13 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
 
 @kernel_parallel
 def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, height, blocks,
-                  seed, depth, smp, spp, gather, out_sum, out_sq, out_w, row_rays, stacks):
+                  seed, depth, smp, spp, gather, out_sum, out_sq, out_w, row_rays, stacks, memos):
     """The tile loop (integrators/tile.py) over `li_radiosity`; rows in parallel."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     n = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
+        memo = memos[row]
         y = y0 + row
         rays = 0
         for x in range(x0, x1):
@@ -314,11 +318,11 @@ def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, 
                 sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 for s in range(blocks[bi, 0], blocks[bi, 1]):
                     key = sample_key(seed, pixel, s)
-                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0)
+                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
                     r, g, b, nr = li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz,
                                                dx, dy, dz, key, depth, gather, smp, seed, pixel,
-                                               s, spp)
+                                               s, spp, memo)
                     rays += nr
                     sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
                 ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
@@ -429,7 +433,7 @@ def run_radiosity(scene, spec, unit, inputs, options) -> PartialFilm:
                   unit.x1, unit.y1, spec.width, spec.height, t.blocks, spec.seed, spec.depth,
                   SAMPLERS[spec.sampler].id, spec.spp,
                   1 if options["final_gather"] == "on" else 0,
-                  t.film.sum, t.film.sum_sq, t.film.weight, t.row_rays, t.stacks)
+                  t.film.sum, t.film.sum_sq, t.film.weight, t.row_rays, t.stacks, t.memos)
     return t.finish(unit)
 
 

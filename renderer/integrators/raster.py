@@ -38,7 +38,7 @@ from ..kernels.lights import sample_light
 from ..kernels.rng import sample_key
 from ..kernels.sampling import INV_PI
 from ..registry import SAMPLERS, Method
-from ..samplers import u1d, u2d
+from ..samplers import NO_MEMO, u1d, u2d
 from ..scene import camera_array
 from .tile import tile_plan, unit_blocks
 
@@ -162,7 +162,7 @@ def _raster_pass(verts, cam, width, height, x0, y0, x1, y1, sample_x, sample_y, 
 
 @kernel
 def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, key, smp, seed,
-           pixel, index, spp):
+           pixel, index, spp, memo):
     """Local shading of the visible point at camera depth z on triangle tri."""
     dx, dy, dz = camera_ray(cam, width, height, fx, fy)
     t = z / (dx * cam[9] + dy * cam[10] + dz * cam[11])
@@ -178,9 +178,9 @@ def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, ke
     mat = tri_mat[tri]
     mtype = sc.mat_type[mat]
     if (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY) and sc.light_type.shape[0] > 0:
-        ua, ub = u2d(smp, key, seed, pixel, index, spp, 2)
+        ua, ub = u2d(smp, key, seed, pixel, index, spp, 2, memo)
         wx, wy, wz, dist, pdf, er, eg, eb, delta = sample_light(
-            sc, px, py, pz, u1d(smp, key, seed, pixel, index, spp, 4), ua, ub)
+            sc, px, py, pz, u1d(smp, key, seed, pixel, index, spp, 4, memo), ua, ub)
         cos_i = wx * nx + wy * ny + wz * nz
         if pdf > 0.0 and cos_i > 0.0:
             ar, ag, ab = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
@@ -199,9 +199,10 @@ def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, ke
 @kernel_parallel
 def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, width, height,
                  blocks, seed, smp, spp, centres, out_sum, out_sq, out_w, sample_x, sample_y, zbuf, idbuf,
-                 clip, block_acc):
+                 clip, block_acc, no_memo):
     """Render the tile: per sample index one z-buffer pass, then shading; sums
-    formed per sample block like every other kernel (film.py)."""
+    formed per sample block like every other kernel (film.py). Sample-major
+    (one z-buffer pass per sample index), so no sampler memo (`no_memo`)."""
     h, w = y1 - y0, x1 - x0
     for bi in range(blocks.shape[0]):
         block_acc[:, :, :] = 0.0
@@ -212,7 +213,8 @@ def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, widt
                     if centres:
                         sample_x[row, c], sample_y[row, c] = x0 + c + 0.5, y0 + row + 0.5
                     else:
-                        fu, fv = u2d(smp, key, seed, (y0 + row) * width + x0 + c, s, spp, 0)
+                        fu, fv = u2d(smp, key, seed, (y0 + row) * width + x0 + c, s, spp, 0,
+                                     no_memo)
                         sample_x[row, c] = x0 + c + fu
                         sample_y[row, c] = y0 + row + fv
             _raster_pass(verts, cam, width, height, x0, y0, x1, y1, sample_x, sample_y, zbuf,
@@ -225,7 +227,7 @@ def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, widt
                     key = sample_key(seed, (y0 + row) * width + x0 + c, s)
                     r, g, b = _shade(sc, cam, width, height, sample_x[row, c], sample_y[row, c],
                                      zbuf[row, c], tri, tri_n, tri_mat, tri_light, key, smp, seed,
-                                     (y0 + row) * width + x0 + c, s, spp)
+                                     (y0 + row) * width + x0 + c, s, spp, no_memo)
                     block_acc[row, c, 0] += r
                     block_acc[row, c, 1] += g
                     block_acc[row, c, 2] += b
@@ -251,7 +253,7 @@ def _run(scene, spec, unit, centres=False):
                  unit.y1, spec.width, spec.height,
                  unit_blocks(spec.spp, unit.sample_start, unit.sample_end), spec.seed,
                  SAMPLERS[spec.sampler].id, spec.spp, centres,
-                 film.sum, film.sum_sq, film.weight, *buffers)
+                 film.sum, film.sum_sq, film.weight, *buffers, NO_MEMO)
     film.stats.update(samples=unit.samples, rays=0)
     return film, buffers[2]
 

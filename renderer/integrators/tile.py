@@ -35,6 +35,8 @@ import numpy as np
 from ..film import PartialFilm, sample_blocks
 from ..kernels.geometry import STACK_SIZE
 from ..plan import plan
+from ..registry import SAMPLERS
+from ..samplers import memo_rows
 from ..scene import camera_array
 
 __all__ = ["tile_plan", "unit_blocks", "TileRun", "start_tile"]
@@ -57,14 +59,15 @@ def unit_blocks(spp: int, sample_start: int, sample_end: int) -> np.ndarray:
 class TileRun(NamedTuple):
     """What a tile kernel is handed for one unit (`start_tile`): the unit's
     zeroed film, its canonical sample blocks, the camera, and per-row scratch
-    (rays traced per row, a BVH traversal stack per row: kernels allocate
-    nothing)."""
+    (rays traced per row, a BVH traversal stack per row, the sampler's memo
+    per row, samplers.memo_rows: kernels allocate nothing)."""
 
     film: PartialFilm
     blocks: np.ndarray
     cam: np.ndarray
     row_rays: np.ndarray
     stacks: np.ndarray
+    memos: np.ndarray
 
     def finish(self, unit, rays: int | None = None) -> PartialFilm:
         """The film with its stats (samples, rays: the rows' sum unless given)."""
@@ -78,4 +81,5 @@ def start_tile(scene, spec, unit) -> TileRun:
     return TileRun(PartialFilm.zeros(unit.x0, unit.y0, w, h),
                    unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
                    camera_array(scene.camera, spec.width, spec.height),
-                   np.zeros(h, np.int64), np.empty((h, STACK_SIZE), np.int64))
+                   np.zeros(h, np.int64), np.empty((h, STACK_SIZE), np.int64),
+                   memo_rows(SAMPLERS[spec.sampler].id, spec.spp, h))

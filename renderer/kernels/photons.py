@@ -139,12 +139,14 @@ def trace_photons(sc, stack, seed, g0, g1, depth, pos, dirs, power, hits):
 # -------------------------------------------------------- visible points
 
 @kernel_inline
-def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, index, spp):
+def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, index, spp,
+                  memo):
     """Follow a camera ray through mirrors and glass to the first diffuse or
     glossy surface. Returns (kmax, p, n, wo, beta, mat, Ld, rays): kmax =
     depth - specular bounces (the longest photon path k it may gather; -1
     when there is no visible point), Ld the emission seen along the chain
-    plus direct light at the visible point by light sampling."""
+    plus direct light at the visible point by light sampling. `memo`: the
+    sampler's row scratch (samplers/dispatch.py) or NO_MEMO."""
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
     sph_flip, sph_mat, sph_light = sc.sph_flip, sc.sph_mat, sc.sph_light
@@ -177,9 +179,10 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
             if cos_o <= 0.0:
                 break
             if n_lights > 0:
-                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT)
+                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
-                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK), ua, ub)
+                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK,
+                                        memo), ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
                     if mtype == MAT_DIFFUSE:
@@ -204,7 +207,8 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
         else:  # a mirror or glass: radiance transport on the camera side (1/eta^2)
             if mtype == MAT_MIRROR and cos_o <= 0.0:
                 break
-            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp, base + DIM_GLASS)
+            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
+                                                    base + DIM_GLASS, memo)
             dx, dy, dz, ox, oy, oz, wr, wg, wb, _es = specular_step(
                 mtype, mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2], mat_param[mat, 0],
                 hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
@@ -216,8 +220,9 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
 
 @kernel_parallel
 def camera_pass(sc, cam, x0, y0, x1, y1, width, height, seed, index, spp, smp, depth,
-                vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld, row_rays, stacks):
-    """One camera sample (`index`) per pixel of the tile: its visible point and Ld."""
+                vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld, row_rays, stacks, no_memo):
+    """One camera sample (`index`) per pixel of the tile: its visible point and
+    Ld. One sample of each pixel, so no sampler memo (`no_memo`)."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     for row in prange(y1 - y0):
         stack = stacks[row]
@@ -227,11 +232,11 @@ def camera_pass(sc, cam, x0, y0, x1, y1, width, height, seed, index, spp, smp, d
             c = x - x0
             pixel = y * width + x
             key = sample_key(seed, pixel, index)
-            fu, fv = u2d(smp, key, seed, pixel, index, spp, 0)
+            fu, fv = u2d(smp, key, seed, pixel, index, spp, 0, no_memo)
             dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
             (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
              nr) = visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed,
-                                 pixel, index, spp)
+                                 pixel, index, spp, no_memo)
             rays += nr
             vp_kmax[row, c] = kmax
             vp_p[row, c, 0], vp_p[row, c, 1], vp_p[row, c, 2] = px, py, pz
@@ -372,7 +377,7 @@ def sppm_update(n, r2, tau, m, phi, alpha):
 @kernel_parallel
 def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, depth,
                ppos, pdir, ppow, phit, cell, start, order, inv_h, big_r2, k, n_emitted,
-               out_sum, out_sq, out_w, row_rays, stacks, best_d, best_i):
+               out_sum, out_sq, out_w, row_rays, stacks, memos, best_d, best_i):
     """Classic photon map, visualised directly at the visible point: Ld plus
     the k-nearest-neighbour estimate sum f power / (n_emitted pi r_k^2). The
     tile loop of renderer/integrators/tile.py over the sample blocks."""
@@ -383,6 +388,7 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, d
     n_blk = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
+        memo = memos[row]
         bd = best_d[row]
         bi = best_i[row]
         y = y0 + row
@@ -395,11 +401,11 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, d
                 sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                 for s in range(blocks[blk, 0], blocks[blk, 1]):
                     key = sample_key(seed, pixel, s)
-                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0)
+                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
                     (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
                      nr) = visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed,
-                                         pixel, s, spp)
+                                         pixel, s, spp, memo)
                     rays += nr
                     if kmax >= 2 and ppos.shape[0] > 0:
                         cnt = 0

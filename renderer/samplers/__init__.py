@@ -55,12 +55,13 @@ import numpy as np
 from .dispatch import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIM_RR, DIM_STRATEGY,
                        DIMS_PER_BOUNCE, SAMPLER_BLUENOISE, SAMPLER_HALTON, SAMPLER_HAMMERSLEY,
                        SAMPLER_JITTERED, SAMPLER_MULTIJITTER, SAMPLER_NROOKS, SAMPLER_RANDOM,
-                       SAMPLER_SOBOL, SAMPLER_UNIFORM, fill_2d, sample_1d, sample_2d, u1d, u2d)
+                       SAMPLER_SOBOL, SAMPLER_UNIFORM, NO_MEMO, fill_2d, memo_rows, sample_1d,
+                       sample_2d, u1d, u2d)
 
 __all__ = ["DIM_BSDF", "DIM_GLASS", "DIM_LIGHT", "DIM_LIGHT_PICK", "DIM_RR", "DIM_STRATEGY",
            "DIMS_PER_BOUNCE", "SAMPLER_BLUENOISE", "SAMPLER_HALTON", "SAMPLER_HAMMERSLEY", "SAMPLER_JITTERED",
            "SAMPLER_MULTIJITTER", "SAMPLER_NROOKS", "SAMPLER_RANDOM", "SAMPLER_SOBOL",
-           "SAMPLER_UNIFORM", "fill_2d", "points", "sample_1d", "sample_2d", "u1d", "u2d"]
+           "SAMPLER_UNIFORM", "NO_MEMO", "fill_2d", "memo_rows", "points", "sample_1d", "sample_2d", "u1d", "u2d"]
 
 
 def points(name: str, seed: int, pixel: int, spp: int, dim: int = 0,

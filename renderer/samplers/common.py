@@ -150,6 +150,8 @@ def split_block(index, spp, size):
     block inside [0, spp) holds what is left. Indices past spp continue in
     full blocks, each with its own scrambles (progressive rendering).
     """
+    if 0 <= index < size <= spp:  # the first block, the common case: no division
+        return 0, index, size
     if spp < 1:
         spp = 1
     if size < 1:

@@ -3,6 +3,8 @@
 See the package docstring (renderer/samplers/__init__.py) for the contract.
 """
 
+import numpy as np
+
 from ..kernels import kernel, kernel_inline
 from ..kernels.rng import uniform as hashed_uniform  # not the `uniform` sampler below
 # Imported in id order: registration order is the order `GET /samplers` lists.
@@ -34,6 +36,7 @@ _multijitter_pair = multijitter.sample_pair
 _hammersley_pair = hammersley.sample_pair
 _halton_pair = halton.sample_pair
 _sobol_pair = sobol.sample_pair
+_sobol_pair_memo = sobol.sample_pair_memo
 _bluenoise_pair = bluenoise.sample_pair
 
 
@@ -98,23 +101,39 @@ DIM_GLASS = 6  # 1D: reflect or refract at glass
 DIM_STRATEGY = 7  # 1D: one-sample MIS's choice of strategy
 
 
+# The memo argument of kernels that keep none (sample-major loops, where a
+# pixel's memo would not pay): any array whose length is not 2 * spp. Pass it
+# in as an argument: a global array read inside a kernel is frozen read-only.
+NO_MEMO = np.zeros(0, np.int64)
+
+
 @kernel_inline
-def u1d(smp, key, seed, pixel, index, spp, dim):
+def u1d(smp, key, seed, pixel, index, spp, dim, memo):
     """Dimension `dim` of the sample from sampler `smp` (`random` straight from
-    the sample's precomputed hash key: the common case stays cheap)."""
+    the sample's precomputed hash key: the common case stays cheap). `memo`:
+    the row's scratch for `sobol`'s pixel permutation (`sobol.sample_pair_memo`),
+    or NO_MEMO."""
     if smp == SAMPLER_RANDOM:
         return hashed_uniform(key, dim)
     if smp == SAMPLER_SOBOL:
-        u, v = _sobol_pair(seed, pixel, index, spp, dim >> 1)
+        u, v = _sobol_pair_memo(seed, pixel, index, spp, dim >> 1, memo)
         return v if dim & 1 else u
     return sample_1d(smp, seed, pixel, index, spp, dim)
 
 
 @kernel_inline
-def u2d(smp, key, seed, pixel, index, spp, dim):
+def u2d(smp, key, seed, pixel, index, spp, dim, memo):
     """Dimensions (dim, dim + 1), dim even: one 2D pair of the sampler."""
     if smp == SAMPLER_RANDOM:
         return hashed_uniform(key, dim), hashed_uniform(key, dim + 1)
     if smp == SAMPLER_SOBOL:
-        return _sobol_pair(seed, pixel, index, spp, dim >> 1)
+        return _sobol_pair_memo(seed, pixel, index, spp, dim >> 1, memo)
     return sample_2d(smp, seed, pixel, index, spp, dim)
+
+
+def memo_rows(sampler_id: int, spp: int, rows: int) -> np.ndarray:
+    """Per-row scratch for u1d/u2d's memo: (rows, 2 * spp) for `sobol` with
+    spp up to sobol.MEMO_MAX_SPP (tags start at 0, which no entry uses),
+    else (rows, 0), no memo."""
+    width = 2 * spp if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP else 0
+    return np.zeros((rows, width), np.int64)

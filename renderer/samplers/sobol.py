@@ -3,9 +3,12 @@
 Every 2D pair uses Sobol' dimensions 0 and 1 (the (0, 2)-sequence: van der
 Corput and its Pascal-matrix partner), so no direction-number table is needed
 beyond those two. Each pair of each pixel gets
-- its own sample order: sample i of a block of spp uses sequence index
-  j = block * spp + perm(i), a hashed permutation of [0, spp) (pbrt's
-  `PermutationElement`), which decorrelates the pairs ("padding");
+- its own sample order: sample i of a block of n = spp samples uses
+  sequence index j = block * spp + order(i), which decorrelates the pairs
+  ("padding"). Pairs below n read one hashed permutation of [0, n) per
+  pixel and block (Kensler's `permute`, pbrt's `PermutationElement`) at
+  rotated positions, order(i) = perm((i + pair) mod n); pairs from n on
+  (deep bounces at low spp) each have their own permutation;
 - its own Owen scramble per coordinate, Burley's (2020) hash-based nested
   uniform scramble with the improved Laine-Karras hash pbrt-v4 uses
   (`FastOwenScrambler`). Owen scrambling keeps the net property and makes
@@ -17,21 +20,33 @@ in every elementary interval 2^-a x 2^-b with a + b = m (tested); for other
 spp the prefix is still well spread, the guarantee holds per power-of-two
 block. 32-bit precision: indices are taken mod 2^32.
 
-Cost (it is the default sampler, so it has to be cheap): about 17 ns a pair,
-against 32 ns before the byte tables of dimension 1 and the scramble on
-reversed bits (which give the same values), and 5 ns for `random`'s two
-hashes. Half of it is the padding permutation (Kensler's hash, nine
-multiplies). Measured and not kept (2026-11-25): a permutation from the
-nested family (i's bits scrambled top-down by the Laine-Karras hash on
-reversed bits, the base-2 form of pbrt-v4's ZSobol index permutation, three
-multiplies) made a pair 34 % cheaper and cornell-box renders 4-9 % faster,
-but it pairs the strata of two pairs less randomly: on integrands coupling
-two pairs its MSE was 1.3-2x Kensler's (tests/test_renderer_samplers.py
-test04_sobol_pairs_are_padded), on cornell-box 1-2 % higher, on veach-mis
-within noise; efficiency +2 % at 64 spp is not worth a weaker sampler. Two
-rounds of xor-multiply-xorshift were cheaper still and failed that test.
-The light pick and Russian roulette share a pair (dispatch.py), and u1d/u2d
-call this module directly.
+Cost (it is the default sampler, so it has to be cheap). A pair took about
+17 ns (32 ns before the byte tables of dimension 1 and the scramble on
+reversed bits, which give the same values; 5 ns for `random`'s two
+hashes), half of it the padding permutation, Kensler's hash with its nine
+multiplies, evaluated for every pair of every sample. Since 2026-11-26 the
+pairs below n share a pixel's permutation at rotated positions, so the tile
+kernels memoize it per row (`sample_pair_memo`, dispatch.memo_rows): one
+hash per pixel and sample instead of one per pair. On cornell-box (64 spp,
+one thread) `sobol` went from 1.02 to 1.14 M samples/s (`random` 1.30 M);
+its RMSE at 16, 64 and 256 spp and the coupling test
+(tests/test_renderer_samplers.py test04_sobol_pairs_are_padded: two pairs'
+coarse strata paired as by a random permutation) are unchanged within
+their noise: two rotations of one random permutation are coupled like two
+independent ones, since (perm(t), perm(t + d)) runs through a random
+matching of [0, n) for every offset d != 0 mod n.
+
+Measured and not kept (2026-11-25): a permutation from the nested family
+(i's bits scrambled top-down by the Laine-Karras hash on reversed bits, the
+base-2 form of pbrt-v4's ZSobol index permutation, three multiplies) made a
+pair 34 % cheaper and cornell-box renders 4-9 % faster, but it pairs the
+strata of two pairs less randomly: on integrands coupling two pairs its MSE
+was 1.3-2x Kensler's (test04_sobol_pairs_are_padded), on cornell-box 1-2 %
+higher; not worth a weaker sampler. Two rounds of xor-multiply-xorshift
+were cheaper still and failed that test, as did (2026-11-26) a
+multiply-xorshift permutation with shifts scaled to n. The light pick and
+Russian roulette share a pair (dispatch.py), and u1d/u2d call this module
+directly.
 """
 
 import numpy as np
@@ -122,16 +137,79 @@ def owen_scramble(v, seed):
     return reverse_bits32(_scramble_reversed(reverse_bits32(v), seed))
 
 
+# Salt of the pixel's shared sample order (pair_key's salts 7 = each pair's own keys).
+_ORDER_SALT = 9
+# The memo (`sample_pair_memo`) holds one pixel's order for spp up to this.
+MEMO_MAX_SPP = 4096
+
+
 @kernel_inline
-def sample_pair(seed, pixel, index, spp, pair):
-    b, i, n = split_block(index, spp, spp)
-    key = pair_key(seed, pixel, pair, 7)
-    j = np.uint64(b * (spp if spp > 0 else 1) + permute(i, n, block_key(key, b))) & MASK32
+def _order_key(seed, pixel, b):
+    return block_key(pair_key(seed, pixel, 0, _ORDER_SALT), b)
+
+
+@kernel_inline
+def _pair_values(j, key):
+    """The pair's scrambled Sobol' point at sequence index j."""
     # dimension 0 is the van der Corput sequence, the reversed bits of j: the
-    # scramble works on reversed bits, so j goes in as it is
-    # three independent 32-bit words per pair: the low half of `key` orders
-    # block 0's samples (permute reads it), its high half and one more hash
-    # scramble the two coordinates
+    # scramble works on reversed bits, so j goes in as it is; the two
+    # coordinates are scrambled by the high half of `key` and one more hash
     u = float(reverse_bits32(_scramble_reversed(j, hash32(key, 1)))) * INV_2_32
     v = float(reverse_bits32(_scramble_reversed(_reversed_sobol1(j), key >> U32))) * INV_2_32
     return u, v
+
+
+@kernel_inline
+def _rotated(i, pair, n):
+    """(i + pair) mod n, for i < n and pair < n."""
+    t = i + pair
+    return t - n if t >= n else t
+
+
+@kernel_inline
+def _sample_order(seed, pixel, b, i, n, pair, key):
+    """order(i) of pair `pair` in block b of length n (see `sample_pair`)."""
+    if pair < n:
+        return permute(_rotated(i, pair, n), n, _order_key(seed, pixel, b))
+    return permute(i, n, block_key(key, b))
+
+
+@kernel_inline
+def sample_pair(seed, pixel, index, spp, pair):
+    """Pair `pair` of sample `index`: the scrambled point at j = b * spp + order(i).
+
+    The sample order (padding): pairs below n (the block's length) read one
+    hashed permutation of [0, n) per pixel and block at rotated positions,
+    order(i) = perm((i + pair) mod n); later pairs each have their own
+    permutation, perm_pair(i). Each pair's point set is the whole block
+    either way; the rotation gives two pairs' orders the coupling of a
+    random permutation (tests/test_renderer_samplers.py test04), and one
+    pixel's permutation serves all its pairs, so a kernel can memoize it
+    (`sample_pair_memo`) instead of hashing every pair of every sample."""
+    b, i, n = split_block(index, spp, spp)
+    key = pair_key(seed, pixel, pair, 7)
+    p = _sample_order(seed, pixel, b, i, n, pair, key)
+    return _pair_values(np.uint64(b * (spp if spp > 0 else 1) + p) & MASK32, key)
+
+
+@kernel_inline
+def sample_pair_memo(seed, pixel, index, spp, pair, memo):
+    """`sample_pair`, with the pixel's permutation memoized in `memo` (int64,
+    2 * spp entries: tags, then values; any other length: no memo). A
+    tag names the pixel and block an entry was computed for, so the memo
+    needs no clearing between pixels or units and a stale entry is never
+    read. Same values as `sample_pair`, bit for bit (tested)."""
+    b, i, n = split_block(index, spp, spp)
+    key = pair_key(seed, pixel, pair, 7)
+    if pair < n and memo.shape[0] == 2 * n and b < 1 << 20:  # (b < 2^20: tags stay unique)
+        t = _rotated(i, pair, n)
+        tag = (np.int64(pixel) << 20) + b + 1
+        if memo[t] == tag:
+            p = memo[n + t]
+        else:
+            p = _sample_order(seed, pixel, b, i, n, pair, key)
+            memo[t] = tag
+            memo[n + t] = p
+    else:
+        p = _sample_order(seed, pixel, b, i, n, pair, key)
+    return _pair_values(np.uint64(b * (spp if spp > 0 else 1) + p) & MASK32, key)
