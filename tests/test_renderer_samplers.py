@@ -141,6 +141,7 @@ def test02_sobol_memo_gives_the_same_values(spp):
         plain = [sample_2d(SAMPLER_SOBOL, SEED, px, i, spp, d) for px, i, d in order]
         assert [tuple(o) for o in out] == plain
     assert memo_rows(SAMPLER_RANDOM, spp, 3).shape == (3, 0)  # other samplers keep none
+    assert memo_rows(SAMPLER_SOBOL, 4096, 8192).shape == (8192, 0)  # nor a huge unit
 
 
 def _point_set(p):
