@@ -23,7 +23,7 @@ import logging
 
 from celery import Celery
 from celery.signals import (after_setup_logger, after_setup_task_logger, task_failure,
-                            worker_process_init, worker_ready, worker_shutdown)
+                            worker_init, worker_process_init, worker_ready, worker_shutdown)
 
 from .keys import QUEUE
 from .settings import Settings
@@ -105,6 +105,26 @@ def _warm_up_child(**_kwargs) -> None:
     log.info("render process warmed up")
 
 
+@worker_init.connect
+def _start_drained(sender=None, **_kwargs) -> None:
+    # A worker an admin disabled stays disabled across a restart (its name is
+    # in the disabled set): it must not consume the shared queue even for the
+    # moment before its presence's first beat cancels the consumer, or it takes
+    # a unit only to decline it. Sent before the consumer starts, after the
+    # worker chose its queues (its own direct queue stays).
+    import redis
+
+    from .presence import is_disabled
+
+    try:
+        client = redis.Redis.from_url(sender.app.conf.broker_url)
+        if is_disabled(client, sender.hostname):
+            sender.app.amqp.queues.deselect(QUEUE)
+            log.info("worker %s is disabled: not consuming %s", sender.hostname, QUEUE)
+    except Exception:  # the presence thread follows the flag within a beat anyway
+        log.exception("could not read whether worker %s is disabled", sender.hostname)
+
+
 _presence = None  # this worker's heartbeat (main process only)
 
 
@@ -135,9 +155,21 @@ def _start_presence(sender=None, **_kwargs) -> None:
 
         return [request.id for request in list(state.reserved_requests)]
 
+    def consuming() -> bool | None:
+        # Read in this thread while the event loop may change it: a dict lookup.
+        # None once a shutdown began (its consumer stops; asking it to consume
+        # again could take a unit during a warm shutdown) or before it exists.
+        from celery.worker import state
+
+        tasks = getattr(sender, "task_consumer", None)
+        if tasks is None or state.should_stop not in (None, False) or \
+                state.should_terminate not in (None, False):
+            return None
+        return bool(tasks.consuming_from(QUEUE))
+
     _presence = Presence(redis.Redis.from_url(app.conf.broker_url), hostname,
                          int(concurrency), float(app.conf.rayfarm_heartbeat_seconds or 2.0),
-                         consume=consume, reserved=reserved)
+                         consume=consume, reserved=reserved, consuming=consuming)
     try:
         _presence.start()
     except Exception:  # presence is for the dashboard; never stop the worker for it

@@ -50,7 +50,10 @@ class Presence:
     """The main process's heartbeat: `start()` when the worker is ready,
     `stop()` when it shuts down (it is then shown offline, not lost).
     `consume(bool)`, if given, starts or stops the worker consuming the queue
-    when the disabled set says otherwise (see the module doc). `reserved()`, if
+    when the disabled set says otherwise (see the module doc), and
+    `consuming()` says whether it consumes now: the request is sent again on
+    every beat until the consumer follows it (a remote-control message sent
+    before the worker's event loop listens is lost). `reserved()`, if
     given, lists the task ids the worker holds (prefetched or running): the
     service must not take a unit whose message a live worker holds for lost
     merely because it has waited long (its render processes may still be
@@ -58,11 +61,13 @@ class Presence:
 
     def __init__(self, client: redis.Redis, name: str, concurrency: int, interval: float,
                  consume: Callable[[bool], None] | None = None,
-                 reserved: Callable[[], list[str]] | None = None):
+                 reserved: Callable[[], list[str]] | None = None,
+                 consuming: Callable[[], bool] | None = None):
         self.client, self.name, self.concurrency, self.interval = client, name, concurrency, interval
         self._consume = consume
         self._reserved = reserved
-        self._consuming = True  # a worker starts consuming its queue
+        self._consuming_now = consuming
+        self._consuming = True  # the flag as last followed (a worker starts consuming its queue)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rayfarm-presence", daemon=True)
 
@@ -88,11 +93,18 @@ class Presence:
         if self._consume is None:
             return
         wanted = not self.client.sismember(DISABLED_WORKERS, self.name)
-        if wanted != self._consuming:
+        if wanted != self._consuming:  # the flag changed (the service may have acted already)
             log.info("worker %s %s", self.name, "enabled: consuming again" if wanted
                      else "disabled: no new units (running ones finish)")
-            self._consume(wanted)
             self._consuming = wanted
+            if self._consuming_now is None:
+                self._consume(wanted)
+                return
+        if self._consuming_now is None:
+            return
+        actual = self._consuming_now()  # None: shutting down, leave the consumer be
+        if actual is not None and actual != wanted:
+            self._consume(wanted)  # asked again on every beat until the consumer follows
 
     def _beat_units(self) -> None:
         """Refresh the heartbeat key of every unit a live render process of
