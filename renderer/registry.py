@@ -64,6 +64,11 @@ class Method:
     on one scene (a resolved document) and raises `SpecError`:
     `RenderSpec.validate` calls it when it is handed the scene, so a job that
     could only fail on the farm is refused at submission.
+
+    `warm_options` are option sets whose kernels the defaults do not compile
+    (photon's `photonmap` mode: a k-NN kernel of its own, 38 s to compile on
+    a 2-core machine): `renderer.warm_up` renders each of them too, so no
+    unit of any job compiles in a render process.
     """
 
     name: str
@@ -75,6 +80,7 @@ class Method:
     aliases: tuple[str, ...] = field(default=())
     phases: tuple[str, ...] = ("tile",)
     check_scene: Callable | None = None
+    warm_options: tuple[dict, ...] = field(default=(), compare=False)
 
     def render(self, scene, spec, unit, inputs: dict | None = None):
         """Run one unit of a job of this method (its options checked here)."""

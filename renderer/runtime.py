@@ -168,7 +168,9 @@ def _method_families() -> list[list[str]]:
 def _warm_methods(names: list[str]) -> None:
     scene = build_scene(resolve_document("cornell-box"))
     for name in names:
-        run_plan(scene, RenderSpec(method=name, spp=2, depth=2, width=4, height=4, tile_size=4))
+        for options in ({}, *METHODS[name].warm_options):
+            run_plan(scene, RenderSpec(method=name, spp=2, depth=2, width=4, height=4,
+                                       tile_size=4, options=options))
 
 
 def run_plan(scene: Scene, spec: RenderSpec, progressive: bool = False) -> list[PartialFilm]:

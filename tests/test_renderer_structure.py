@@ -174,3 +174,50 @@ def test09_camera_side_specular_chains_take_one_step():
         calls = _calls(path, function)
         assert "specular_step" in calls, path
         assert not calls & {"reflect", "dielectric_sample"}, (path, function)
+
+
+_WARM_CHECK = r'''
+import json
+from numba.core.dispatcher import Dispatcher
+import renderer
+from renderer import METHODS, RenderSpec, build_scene, resolve_document, warm_up
+from renderer.runtime import run_plan
+
+def signatures():
+    import sys
+    return {f"{name}.{key}": len(obj.signatures) for name, module in list(sys.modules.items())
+            if name.startswith("renderer.") and module is not None
+            for key, obj in vars(module).items() if isinstance(obj, Dispatcher)}
+
+warm_up()
+before = signatures()
+scene = build_scene(resolve_document("cornell-box"))
+for method in dict.fromkeys(METHODS.values()):
+    for option in method.options:
+        for choice in option.choices or ():
+            run_plan(scene, RenderSpec(method=method.name, spp=2, depth=2, width=4, height=4,
+                                       tile_size=4, options={option.name: choice}))
+after = signatures()
+print(json.dumps({k: [before.get(k, 0), n] for k, n in after.items() if n != before.get(k, 0)}))
+'''
+
+
+def test10_warm_up_leaves_no_option_to_compile_in_a_unit(tmp_path):
+    """Every choice of every method's options renders with kernels that
+    `warm_up` already compiled or loaded (Method.warm_options): a render
+    process never compiles inside a unit. Photon's `photonmap` mode used to
+    compile its k-NN kernel (38 s on 2 cores) in the first unit of such a job.
+    In a fresh process, so kernels loaded by earlier tests do not count."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    # A cache of radiosity solutions of its own: with a solution cached, the
+    # warm-up needs no solver kernel, and the check would count loading one.
+    env = {**os.environ, "RAYFARM_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", _WARM_CHECK], cwd=ROOT, capture_output=True,
+                         text=True, timeout=900, env=env)
+    assert out.returncode == 0, out.stderr[-3000:]
+    grown = json.loads(out.stdout.strip().splitlines()[-1])
+    assert grown == {}, f"kernels first specialised after warm_up: {grown}"

@@ -414,4 +414,5 @@ METHODS = (Method(
     family="photons",
     plan=plan_photon,
     phases=("photons", "gather"),
+    warm_options=({"mode": "photonmap"},),
 ),)

@@ -469,4 +469,7 @@ METHODS = (Method(
     plan=plan_radiosity,
     phases=("solve", "tile"),
     check_scene=check_scene,
+    # Each solver is a kernel of its own (the default's solve may even be
+    # skipped at warm-up: a cached solution needs none).
+    warm_options=({"solver": "gauss-seidel"}, {"solver": "progressive"}),
 ),)
