@@ -219,7 +219,7 @@ class Scheduler:
                 if not self._needs_visit(job, flying[job.id]):
                     continue
                 try:
-                    if self._advance(job.id):
+                    if self._advance(job.id, plan=job.status == "queued"):
                         self._finish(job.id)
                 except StaleDataError:
                     log.info("job %s changed meanwhile (canceled?); next tick", job.id)
@@ -282,17 +282,19 @@ class Scheduler:
             except Exception as exc:  # they expire anyway
                 log.warning("dropping %d films of departed jobs failed: %s", len(digests), exc)
 
-    def _advance(self, job_id: str) -> bool:
-        """Plan a queued job, collect a job's units in flight and refresh its
-        preview; returns whether all its units are done."""
+    def _advance(self, job_id: str, plan: bool = True) -> bool:
+        """Plan a queued job (`plan`: the census saw it queued; a job queued
+        since waits for the next tick), collect a job's units in flight and
+        refresh its preview; returns whether all its units are done."""
         released: list[tuple[str, ...]] = []
         landed: list[tuple[int, PartialFilm]] = []
-        with self.sessions.begin() as session:  # the plan stands even if collecting fails
-            job = session.get(Job, job_id)
-            if job is None or job.status not in states.SCHEDULED_JOB:
-                return False
-            if job.status == "queued":
-                self._plan(session, job, self.clock())
+        if plan:  # a transaction of its own: the plan stands even if collecting fails
+            with self.sessions.begin() as session:
+                job = session.get(Job, job_id)
+                if job is None or job.status not in states.SCHEDULED_JOB:
+                    return False
+                if job.status == "queued":
+                    self._plan(session, job, self.clock())
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
             if job is None or job.status not in ("running", "paused"):
