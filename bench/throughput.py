@@ -373,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-mitsuba", action="store_true", help="skip Mitsuba even if installed")
     parser.add_argument("--no-farm", action="store_true", help="skip scaling and farm overhead")
     parser.add_argument("--no-traversal", action="store_true", help="skip the BVH traversal table")
+    parser.add_argument("--farm-only", action="store_true",
+                        help="only scaling and farm overhead (no references, no Mitsuba)")
     parser.add_argument("--mitsuba-variant", default=None)
     parser.add_argument("--mitsuba-child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -398,13 +400,14 @@ def main(argv: list[str] | None = None) -> int:
            f"own {args.ref_spp}-spp reference, corrected for the reference's variance; "
            f"efficiency = 1 / (MSE x seconds), and its ratio to Mitsuba's at the same spp. "
            f"Median seconds and mean MSE of {args.repeat} renders. Default sampler: `{default}`.")
-    mts_available = not args.no_mitsuba and importlib.util.find_spec("mitsuba") is not None
+    mts_available = (not args.no_mitsuba and not args.farm_only
+                     and importlib.util.find_spec("mitsuba") is not None)
     if not mts_available:
         report()
         report("Mitsuba: " + ("skipped (--no-mitsuba)" if args.no_mitsuba else
                               "not installed (pip install -e '.[mitsuba]'): no ratio column"))
 
-    for scene_name in args.scenes.split(","):
+    for scene_name in [] if args.farm_only else args.scenes.split(","):
         size = SIZES[scene_name]
         report()
         report(f"## {scene_name}, {size[0]}x{size[1]}")
@@ -455,7 +458,7 @@ def main(argv: list[str] | None = None) -> int:
                    f"{'-' if rays is None else f'{rays / 1e6:.2f} M'} | {max(mse, 0.0) ** 0.5:.5f} | "
                    f"{eff:.4g} | {ratio} |")
 
-    if not args.no_traversal:
+    if not args.no_traversal and not args.farm_only:
         import traversal
         report()
         report("## BVH traversal alone (one thread, bench/traversal.py)")
