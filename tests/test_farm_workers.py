@@ -300,10 +300,15 @@ def test08_a_drained_worker_stays_drained_across_a_restart(redis_url, spawn_work
         first.stop()
         wait_for(lambda: {w["name"]: w for w in get("/workers")}[name]["state"] == "offline",
                  30, "the worker to be offline")
-        spawn_worker(concurrency=1, name="steady", **BEAT)
+        second = spawn_worker(concurrency=1, name="steady", **BEAT)
         wait_for(lambda: {w["name"]: w for w in get("/workers")}[name]["state"] == "idle",
                  30, "the restarted worker")
         assert {w["name"]: w for w in get("/workers")}[name]["disabled"] is True
+        # It never consumed the shared queue: it left it out before its consumer
+        # started (a race when only its first heartbeat cancelled the consumer).
+        assert "Canceling queue rayfarm.units" not in second.log()
+        banner = second.log().split("[queues]", 1)[1].split("[tasks]", 1)[0]
+        assert "rayfarm.units" not in banner and f"{name}.dq2" in banner, banner
         job_id = submit(client, dict(TINY, progressive=False, tile_size=16))["id"]
         time.sleep(3)  # many ticks and heartbeats: nothing may start meanwhile
         units = get(f"/jobs/{job_id}/units")
@@ -313,3 +318,32 @@ def test08_a_drained_worker_stays_drained_across_a_restart(redis_url, spawn_work
         job = poll_job(get, job_id)
         assert job["status"] == "done", job
         assert {u["worker"] for u in get(f"/jobs/{job_id}/units")} == {name}
+
+
+def test09_the_presence_asks_its_consumer_again_until_it_follows_the_flag(redis_url):
+    # A remote-control message sent before the worker's event loop listens is
+    # lost (pub/sub): the heartbeat compares the flag with what the consumer
+    # does, not with what it asked, and asks again on every beat; never once
+    # a shutdown began (consuming() says None). The consumer is a stand-in.
+    import redis
+
+    from worker.presence import Presence, set_disabled
+
+    client = redis.Redis.from_url(redis_url)
+    asked: list[bool] = []
+    state = {"consuming": True}
+    presence = Presence(client, "w-ask", 1, 60.0, consume=asked.append,
+                        consuming=lambda: state["consuming"])
+    set_disabled(client, "w-ask", True)
+    for _ in range(3):  # the consumer does not follow: asked on every beat
+        presence._follow_disabled()
+    assert asked == [False, False, False]
+    state["consuming"] = False  # it followed: nothing more to ask
+    presence._follow_disabled()
+    assert asked == [False, False, False]
+    set_disabled(client, "w-ask", False)
+    state["consuming"] = None  # shutting down: never asked to consume again
+    presence._follow_disabled()
+    presence._follow_disabled()
+    assert asked == [False, False, False]
+    client.close()

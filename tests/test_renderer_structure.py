@@ -179,7 +179,6 @@ def test09_camera_side_specular_chains_take_one_step():
 _WARM_CHECK = r'''
 import json
 from numba.core.dispatcher import Dispatcher
-import renderer
 from renderer import METHODS, RenderSpec, build_scene, resolve_document, warm_up
 from renderer.runtime import run_plan
 

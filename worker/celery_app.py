@@ -110,19 +110,20 @@ def _start_drained(sender=None, **_kwargs) -> None:
     # A worker an admin disabled stays disabled across a restart (its name is
     # in the disabled set): it must not consume the shared queue even for the
     # moment before its presence's first beat cancels the consumer, or it takes
-    # a unit only to decline it. Sent before the consumer starts, after the
-    # worker chose its queues (its own direct queue stays).
+    # a unit only to decline it. Celery sends this signal after the worker
+    # chose its queues and before its consumer starts (its own direct queue stays).
     import redis
 
     from .presence import is_disabled
 
     try:
-        client = redis.Redis.from_url(sender.app.conf.broker_url)
-        if is_disabled(client, sender.hostname):
-            sender.app.amqp.queues.deselect(QUEUE)
-            log.info("worker %s is disabled: not consuming %s", sender.hostname, QUEUE)
+        with redis.Redis.from_url(sender.app.conf.broker_url) as client:
+            disabled = is_disabled(client, sender.hostname)
     except Exception:  # the presence thread follows the flag within a beat anyway
         log.exception("could not read whether worker %s is disabled", sender.hostname)
+        return
+    if disabled:  # (logging is not set up yet here: the presence thread says so at start)
+        sender.app.amqp.queues.deselect(QUEUE)
 
 
 _presence = None  # this worker's heartbeat (main process only)

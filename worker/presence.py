@@ -62,7 +62,7 @@ class Presence:
     def __init__(self, client: redis.Redis, name: str, concurrency: int, interval: float,
                  consume: Callable[[bool], None] | None = None,
                  reserved: Callable[[], list[str]] | None = None,
-                 consuming: Callable[[], bool] | None = None):
+                 consuming: Callable[[], bool | None] | None = None):
         self.client, self.name, self.concurrency, self.interval = client, name, concurrency, interval
         self._consume = consume
         self._reserved = reserved
@@ -93,14 +93,14 @@ class Presence:
         if self._consume is None:
             return
         wanted = not self.client.sismember(DISABLED_WORKERS, self.name)
-        if wanted != self._consuming:  # the flag changed (the service may have acted already)
+        changed = wanted != self._consuming  # the service may have told the consumer already
+        if changed:
             log.info("worker %s %s", self.name, "enabled: consuming again" if wanted
                      else "disabled: no new units (running ones finish)")
             self._consuming = wanted
-            if self._consuming_now is None:
+        if self._consuming_now is None:  # the consumer cannot be seen: ask once
+            if changed:
                 self._consume(wanted)
-                return
-        if self._consuming_now is None:
             return
         actual = self._consuming_now()  # None: shutting down, leave the consumer be
         if actual is not None and actual != wanted:
