@@ -310,6 +310,11 @@ class LocalPool:
             time.sleep(self.RESTART_PAUSE)
         return None
 
+    def waiting(self) -> int:
+        """Units submitted that no process has taken yet (canceled ones too,
+        until a free process drops them)."""
+        return len(self._waiting)
+
     def rendering(self) -> list[int]:
         """Tags of the units the processes are rendering right now."""
         return [tag for tag in self._rendering if tag]

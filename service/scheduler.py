@@ -14,7 +14,7 @@ Each tick:
    so far and publish a `preview` event; when every unit is done, merge the
    stored films in unit order into `result.exr` + `preview.png` +
    `noise.png`, then mark the job done;
-3. dispatch: take the census again and fill the executor's free slots
+3. dispatch: with the census as the tick left it, fill the executor's free slots
    (`capacity`, which every executor bounds) by fair share
    (`service.fairshare`): each slot goes to the owner with the fewest units
    in flight relative to its share, within an owner to its highest priority,
@@ -103,6 +103,41 @@ class _JobRow(NamedTuple):
     units_done: int
 
 
+class _Advanced(NamedTuple):
+    """A job as `_advance` left it (committed): what the dispatch needs."""
+
+    status: str
+    units_total: int
+    units_done: int
+    in_flight: int
+
+    @property
+    def complete(self) -> bool:
+        return self.status == "running" and self.units_done == self.units_total
+
+
+class _Census:
+    """The tick's view of the scheduled jobs: read once at its start, then
+    kept current with what the tick itself did (`update`), so the dispatch
+    needs no second census. A change the API made meanwhile (a pause, a
+    cancel, a new job) the dispatch either re-reads (the job's row) or leaves
+    to the next tick."""
+
+    def __init__(self, jobs: dict[str, _JobRow], flying: Counter[str],
+                 live: set[tuple[str, int]]):
+        self.jobs, self.flying, self.live = jobs, flying, live
+
+    def update(self, job_id: str, after: _Advanced | None) -> None:
+        """The job as the tick left it; None: no longer scheduled (or gone)."""
+        if after is None or after.status not in states.SCHEDULED_JOB:
+            self.jobs.pop(job_id, None)
+            self.flying.pop(job_id, None)
+            return
+        self.jobs[job_id] = self.jobs[job_id]._replace(
+            status=after.status, units_total=after.units_total, units_done=after.units_done)
+        self.flying[job_id] = after.in_flight
+
+
 def _attempts_error(unit: WorkUnit, obs: Observation) -> str:
     """A unit's last attempt failed: its job's error. A crash reads as what
     happened, `unit 5: render process died with SIGSEGV on 3 attempts`."""
@@ -128,11 +163,12 @@ class Scheduler:
         self._tracked: dict[tuple[str, int], tuple[str, ...]] = {}  # units we put in flight
         self.previews = RunningPreviews(store, self.events, self._done_units)
         self._stop = threading.Event()
-        # Set when the executor reports a unit finished: the next tick starts at
-        # once instead of after poll_interval, so short units don't leave the
-        # pool idle between ticks.
+        # Set when the executor reports a unit finished: the next tick starts
+        # before poll_interval, so short units don't leave the pool idle
+        # between ticks (paced while the executor has work ahead: `_pause`).
         self._wake = threading.Event()
         executor.on_progress(self._wake.set)
+        self._urgent = threading.Event()  # wake(): tick at once, unpaced
         self._thread: threading.Thread | None = None
         # Which unit films later units read, and their digests (read once a tick).
         self.artefacts = Artefacts(store.unit_film)
@@ -149,6 +185,7 @@ class Scheduler:
 
     def stop(self, timeout: float = 60.0) -> None:
         self._stop.set()
+        self._urgent.set()
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout)
@@ -158,6 +195,7 @@ class Scheduler:
         """Tick now rather than at the next poll (a job was submitted or changed
         here): a short job does not wait up to poll_interval to start. Safe from
         any thread; a standby's wake only re-checks that it does not lead."""
+        self._urgent.set()
         self._wake.set()
 
     @property
@@ -166,6 +204,7 @@ class Scheduler:
 
     def _run(self) -> None:
         while not self._stop.is_set():
+            cpu = time.thread_time()
             try:
                 if self._lead():
                     with self.leadership.fenced() if self.leadership else _unfenced():
@@ -179,8 +218,32 @@ class Scheduler:
                 if error != self.last_error:  # once per distinct error, not every tick
                     log.exception("scheduler tick failed")
                 self.last_error = error
-            self._wake.wait(self.settings.poll_interval)
+            self._pause(time.thread_time() - cpu)
+
+    # A tick costs the scheduler milliseconds of CPU, and on a machine whose
+    # cores the render processes use, that CPU is taken from them. While every
+    # render process has a unit waiting (`Executor.work_ahead`), the next tick
+    # waits PACE times the CPU the last one took (up to poll_interval): the
+    # scheduler then uses at most about 1/PACE of a core, and each tick
+    # collects what landed meanwhile, several units at once. Measured on the
+    # 2-core machine (bench/throughput.py, a progressive 10-s job): 1 tick per
+    # unit landed before, and 13 ms of CPU each.
+    PACE = 8.0
+
+    def _pause(self, tick_cpu: float) -> None:
+        """Between two ticks: until woken (a unit landed, a job changed) or the
+        poll interval passed; then, if the wake came from a landed unit while
+        every render process has work waiting, until the pace allows (above)."""
+        resume = time.monotonic() + min(self.PACE * tick_cpu, self.settings.poll_interval)
+        self._wake.wait(self.settings.poll_interval)
+        self._wake.clear()
+        while not self._urgent.is_set():
+            remaining = resume - time.monotonic()
+            if remaining <= 0 or not self.executor.work_ahead():
+                break
+            self._wake.wait(remaining)
             self._wake.clear()
+        self._urgent.clear()
 
     def _lead(self) -> bool:
         """Does this replica lead now? On a change, forget what it tracked: the
@@ -206,26 +269,30 @@ class Scheduler:
             self.metrics.tick(time.perf_counter() - started)
 
     def _tick(self) -> None:
-        jobs, flying = self._census()
-        self._cancel_departed()
-        self._drop_departed_artefacts(jobs)
-        self.previews.keep_only(jobs)
+        census = self._census()
+        self._cancel_departed(census.live)
+        self._drop_departed_artefacts(census.jobs)
+        self.previews.keep_only(census.jobs)
         self.artefacts.new_tick()
         self._blocked = {}
         try:
-            for job in jobs.values():
+            for job in list(census.jobs.values()):
                 if self._stop.is_set():
                     return
-                if not self._needs_visit(job, flying[job.id]):
+                if not self._needs_visit(job, census.flying[job.id]):
                     continue
                 try:
-                    if self._advance(job.id, plan=job.status == "queued"):
+                    after = self._advance(job.id, plan=job.status == "queued")
+                    census.update(job.id, after)
+                    if after is not None and after.complete:
                         self._finish(job.id)
+                        census.update(job.id, None)
                 except StaleDataError:
                     log.info("job %s changed meanwhile (canceled?); next tick", job.id)
                     self._forget_if_deleted(job.id)
+                    census.update(job.id, None)
             try:
-                self._dispatch()
+                self._dispatch(census)
             except StaleDataError:
                 # A job changed (canceled, deleted) while its units were enqueued: the
                 # whole batch is rolled back; its tasks are no longer in flight in the
@@ -235,21 +302,21 @@ class Scheduler:
             self.artefacts.new_tick()
             self.ticks += 1
 
-    def _census(self) -> tuple[dict[str, _JobRow], Counter[str]]:
+    def _census(self) -> "_Census":
         """The scheduled jobs (higher priority first, then oldest) and their
-        units in flight, by job: two small queries, whatever the pending units."""
+        units in flight: two small queries, whatever the pending units (the
+        units in flight are few: every executor bounds them)."""
         with self.sessions() as session:
             jobs = {row.id: _JobRow(*row) for row in session.execute(
                 select(Job.id, Job.owner, Job.status, Job.priority, Job.created,
                        Job.units_total, Job.units_done)
                 .where(Job.status.in_(states.SCHEDULED_JOB))
                 .order_by(Job.priority.desc(), Job.created, Job.id))}
-            flying = Counter({job_id: n for job_id, n in session.execute(
-                select(WorkUnit.job_id, func.count()).join(Job, Job.id == WorkUnit.job_id)
+            live = {(job_id, index) for job_id, index in session.execute(
+                select(WorkUnit.job_id, WorkUnit.index).join(Job, Job.id == WorkUnit.job_id)
                 .where(WorkUnit.state.in_(states.IN_FLIGHT),
-                       Job.status.in_(states.SCHEDULED_JOB))
-                .group_by(WorkUnit.job_id))})
-        return jobs, flying
+                       Job.status.in_(states.SCHEDULED_JOB)))}
+        return _Census(jobs, Counter(job_id for job_id, _ in live), live)
 
     def _needs_visit(self, job: _JobRow, in_flight: int) -> bool:
         """Does the job need its own transaction this tick? A running job that
@@ -260,15 +327,9 @@ class Scheduler:
             return True  # complete: merge (e.g. the service stopped before it could)
         return self.previews.dirty(job.id)  # a throttled preview to write
 
-    def _cancel_departed(self) -> None:
-        """Cancel the tasks of units that left flight behind our back (job canceled)."""
-        if not self._tracked:
-            return
-        with self.sessions() as session:
-            live = {(job_id, index) for job_id, index in session.execute(
-                select(WorkUnit.job_id, WorkUnit.index).join(Job, Job.id == WorkUnit.job_id)
-                .where(WorkUnit.state.in_(states.IN_FLIGHT),
-                       Job.status.in_(states.SCHEDULED_JOB)))}
+    def _cancel_departed(self, live: set[tuple[str, int]]) -> None:
+        """Cancel the tasks of units that left flight behind our back (job
+        canceled): tracked here, not in flight in the census (`live`)."""
         for key in [k for k in self._tracked if k not in live]:
             self.executor.cancel(key[0], self._tracked.pop(key))
 
@@ -282,23 +343,24 @@ class Scheduler:
             except Exception as exc:  # they expire anyway
                 log.warning("dropping %d films of departed jobs failed: %s", len(digests), exc)
 
-    def _advance(self, job_id: str, plan: bool = True) -> bool:
+    def _advance(self, job_id: str, plan: bool = True) -> _Advanced | None:
         """Plan a queued job (`plan`: the census saw it queued; a job queued
         since waits for the next tick), collect a job's units in flight and
-        refresh its preview; returns whether all its units are done."""
+        refresh its preview; returns the job as committed (None: it is gone
+        or no longer running or paused)."""
         released: list[tuple[str, ...]] = []
         landed: list[tuple[int, PartialFilm]] = []
         if plan:  # a transaction of its own: the plan stands even if collecting fails
             with self.sessions.begin() as session:
                 job = session.get(Job, job_id)
                 if job is None or job.status not in states.SCHEDULED_JOB:
-                    return False
+                    return None
                 if job.status == "queued":
                     self._plan(session, job, self.clock())
         with self.sessions.begin() as session:
             job = session.get(Job, job_id)
             if job is None or job.status not in ("running", "paused"):
-                return False
+                return None
             now = self.clock()
             flying = list(session.scalars(
                 select(WorkUnit).where(WorkUnit.job_id == job.id,
@@ -313,14 +375,15 @@ class Scheduler:
                     break  # the job failed
             if landed:
                 job.note_samples(sum(int(f.stats.get("samples", 0)) for _, f in landed), now)
-            complete = job.status == "running" and job.units_done == job.units_total
+            after = _Advanced(job.status, job.units_total, job.units_done,
+                              sum(u.state in states.IN_FLIGHT for u in flying))
             width, height, method = job.width, job.height, job.spec.get("method", "")
         for _, film in landed:  # committed: each unit counts once
             self.metrics.unit_done(method, float(film.stats.get("seconds", 0.0)),
                                    int(film.stats.get("samples", 0)), int(film.stats.get("rays", 0)))
         for task_ids in released:  # only once the ledger says done (or failed)
             self.executor.release(task_ids)
-        if not complete:  # a complete job's preview comes from the final merge
+        if not after.complete:  # a complete job's preview comes from the final merge
             try:
                 written = self.previews.refresh(job_id, width, height, landed)
                 if written is not None:
@@ -331,12 +394,13 @@ class Scheduler:
             except Exception:  # a preview is a courtesy; never stop the job for it
                 log.exception("preview of job %s failed", job_id)
                 self.previews.drop(job_id)
-        return complete
+        return after
 
-    def _dispatch(self) -> None:
+    def _dispatch(self, census: _Census) -> None:
         """Fill the executor's free slots by fair share (module doc, step 3).
-        Asked after collecting, so finished units have freed their slots."""
-        jobs, flying = self._census()
+        Asked after collecting (the census as the tick left it), so finished
+        units have freed their slots."""
+        jobs, flying = census.jobs, census.flying
         contenders = [Contender(j.id, j.owner, j.priority or 0, j.created, flying[j.id])
                       for j in jobs.values() if j.status == "running"
                       and j.units_total - j.units_done - flying[j.id] > 0]
@@ -354,18 +418,22 @@ class Scheduler:
             shares = {name: share for name, share in session.execute(
                 select(User.name, User.share).where(User.name.in_({c.owner for c in contenders})))}
             ready: dict[str, deque[WorkUnit]] = {}
+            # Held here: the session's identity map keeps an unchanged row only
+            # weakly, and a second Session.get would load it again per unit.
+            rows: dict[str, Job] = {}
 
             def count_ready(job_id: str) -> int:
                 job = session.get(Job, job_id)  # paused or deleted since the census: none
                 running = job is not None and job.status == "running"
                 units = self._ready_units(session, job, slots) if running else []
                 ready[job_id] = deque(units)
+                rows[job_id] = job
                 return len(units)
 
             for job_id in fair_share(contenders, owner_in_flight, shares, slots, count_ready):
                 unit = ready[job_id].popleft()
                 try:
-                    self._enqueue(session.get(Job, job_id), unit, now)
+                    self._enqueue(rows[job_id], unit, now)
                 except Exception as exc:  # broker down: keep what was sent, retry later
                     enqueue_error = exc
                     break
@@ -420,8 +488,9 @@ class Scheduler:
     def _enqueue(self, job: Job, unit: WorkUnit, now: datetime) -> None:
         needs = unit.unit.get("needs") or ()
         inputs = self.artefacts.digests(object_session(unit), job, needs) if needs else {}
-        if job.id not in self._blocked:
-            self._blocked[job.id] = blocklist.blocked_workers(object_session(job), job.id)
+        if job.id not in self._blocked:  # a pool that never blocklists needs no query
+            self._blocked[job.id] = (blocklist.blocked_workers(object_session(job), job.id)
+                                     if self.executor.blocklists_workers else ())
         task_id = self.executor.submit(Ticket(job.id, unit.index, job.scene_hash, job.spec,
                                               unit.unit, priority=job.priority or 0,
                                               inputs=inputs,

@@ -353,3 +353,77 @@ def test11_small_jobs_behind_a_huge_one_on_celery(redis_url, spawn_worker, tmp_p
     with TestClient(create_app(settings), headers=ADMIN_HEADERS) as client:
         assert client.get("/healthz").json()["executor"] == "celery"
         small_jobs_behind_a_huge_one(client, processes=2)
+
+
+def test12_a_tick_takes_the_census_once_and_dispatches_from_it(ledger):
+    """The tick's census (the scheduled jobs, their units in flight) is read
+    once: collecting keeps it current, the dispatch and the cancel of departed
+    units use it. Each read is a query per tick, and ticks are what the
+    service spends its CPU on while units land."""
+    from sqlalchemy import event
+
+    farm = ledger(slots=4)
+    job = farm.job("a")
+    farm.scheduler.tick()  # plan and enqueue 4
+    farm.executor.finish(job, 0)
+    statements: list[str] = []
+    event.listen(farm.engine, "before_cursor_execute",
+                 lambda _conn, _cursor, statement, *_args: statements.append(" ".join(statement.split())))
+    farm.scheduler.tick()  # collect unit 0, enqueue unit 4
+    census_jobs = [s for s in statements if "FROM jobs WHERE jobs.status IN" in s]
+    in_flight = [s for s in statements if s.startswith("SELECT units.job_id, units.\"index\" FROM units JOIN jobs")]
+    assert len(census_jobs) == 1 and len(in_flight) == 1, statements
+    assert farm.in_flight() == Counter({("a", job): 4})
+    assert [t.index for t in farm.executor.submitted] == [0, 1, 2, 3, 4]
+
+
+class PacedExecutor(FakeExecutor):
+    """A fake executor that says whether every process has work waiting."""
+
+    ahead = True
+
+    def work_ahead(self) -> bool:
+        return self.ahead
+
+
+def test13_ticks_are_paced_only_while_every_process_has_work_waiting(tmp_path):
+    """After a tick that took `cpu` seconds of the scheduler's CPU, a landed
+    unit's wake waits until PACE x cpu has passed, so that one tick collects
+    what lands meanwhile, but only while the executor has a unit waiting for
+    every process (none may idle for it); a job's change (wake()) never waits."""
+    import threading
+
+    settings = Settings(data_dir=tmp_path / "data", broker_url="", database_url="",
+                        poll_interval=5.0)
+    engine, sessions = open_ledger(settings)
+    executor = PacedExecutor(slots=4)
+    scheduler = Scheduler(settings, sessions, Store(settings.data_dir), executor)
+    cpu = 0.5 / scheduler.PACE  # the pace: half a second
+
+    def pause(setup) -> float:
+        setup()
+        started = time.monotonic()
+        scheduler._pause(cpu)
+        return time.monotonic() - started
+
+    try:
+        # a unit landed, every process has work waiting: paced
+        assert pause(scheduler._wake.set) >= 0.5
+        # a unit landed, a process is about to idle: at once
+        executor.ahead = False
+        assert pause(scheduler._wake.set) < 0.4
+        # a job was submitted or changed: at once, whatever waits
+        executor.ahead = True
+        assert pause(scheduler.wake) < 0.4
+
+        # a process runs out of waiting work during the pause: the next landing ends it
+        def run_out():
+            time.sleep(0.1)
+            executor.ahead = False
+            scheduler._wake.set()
+        late = threading.Thread(target=run_out)
+        waited = pause(lambda: (scheduler._wake.set(), late.start()))
+        late.join()
+        assert 0.1 <= waited < 0.4
+    finally:
+        engine.dispose()

@@ -156,6 +156,13 @@ class Executor(ABC):
         so the scheduler looks again before its next regular tick. Optional:
         without it, the scheduler just polls."""
 
+    def work_ahead(self) -> bool:
+        """Has every render process a unit waiting for it behind the one it
+        renders? Then the scheduler may pace its ticks (`Scheduler._pause`):
+        units that land meanwhile are collected together, and no process
+        idles for it. Unknown (the default): no, the scheduler ticks at once."""
+        return False
+
     def workers(self) -> list[WorkerInfo]:
         """The workers this executor runs units on, as last seen."""
         return []

@@ -49,6 +49,7 @@ class LocalExecutor(Executor):
     def __init__(self, settings: Settings, load_scene_text: Callable[[str], str],
                  load_unit_film: Callable[[str, int], bytes] | None = None):
         self.processes = settings.local_workers
+        self.poll_interval = settings.poll_interval  # the longest a unit waits for a tick
         self._load_scene_text = load_scene_text
         self._load_unit_film = load_unit_film
         self._films: OrderedDict[str, bytes] = OrderedDict()  # digest -> input film, LRU
@@ -214,13 +215,18 @@ class LocalExecutor(Executor):
         self._progress = callback
 
     def limit(self) -> int:
-        """Units to keep in flight: enough that every process has its next unit
-        ready when one finishes, two each for long units, more for short ones
-        (a progressive job's first passes take a millisecond per unit), up to
-        `MAX_AHEAD` each, so that the pool's queue holds about 50 ms of work and
-        a newcomer, a higher priority or a cancel never waits long behind it."""
-        ahead = min(max(math.ceil(0.05 / max(self._unit_seconds, 1e-4)), 2), self.MAX_AHEAD)
-        return ahead * self.processes
+        """Units to keep in flight: enough that every process still has a unit
+        waiting when the scheduler, pacing its ticks, notices what landed (at
+        most `poll_interval` later): two each for long units, more for short
+        ones (a progressive job's first passes take milliseconds per unit), up
+        to `MAX_AHEAD` each, so that the pool's queue holds about one poll
+        interval of work and a newcomer, a higher priority or a cancel never
+        waits long behind it."""
+        per_poll = math.ceil(self.poll_interval / max(self._unit_seconds, 1e-4)) + 1
+        return min(max(per_poll, 2), self.MAX_AHEAD) * self.processes
+
+    def work_ahead(self) -> bool:
+        return self._pool.waiting() >= self.processes
 
     def capacity(self, in_flight: int) -> int:
         if self.disabled:  # drained: what is in the pool finishes, nothing new goes
