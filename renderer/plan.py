@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 from .film import sample_blocks
 from .spec import RenderSpec
 
-__all__ = ["Unit", "plan"]
+__all__ = ["Unit", "plan", "count_units"]
 
 
 @dataclass(frozen=True)
@@ -108,6 +108,34 @@ def sample_passes(spp: int, progressive: bool, tile_pixels: int = 0) -> list[tup
     return [(0, blocks[first - 1][1])] + blocks[first:]
 
 
+# The camera samples a progressive pass's unit renders, at least: about 0.1 s
+# on one core. A unit costs the service the same whatever it holds (its rows,
+# its film stored, its events: about 10 ms of CPU on the 2-core machine), and
+# a progressive job's early passes hold a few samples per pixel, so there a
+# pass groups adjacent tiles into one unit: along a row of tiles, then whole
+# rows. A 302-spp job of 64-pixel tiles on 256 x 256 pixels goes from 128
+# units to 96. Grouping changes no byte of the image: every pixel renders the
+# same sample blocks in the same order, whatever unit it is in.
+MIN_UNIT_SAMPLES = 1 << 17
+
+
+def _tile_groups(width: int, height: int, tile: int, per_tile: int
+                 ) -> list[tuple[int, int, int, int]]:
+    """A pass's unit regions, row-major: the job's tiles, or, if a tile holds
+    fewer than `MIN_UNIT_SAMPLES` (`per_tile` samples), runs of adjacent
+    tiles of a row, or bands of whole rows of tiles, that hold that many."""
+    group = max(1, -(-MIN_UNIT_SAMPLES // max(per_tile, 1)))  # tiles per unit
+    across = -(-width // tile)
+    if group == 1:
+        return _tiles(width, height, tile)
+    if group < across:  # runs of `group` tiles (the last one of a row shorter)
+        step = group * tile
+        return [(x, y, min(x + step, width), min(y + tile, height))
+                for y in range(0, height, tile) for x in range(0, width, step)]
+    rows = -(-group // across) * tile  # bands of whole rows of tiles
+    return [(0, y, width, min(y + rows, height)) for y in range(0, height, rows)]
+
+
 def tile_pixels(spec: RenderSpec) -> int:
     """Pixels of the job's full tile (what `sample_passes` sizes the first pass by)."""
     return min(spec.tile_size, spec.width) * min(spec.tile_size, spec.height)
@@ -124,6 +152,24 @@ def plan(spec: RenderSpec, *, progressive: bool = False, small_passes: bool = Fa
     units: list[Unit] = []
     pixels = 0 if small_passes else tile_pixels(spec)
     for p, (s0, s1) in enumerate(sample_passes(spec.spp, progressive, pixels)):
-        for (x0, y0, x1, y1) in _tiles(spec.width, spec.height, spec.tile_size):
+        regions = (_tile_groups(spec.width, spec.height, spec.tile_size, pixels * (s1 - s0))
+                   if progressive and pixels else _tiles(spec.width, spec.height, spec.tile_size))
+        for (x0, y0, x1, y1) in regions:
             units.append(Unit(len(units), x0, y0, x1, y1, s0, s1, p))
     return units
+
+
+def count_units(spec: RenderSpec, progressive: bool = False) -> int:
+    """len(plan(spec, progressive=progressive)), without building the units
+    (admission refuses a plan of millions of units on this)."""
+    across = -(-spec.width // spec.tile_size)
+    down = -(-spec.height // spec.tile_size)
+    pixels = tile_pixels(spec)
+    total = 0
+    for s0, s1 in sample_passes(spec.spp, progressive, pixels):
+        group = max(1, -(-MIN_UNIT_SAMPLES // max(pixels * (s1 - s0), 1))) if progressive else 1
+        if group < across:
+            total += -(-across // group) * down
+        else:
+            total += -(-down // -(-group // across))
+    return total

@@ -57,15 +57,17 @@ def _setting(actor: Principal, field: str) -> str:
 
 def unit_floor(spec: RenderSpec, progressive: bool) -> int:
     """A lower bound of the job's planned units, computed without planning:
-    tiles x passes for tile, BDPT and radiosity plans (exact for tile plans),
+    the tile plan's count for tile and radiosity plans (exact for tile
+    plans), tiles x passes for BDPT,
     an iteration's photon unit for SPPM. A request for millions of units is
     refused on this, before `planned_units` would build them (seconds of CPU)."""
-    from renderer.plan import sample_passes, tile_pixels
+    from renderer.plan import count_units, sample_passes, tile_pixels
 
     method = METHODS[spec.method]
-    tiles = math.ceil(spec.width / spec.tile_size) * math.ceil(spec.height / spec.tile_size)
-    if method.family in ("tile", "radiosity") or method.name == "bdpt":  # tiles x passes
-        # (bdpt keeps every small pass: its count is at least this)
+    if method.family in ("tile", "radiosity"):  # the tile plan's units (radiosity's display)
+        return count_units(spec, progressive)
+    if method.name == "bdpt":  # tiles x passes (it keeps every small pass: at least this)
+        tiles = math.ceil(spec.width / spec.tile_size) * math.ceil(spec.height / spec.tile_size)
         return tiles * len(sample_passes(spec.spp, progressive, tile_pixels(spec)))
     if method.family == "photons":
         return spec.spp

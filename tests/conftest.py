@@ -202,11 +202,7 @@ def reference_channels(tmp_path_factory):
         key = repr(sorted(body.items()))
         if key not in cache:
             doc = resolve_document(body["scene"], allow_files=False)
-            spec = RenderSpec(method=body["method"], spp=body["spp"], depth=body["depth"],
-                              width=body.get("width", doc["camera"]["width"]),
-                              height=body.get("height", doc["camera"]["height"]),
-                              tile_size=body.get("tile_size", 64), seed=body.get("seed", 0),
-                              sampler=body.get("sampler", RenderSpec().sampler)).validate()
+            spec = spec_of(body)
             scene = build_scene(doc)
             film = merge(spec.width, spec.height,
                          [run_unit(scene, spec, u) for u in plan(spec)])
@@ -224,6 +220,26 @@ def submit(client, body: dict) -> dict:
     assert response.status_code == 201, response.text
     assert response.headers["location"] == f"/jobs/{response.json()['id']}"
     return response.json()
+
+
+def spec_of(body: dict):
+    """The RenderSpec of a job body (the scene's camera size unless it gives one)."""
+    from renderer import RenderSpec, resolve_document
+
+    doc = resolve_document(body["scene"], allow_files=False)
+    return RenderSpec(method=body["method"], spp=body["spp"], depth=body["depth"],
+                      width=body.get("width", doc["camera"]["width"]),
+                      height=body.get("height", doc["camera"]["height"]),
+                      tile_size=body.get("tile_size", 64), seed=body.get("seed", 0),
+                      sampler=body.get("sampler", RenderSpec().sampler)).validate()
+
+
+def planned_units(body: dict) -> int:
+    """The units a tile method's job body is planned into (progressive unless
+    it says not): TINY's three passes are one unit each (renderer.plan)."""
+    from renderer.plan import count_units
+
+    return count_units(spec_of(body), body.get("progressive", True))
 
 
 def assert_complete_progress(progress: dict, *, units: int, samples: int) -> None:

@@ -14,8 +14,8 @@ from service.executors.celery_farm import CeleryExecutor
 from service.main import create_app
 from service.settings import Settings
 
-from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, get_json, poll_job,
-                      submit, wait_for)
+from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, get_json,
+                      planned_units, poll_job, submit, wait_for)
 
 pytestmark = pytest.mark.farm
 
@@ -78,7 +78,7 @@ def test02_end_to_end_serve_and_worker_processes_over_http(spawn_serve, spawn_wo
         health = client.get("/healthz").json()
         assert health["executor"] == "celery" and health["broker"] == "ok"
         job = run_job(client, TINY, tmp_path / "e2e.exr")
-        assert job["progress"]["units_done"] == 48  # progressive: 16 tiles x 3 passes
+        assert job["progress"]["units_done"] == planned_units(TINY)  # progressive: 3 passes
         import OpenEXR
 
         with OpenEXR.File(str(tmp_path / "e2e.exr")) as exr:
@@ -248,13 +248,14 @@ def test06_a_higher_priority_job_overtakes_the_units_already_in_the_broker(
 
 def test07_the_scheduler_collects_landed_units_without_waiting_for_its_poll(
         spawn_serve, spawn_worker, tmp_path, reference_channels):
-    """With a 600 s poll interval a progressive job of 48 units still finishes:
+    """With a 600 s poll interval a job of 64 units still finishes:
     the scheduler ticks when the job is submitted and whenever Celery's result
     backend publishes a task's state (the executor listens on those channels).
     Without the wakes it would wait 600 s after the first tick."""
     spawn_worker(concurrency=2)
     _serve, base = spawn_serve(RAYFARM_POLL_INTERVAL="600")
     with httpx.Client(base_url=base, timeout=30, headers=ADMIN_HEADERS) as client:
-        job = run_job(client, TINY, tmp_path / "woken.exr", timeout=240)
-        assert job["progress"]["units_done"] == 48
-    assert_bit_identical(channels_of(tmp_path / "woken.exr"), reference_channels(TINY))
+        body = dict(TINY, tile_size=4, progressive=False)
+        job = run_job(client, body, tmp_path / "woken.exr", timeout=240)
+        assert job["progress"]["units_done"] == 64
+    assert_bit_identical(channels_of(tmp_path / "woken.exr"), reference_channels(body))

@@ -124,7 +124,8 @@ def test06_progressive_passes_merge_to_the_same_bits(cornell):
     spec = RenderSpec(spp=11, depth=3, width=24, height=24, tile_size=8, seed=5)
     whole = render_inline(cornell, spec)
     passes = merge(24, 24, [run_unit(cornell, spec, u) for u in plan(spec, progressive=True)])
-    assert len(plan(spec, progressive=True)) > len(plan(spec))
+    # one unit a pass: the frame holds fewer than MIN_UNIT_SAMPLES samples in each
+    assert len(plan(spec, progressive=True)) == 4 and len(plan(spec)) == 9
     assert np.array_equal(whole.sum, passes.sum)
     assert np.array_equal(whole.sum_sq, passes.sum_sq)
     # the first pass took two canonical blocks (64-pixel tiles are far below the floor,
@@ -144,6 +145,41 @@ def test06_a_progressive_first_pass_renders_enough_to_outweigh_a_units_cost():
     assert plan(whole, progressive=True)[0].sample_end == 1
     # bdpt wants every small pass (its splat batches)
     assert plan(spec, progressive=True, small_passes=True)[0].sample_end == 1
+
+
+@pytest.mark.parametrize("floor, shapes", [
+    (3 * 64, {(16, 8)}),  # runs of two 8 x 8 tiles along a row (the last one shorter)
+    (8 * 64, {(24, 16)}),  # bands of two whole rows of tiles
+])
+def test06_a_progressive_pass_groups_tiles_that_hold_few_samples(cornell, monkeypatch, floor,
+                                                                  shapes):
+    """A pass whose tiles hold fewer than MIN_UNIT_SAMPLES samples each is cut
+    into runs of tiles along a row, or bands of whole rows, that hold that
+    many; every pixel is in one unit of every pass, the unit count is what
+    admission counts unplanned, and the bytes are those of one pass."""
+    import importlib
+
+    plan_module = importlib.import_module("renderer.plan")  # the module (`renderer.plan` is its function)
+
+    monkeypatch.setattr(plan_module, "MIN_UNIT_SAMPLES", floor)
+    spec = RenderSpec(spp=8, depth=3, width=24, height=24, tile_size=8, seed=5)
+    units = plan(spec, progressive=True)
+    assert [(u.sample_start, u.sample_end) for u in units if u.x0 == u.y0 == 0] == [
+        (0, 2), (2, 4), (4, 8)]  # the first pass takes two blocks (a quarter of spp)
+    assert len(units) == plan_module.count_units(spec, progressive=True)
+    coverage = np.zeros((3, 24, 24), int)
+    for u in units:
+        coverage[u.pass_index, u.y0:u.y1, u.x0:u.x1] += 1
+        assert u.samples >= floor or u.x1 == 24 or u.y1 == 24  # only the last of a row or band is short
+    assert (coverage == 1).all()
+    first = [u for u in units if u.pass_index == 0]
+    assert {(u.x1 - u.x0, u.y1 - u.y0) for u in first[:1]} == shapes
+    assert len(first) < 9  # 9 tiles
+    whole = render_inline(cornell, spec)
+    grouped = merge(24, 24, [run_unit(cornell, spec, u) for u in units])
+    assert np.array_equal(whole.sum, grouped.sum)
+    assert np.array_equal(whole.sum_sq, grouped.sum_sq)
+    assert np.array_equal(whole.weight, grouped.weight)
 
 
 def test07_local_process_pool_equals_inline(cornell):

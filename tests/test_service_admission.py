@@ -63,7 +63,11 @@ def test03_too_many_units_names_tile_size(settings):
     body = spec(spp=4, tile_size=4)  # 16 x 16 tiles
     units = admission.planned_units(body, progressive=False)
     assert units == 256
-    assert admission.planned_units(body, progressive=True) == 256 * 3  # passes 1, 1, 2 spp
+    # progressive: passes of 1, 1 and 2 spp, each a single unit (the whole 64 x 64
+    # frame holds fewer than MIN_UNIT_SAMPLES samples), counted exactly unplanned
+    assert admission.planned_units(body, progressive=True) == 3
+    assert admission.unit_floor(body, progressive=True) == 3
+    assert admission.unit_floor(body, progressive=False) == units
     check_job(settings, ANA, spec(spp=4), units=admission.planned_units(spec(spp=4), False),
               active_jobs=0)
     with pytest.raises(InvalidRequest) as refused:

@@ -24,7 +24,7 @@ import httpx
 import pytest
 
 from conftest import (ADMIN_HEADERS, ROOT, TEST_ADMIN_TOKEN, TINY, assert_bit_identical,
-                      channels_of, free_port, rayfarm_command, wait_for)
+                      channels_of, free_port, planned_units, rayfarm_command, wait_for)
 from service.client import (Conflict, Invalid, NotFound, RayfarmClient, ServerSentEvent,
                             ServerUnavailable, parse_sse)
 
@@ -73,8 +73,10 @@ def tiny_job(server) -> tuple[str, subprocess.CompletedProcess]:
 
 @contextmanager
 def blocker(farm: RayfarmClient):
-    """A 1280-unit job at the highest priority, running; canceled on exit (if still active)."""
-    job = farm.submit(**dict(TINY, width=128, height=128, spp=16, priority=100))
+    """A job of 64 units of about a second each at the highest priority, running;
+    canceled on exit (if still active)."""
+    job = farm.submit(**dict(TINY, width=128, height=128, spp=4096, tile_size=16,
+                             progressive=False, priority=100))
     try:
         wait_for(lambda: farm.job(job["id"])["status"] == "running", 60, "the blocker to run")
         yield job
@@ -197,7 +199,8 @@ def test04_watch_shows_progress_and_exits_0_when_done(server, client, tmp_path):
     done = [i for i, f in enumerate(frames) if f"{job['id']} done     100%" in f]
     assert running and done and running[0] < done[0], frames
     final = frames[done[-1]]
-    assert "4.1k/4.1k samples" in final and "units 48/48" in final, final
+    units = planned_units(TINY)  # 3 passes, a unit each
+    assert "4.1k/4.1k samples" in final and f"units {units}/{units}" in final, final
     assert "samples/s" in final and "ETA 0.0s" in final, final
     assert f"job {job['id']} done" in stderr and "Traceback" not in stderr
 
@@ -309,7 +312,7 @@ def test12_events_yield_job_units_unit_preview_end_in_order(client):
         rest = list(stream)
     (kind0, snapshot), (kind1, units) = first
     assert (kind0, snapshot["id"], snapshot["status"]) == ("job", job["id"], "running")
-    assert kind1 == "units" and [u["index"] for u in units] == list(range(48))
+    assert kind1 == "units" and [u["index"] for u in units] == list(range(planned_units(TINY)))
     assert {u["state"] for u in units} == {"pending"}
     kinds = [kind for kind, _ in rest]
     assert kinds[-1] == "end" and kinds.count("end") == 1
@@ -320,9 +323,9 @@ def test12_events_yield_job_units_unit_preview_end_in_order(client):
     assert first_unit < first_preview and last_preview < len(kinds) - 2, kinds
     unit_events = [data for kind, data in rest if kind == "unit"]
     assert {u["job_id"] for u in unit_events} == {job["id"]}
-    assert {u["index"] for u in unit_events if u["state"] == "done"} == set(range(48))
+    assert {u["index"] for u in unit_events if u["state"] == "done"} == set(range(len(units)))
     final_preview = [data for kind, data in rest if kind == "preview"][-1]
-    assert final_preview["units"] == 48
+    assert final_preview["units"] == len(units)
     assert httpx.get(client.base_url + final_preview["url"], headers=ADMIN_HEADERS).headers["content-type"] == "image/png"
 
 

@@ -43,7 +43,7 @@ def test01_samples_and_units_per_job_are_limited_by_role(farm):
     assert big.status_code == 422
     assert big.json()["detail"][0]["loc"] == ["body", "spp"]
     assert "RAYFARM_LIMITS_ARTIST__MAX_SAMPLES_PER_JOB" in big.text
-    many = ana.post("/jobs", json=dict(TINY, tile_size=4))  # 64 tiles x 3 passes
+    many = ana.post("/jobs", json=dict(TINY, tile_size=4, progressive=False))  # 64 tiles
     assert many.status_code == 422 and many.json()["detail"][0]["loc"] == ["body", "tile_size"]
     assert "RAYFARM_LIMITS_ARTIST__MAX_UNITS_PER_JOB" in many.text
     # An SPPM job is refused on its unit floor (an iteration's photons), before it is planned.

@@ -17,7 +17,8 @@ from service.models import Job, WorkUnit, utcnow
 from service.schemas import JobCreate
 from service.settings import Settings
 
-from conftest import TINY, assert_bit_identical, assert_complete_progress, channels_of, get_json, poll_job, submit, wait_for
+from conftest import (TINY, assert_bit_identical, assert_complete_progress, channels_of, get_json,
+                      planned_units, poll_job, submit, wait_for)
 
 
 
@@ -46,10 +47,11 @@ def test01_progressive_exr_is_bit_identical_to_the_single_pass_one(local_client,
     assert progressive["progressive"] is True and single["progressive"] is False
     progressive, single = poll_job(get, progressive["id"]), poll_job(get, single["id"])
     assert progressive["status"] == single["status"] == "done"
-    tiles = single["progress"]["units_total"]
-    assert progressive["progress"]["units_total"] > tiles  # tiles x passes
-    passes = {u["region"]["pass"] for u in get(f"/jobs/{progressive['id']}/units")}
-    assert passes == set(range(progressive["progress"]["units_total"] // tiles))
+    # passes of 2, 2, 4 (or 4, 4, 8) spp, each one unit: their tiles hold few samples
+    assert progressive["progress"]["units_total"] == planned_units(body) == 3
+    assert single["progress"]["units_total"] == planned_units(dict(body, progressive=False)) > 3
+    passes = [u["region"]["pass"] for u in get(f"/jobs/{progressive['id']}/units")]
+    assert passes == [0, 1, 2]
     assert progressive["samples"] == single["samples"]
     a = download(local_client, progressive, tmp_path / "progressive.exr")
     b = download(local_client, single, tmp_path / "single.exr")
@@ -60,7 +62,9 @@ def test01_progressive_exr_is_bit_identical_to_the_single_pass_one(local_client,
 def test02_pause_stops_enqueuing_the_preview_is_there_and_resume_finishes(local_client, tmp_path,
                                                                          reference_channels):
     get = get_json(local_client)
-    body = dict(TINY, width=64, height=64, spp=16, tile_size=8)  # 64 tiles x 3 passes: 4, 4, 8 spp
+    # one pass of 256 tiles (a progressive one would be 3 units: renderer.plan groups
+    # tiles that hold few samples), more than the pool keeps in flight
+    body = dict(TINY, width=128, height=128, spp=16, tile_size=8, progressive=False)
     job = submit(local_client, body)
     wait_for(lambda: get(f"/jobs/{job['id']}")["progress"]["units_done"] >= 1, 300,
              "the first unit")
@@ -81,7 +85,7 @@ def test02_pause_stops_enqueuing_the_preview_is_there_and_resume_finishes(local_
     png = wait_for(lambda: (r := local_client.get(job["preview_url"])).status_code == 200 and r,
                    30, "the running preview")
     assert png.headers["content-type"] == "image/png"
-    assert Image.open(io.BytesIO(png.content)).size == (64, 64)
+    assert Image.open(io.BytesIO(png.content)).size == (128, 128)
     assert local_client.get(f"/jobs/{job['id']}/result.exr").status_code == 404
     # Illegal transitions are 409 with the state table's words.
     again = local_client.post(f"/jobs/{job['id']}/pause")
@@ -89,7 +93,7 @@ def test02_pause_stops_enqueuing_the_preview_is_there_and_resume_finishes(local_
     resumed = post(local_client, f"/jobs/{job['id']}/resume")
     assert resumed["status"] == "running" and resumed["started"] == job["started"]
     job = poll_job(get, job["id"])
-    assert job["status"] == "done" and job["progress"]["units_done"] == 192
+    assert job["status"] == "done" and job["progress"]["units_done"] == 256
     assert_bit_identical(download(local_client, job, tmp_path / "resumed.exr"),
                          reference_channels(body))
 
@@ -105,7 +109,7 @@ def test03_requeue_starts_again_from_nothing_and_renders_the_same(local_client, 
     assert requeued["result_url"] is None
     job = poll_job(get, job["id"])
     assert job["status"] == "done" and job["samples"] == 32 * 32 * 4
-    assert_complete_progress(job["progress"], units=48, samples=32 * 32 * 4)
+    assert_complete_progress(job["progress"], units=planned_units(TINY), samples=32 * 32 * 4)
     assert_bit_identical(download(local_client, job, tmp_path / "again.exr"),
                          reference_channels(TINY))
 
@@ -212,7 +216,8 @@ def test08_retry_runs_the_failed_units_again(settings, reference_channels):
         assert any(u.state == "pending" for u in units)
         tick_until(farm, lambda: rows(farm, job_id)[0].status == "done", "the retried job")
         job, units = rows(farm, job_id)
-        assert job.units_done == job.units_total == 48 and job.samples == 32 * 32 * 4
+        assert job.units_done == job.units_total == planned_units(TINY)
+        assert job.samples == 32 * 32 * 4
         assert_bit_identical(channels_of(farm.store.result_path(job_id)), reference_channels(TINY))
 
 

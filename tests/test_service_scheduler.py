@@ -17,7 +17,7 @@ from service.models import Job, WorkUnit, utcnow
 from service.schemas import JobCreate
 from service.settings import Settings
 
-from conftest import TINY, assert_bit_identical, channels_of, wait_for
+from conftest import TINY, assert_bit_identical, channels_of, planned_units, wait_for
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -91,7 +91,7 @@ def test02_a_unit_completing_twice_is_counted_once(settings, reference_channels)
         tick_until(farm, finished(farm, job_id))
         job = job_row(farm, job_id)
         assert job.status == "done"
-        assert job.units_done == job.units_total == 48  # 16 tiles x 3 passes
+        assert job.units_done == job.units_total == planned_units(TINY)  # 3 passes, a unit each
         assert job.samples == 32 * 32 * 4, "a duplicate result was counted"
         assert unit_rows(farm, job_id)[index].state == "done"
         assert_bit_identical(channels_of(farm.store.result_path(job_id)),
@@ -123,7 +123,7 @@ def test03_restarted_service_resumes_from_the_ledger(settings, reference_channel
 
 
 def test04_cancel_stops_enqueuing_and_cancels_the_units(settings):
-    body = dict(TINY, width=128, height=128, spp=64, tile_size=4)  # 1024 units
+    body = dict(TINY, width=128, height=128, spp=64, tile_size=4, progressive=False)  # 1024 units
     with Farm.open(settings) as farm:
         job_id = create(farm, body)
         farm.scheduler.tick()
@@ -149,7 +149,7 @@ def test05_data_stays_inside_data_dir(settings):
         root = Path(settings.data_dir).resolve()
         files = {p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()}
         assert f"jobs/{job_id}/result.exr" in files and f"jobs/{job_id}/preview.png" in files
-        assert {f"jobs/{job_id}/units/{i}.film" for i in range(16)} <= files
+        assert {f"jobs/{job_id}/units/{i}.film" for i in range(planned_units(TINY))} <= files
         assert f"store/scenes/{job_row(farm, job_id).scene_hash}.json" in files
         assert not [f for f in files if f.endswith((".tmp", ".part"))]
         with pytest.raises(ValueError):

@@ -229,12 +229,25 @@ export function jobView(root, jobId) {
     tileToggle.checked = tilesShown();
     tiles.classList.toggle("show", tilesShown());
     const groups = new Map();
+    const add = (key, u) => {
+      if (!groups.has(key)) groups.set(key, []);
+      groups.get(key).push(u);
+    };
+    const ts = job.tile_size;
     for (const u of units.values()) {
       const r = u.region;
       if (r.x1 <= r.x0 || r.y1 <= r.y0) continue; // a prepass (photon map, solve): no region
-      const key = `${r.x0},${r.y0},${r.x1},${r.y1}`;
-      if (!groups.has(key)) groups.set(key, []);
-      groups.get(key).push(u);
+      if (u.kind === "tile" && ts && (r.x1 - r.x0 > ts || r.y1 - r.y0 > ts)) {
+        // an early progressive pass's unit spans several tiles (renderer/plan.py
+        // groups tiles that hold few samples): it counts for each of them
+        for (let y = r.y0; y < r.y1; y += ts) {
+          for (let x = r.x0; x < r.x1; x += ts) {
+            add(`${x},${y},${Math.min(x + ts, r.x1)},${Math.min(y + ts, r.y1)}`, u);
+          }
+        }
+        continue;
+      }
+      add(`${r.x0},${r.y0},${r.x1},${r.y1}`, u);
     }
     const colors = workerColors();
     const passes = Math.max(1, ...[...units.values()].map((u) => u.region.pass + 1));
