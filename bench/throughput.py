@@ -31,7 +31,9 @@ Russian roulette that makes samples cheap but noisy does not win by it.
 6. Farm overhead: a job of about 10 s and one of about 1 s submitted over
    HTTP to `rayfarm serve` (embedded executor, SQLite, a temporary data
    dir), timed from the POST until the job is done (median of 3), one pass
-   and progressive, with the service process's CPU seconds. Against two
+   and progressive, with the service process's CPU seconds, each service
+   run right after the same job on the pool (this VM's speed drifts by up
+   to a third within minutes: run in blocks, the two drifted apart). Against two
    baselines: the kernel rendering the same image in-process on --workers
    Numba threads, and `renderer.render` running the job's plan on a local
    pool of --workers processes without the service. Service / pool - 1 is
@@ -254,39 +256,31 @@ def process_cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def pool_seconds(scene_name: str, size, depth: int, spp_list: list[int], processes: int,
-                 sampler: str) -> dict:
-    """Seconds of the service's jobs rendered by `renderer.render` on a local pool of
-    `processes`, without the service (same plan of 64-pixel tiles, same merge),
-    medians of 3: {spp: (one pass, progressive)}."""
-    from renderer import LocalPool, RenderSpec, render
+def _pool_run(pool, scene_name: str, size, depth: int, spp: int, seed: int, progressive: bool,
+              sampler: str) -> float:
+    """Seconds of one job's plan rendered by `renderer.render` on `pool`, merged."""
+    from renderer import RenderSpec, render
 
-    out = {}
-    with LocalPool(processes) as pool:
-        render(scene_name, RenderSpec(method="path-mis", spp=1, depth=depth, width=size[0],
-                                      height=size[1], tile_size=64, seed=0, sampler=sampler),
-               pool=pool)  # warm children
-        for spp in spp_list:
-            times = []
-            for progressive in (False, True):
-                runs = []
-                for seed in (1, 2, 3):
-                    spec = RenderSpec(method="path-mis", spp=spp, depth=depth, width=size[0],
-                                      height=size[1], tile_size=64, seed=seed, sampler=sampler)
-                    t0 = time.perf_counter()
-                    render(scene_name, spec, pool=pool, progressive=progressive)
-                    runs.append(time.perf_counter() - t0)
-                times.append(median(runs))
-            out[spp] = tuple(times)
-    return out
+    spec = RenderSpec(method="path-mis", spp=spp, depth=depth, width=size[0], height=size[1],
+                      tile_size=64, seed=seed, sampler=sampler)
+    t0 = time.perf_counter()
+    render(scene_name, spec, pool=pool, progressive=progressive)
+    return time.perf_counter() - t0
 
 
-def service_times(scene_name: str, size, depth: int, spp_list: list[int], workers: int) -> dict:
-    """Jobs on a fresh `rayfarm serve` (embedded executor), medians of 3:
-    {spp: ((one pass seconds, the service process's CPU seconds), (progressive ditto))}."""
+def farm_times(scene_name: str, size, depth: int, spp_list: list[int], workers: int,
+               sampler: str) -> dict:
+    """The same jobs through `renderer.render` on a local pool of `workers` processes
+    (no service: same plan of 64-pixel tiles, same merge) and through a fresh
+    `rayfarm serve` (embedded executor, `workers` processes), run alternately
+    (pool, service, pool, service, ...), so that this VM's drifting speed
+    weighs on both alike; medians of 3. Returns {spp: {progressive: (pool
+    seconds, service seconds, the service process's CPU seconds)}}."""
     import socket
 
     import httpx
+
+    from renderer import LocalPool
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -300,7 +294,8 @@ def service_times(scene_name: str, size, depth: int, spp_list: list[int], worker
                               env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30,
-                          headers={"Authorization": f"Bearer {token}"}) as client:
+                          headers={"Authorization": f"Bearer {token}"}) as client, \
+                LocalPool(workers) as pool:
             deadline = time.monotonic() + 600
             while True:
                 try:
@@ -312,10 +307,10 @@ def service_times(scene_name: str, size, depth: int, spp_list: list[int], worker
                     raise RuntimeError("rayfarm serve did not come up")
                 time.sleep(0.2)
 
-            def run(spp: int, seed: int, progressive: bool) -> float:
+            def service_run(spp: int, seed: int, progressive: bool) -> tuple[float, float]:
                 body = {"scene": scene_name, "method": "path-mis", "spp": spp, "depth": depth,
                         "tile_size": 64, "seed": seed, "width": size[0], "height": size[1],
-                        "progressive": progressive}
+                        "sampler": sampler, "progressive": progressive}
                 cpu0 = process_cpu_seconds(server.pid)
                 t0 = time.perf_counter()
                 job = client.post("/jobs", json=body).raise_for_status().json()
@@ -326,21 +321,28 @@ def service_times(scene_name: str, size, depth: int, spp_list: list[int], worker
                         if line == "event: end":
                             break
                 seconds = time.perf_counter() - t0
-                service_cpu.append(process_cpu_seconds(server.pid) - cpu0)
+                cpu = process_cpu_seconds(server.pid) - cpu0
                 state = client.get(f"/jobs/{job['id']}").raise_for_status().json()
                 if state["status"] != "done":
                     raise RuntimeError(f"benchmark job {state['status']}: {state.get('error')}")
-                return seconds
+                return seconds, cpu
 
-            def medians(spp: int, progressive: bool) -> tuple[float, float]:
-                service_cpu.clear()
-                runs = [run(spp, seed, progressive) for seed in (1, 2, 3)]
-                return median(runs), median(service_cpu)
-
-            service_cpu: list[float] = []
-
-            run(1, 0, False)  # warm-up: every pool process has loaded its kernels
-            return {spp: (medians(spp, False), medians(spp, True)) for spp in spp_list}
+            # warm-up: every process of both pools has loaded its kernels
+            _pool_run(pool, scene_name, size, depth, 1, 0, False, sampler)
+            service_run(1, 0, False)
+            out: dict = {}
+            for spp in spp_list:
+                for progressive in (False, True):
+                    pools, services, cpus = [], [], []
+                    for seed in (1, 2, 3):
+                        pools.append(_pool_run(pool, scene_name, size, depth, spp, seed,
+                                               progressive, sampler))
+                        seconds, cpu = service_run(spp, seed, progressive)
+                        services.append(seconds)
+                        cpus.append(cpu)
+                    out.setdefault(spp, {})[progressive] = (median(pools), median(services),
+                                                            median(cpus))
+            return out
     finally:
         server.terminate()
         server.wait(60)
@@ -368,8 +370,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="Numba threads and pool processes (default: all cores)")
     parser.add_argument("--ref-spp", type=int, default=8192)
     parser.add_argument("--refs", default=str(Path.home() / ".cache" / "rayfarm-bench"))
-    parser.add_argument("--out", default=str(ROOT / "docs" / "throughput.md"),
-                        help="the Markdown report ('' for none)")
+    parser.add_argument("--out", default=None,
+                        help="the Markdown report ('' for none; default docs/throughput.md, "
+                             "none with --farm-only, which would overwrite the full report)")
     parser.add_argument("--no-mitsuba", action="store_true", help="skip Mitsuba even if installed")
     parser.add_argument("--no-farm", action="store_true", help="skip scaling and farm overhead")
     parser.add_argument("--no-traversal", action="store_true", help="skip the BVH traversal table")
@@ -378,6 +381,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mitsuba-variant", default=None)
     parser.add_argument("--mitsuba-child", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.out is None:
+        args.out = "" if args.farm_only else str(ROOT / "docs" / "throughput.md")
     Path(args.refs).mkdir(parents=True, exist_ok=True)
     if args.mitsuba_child:
         args.scene = args.scenes
@@ -493,25 +498,23 @@ def main(argv: list[str] | None = None) -> int:
                    for target in (10.0, 1.0)}
         kernel = {spp: median([rf.render(spp, default, s)[2] for s in (1, 2, 3)])
                   for spp in spp_for.values()}
-        service = service_times(scene_name, size, args.depth, list(spp_for.values()), args.workers)
-        pool = pool_seconds(scene_name, size, args.depth, list(spp_for.values()), args.workers,
-                            default)
+        farm = farm_times(scene_name, size, args.depth, list(spp_for.values()), args.workers,
+                          default)
         report(f"Seconds of one image, medians of 3: *kernel*, one unit in-process on "
                f"{args.workers} Numba threads; *pool*, `renderer.render` on a local pool of "
                f"{args.workers} processes (the job's plan of 64-pixel tiles, each a unit, "
                f"merged), no service; *service*, submit-to-done through `rayfarm serve` "
                f"(embedded executor, SQLite, {args.workers} render processes), with the "
                f"service process's CPU seconds (on {os.cpu_count()} cores, CPU the service "
-               f"uses is CPU a render process waits for). *Service's share* = service / "
-               f"pool - 1; *farm* = service / kernel - 1.")
+               f"uses is CPU a render process waits for); pool and service runs alternate. "
+               f"*Service's share* = service / pool - 1; *farm* = service / kernel - 1.")
         report()
         report("| job | plan | kernel | pool | service | service CPU | service's share | farm |")
         report("|---|---|---|---|---|---|---|---|")
         for target, spp in spp_for.items():
             k = kernel[spp]
-            for i, plan in enumerate(("one pass", "progressive")):
-                wall, cpu = service[spp][i]
-                alone = pool[spp][i]
+            for plan, progressive in (("one pass", False), ("progressive", True)):
+                alone, wall, cpu = farm[spp][progressive]
                 report(f"| {spp} spp (~{target:g} s) | {plan} | {k:.2f} s | {alone:.2f} s | "
                        f"{wall:.2f} s | {cpu:.2f} s | {100 * (wall / alone - 1):+.1f} % | "
                        f"{100 * (wall / k - 1):+.1f} % |")

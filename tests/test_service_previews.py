@@ -52,3 +52,24 @@ def test02_an_evicted_frame_is_rebuilt_from_the_stored_films(tmp_path):
     np.testing.assert_allclose(previews._frames[JOB].film.mean(), expected.mean(), rtol=1e-6)
     previews.keep_only(set())
     assert not previews.dirty(JOB) and JOB not in previews._frames
+
+
+def test03_a_costly_preview_is_written_less_often(tmp_path, monkeypatch):
+    """The next write waits PREVIEW_PACE times the CPU the last one took, if
+    that is longer than PREVIEW_INTERVAL: a big frame's previews must not take
+    a core from the render processes."""
+    from service import previews as module
+
+    store = Store(tmp_path)
+    previews = RunningPreviews(store, EventHub(), lambda job_id: [])
+    assert previews.refresh(JOB, 8, 4, [(0, tile(0, 0.25))]) == 1
+    frame = previews._frames[JOB]
+    assert frame.interval == module.PREVIEW_INTERVAL  # a tiny frame: the floor
+    monkeypatch.setattr(module, "PREVIEW_PACE", 1e7)  # as if a write took 1e-7 of the pace
+    frame.written -= 2 * module.PREVIEW_INTERVAL
+    assert previews.refresh(JOB, 8, 4, [(1, tile(4, 0.5))]) == 2  # written; now it was costly
+    assert frame.interval > 10 * module.PREVIEW_INTERVAL
+    frame.written -= 2 * module.PREVIEW_INTERVAL  # past the floor, not past the pace
+    assert previews.refresh(JOB, 8, 4, [(2, tile(0, 1.0))]) is None and previews.dirty(JOB)
+    frame.written -= frame.interval
+    assert previews.refresh(JOB, 8, 4, []) == 3

@@ -222,8 +222,8 @@ class LocalExecutor(Executor):
         to `MAX_AHEAD` each, so that the pool's queue holds about one poll
         interval of work and a newcomer, a higher priority or a cancel never
         waits long behind it."""
-        per_poll = math.ceil(self.poll_interval / max(self._unit_seconds, 1e-4)) + 1
-        return min(max(per_poll, 2), self.MAX_AHEAD) * self.processes
+        per_poll = math.ceil(self.poll_interval / max(self._unit_seconds, 1e-4)) + 2
+        return min(max(per_poll, 3), self.MAX_AHEAD) * self.processes
 
     def work_ahead(self) -> bool:
         return self._pool.waiting() >= self.processes
