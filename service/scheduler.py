@@ -175,6 +175,7 @@ class Scheduler:
         # The workers blocklisted per job, read once per tick (service.blocklist).
         self._blocked: dict[str, tuple[str, ...]] = {}
         self.ticks = 0  # a standby's stay 0
+        self._visits_missed = True  # look at every job in flight (see _tick)
         self.last_error: str | None = None
 
     # -- the thread --------------------------------------------------------------
@@ -270,6 +271,12 @@ class Scheduler:
 
     def _tick(self) -> None:
         census = self._census()
+        # What the executor has news of (None: it cannot tell, look at every job).
+        # A tick that did not finish its visits looks at every job next time:
+        # the news it took would be lost.
+        news = None if self._visits_missed else self.executor.news()
+        self._visits_missed = True
+        untracked = {job_id for job_id, index in census.live if (job_id, index) not in self._tracked}
         self._cancel_departed(census.live)
         self._drop_departed_artefacts(census.jobs)
         self.previews.keep_only(census.jobs)
@@ -279,7 +286,8 @@ class Scheduler:
             for job in list(census.jobs.values()):
                 if self._stop.is_set():
                     return
-                if not self._needs_visit(job, census.flying[job.id]):
+                news_of = news is None or job.id in news or job.id in untracked
+                if not self._needs_visit(job, census.flying[job.id] if news_of else 0):
                     continue
                 try:
                     after = self._advance(job.id, plan=job.status == "queued")
@@ -291,6 +299,7 @@ class Scheduler:
                     log.info("job %s changed meanwhile (canceled?); next tick", job.id)
                     self._forget_if_deleted(job.id)
                     census.update(job.id, None)
+            self._visits_missed = False
             try:
                 self._dispatch(census)
             except StaleDataError:
@@ -320,7 +329,10 @@ class Scheduler:
 
     def _needs_visit(self, job: _JobRow, in_flight: int) -> bool:
         """Does the job need its own transaction this tick? A running job that
-        only waits for a slot does not (the dispatch reads its units)."""
+        only waits for a slot does not (the dispatch reads its units), nor one
+        whose units in flight the executor has no news of (`in_flight` 0:
+        `Executor.news`; units in flight this scheduler did not put there, as
+        after a restart, are always looked at)."""
         if job.status == "queued" or in_flight:
             return True
         if job.status == "running" and job.units_done == job.units_total:

@@ -427,3 +427,56 @@ def test13_ticks_are_paced_only_while_every_process_has_work_waiting(tmp_path):
         assert 0.1 <= waited < 0.4
     finally:
         engine.dispose()
+
+
+class NewsExecutor(FakeExecutor):
+    """A fake executor that tells which jobs it has news of (`Executor.news`)."""
+
+    def __init__(self, slots: int):
+        super().__init__(slots)
+        self.pending_news: set[str] = set()
+
+    def news(self) -> set[str]:
+        news, self.pending_news = self.pending_news, set()
+        return news
+
+
+def test14_a_job_the_executor_has_no_news_of_is_not_visited(tmp_path):
+    """An executor that reports what changed (the local pool: a unit finished or
+    began rendering) spares the scheduler a transaction per job in flight on
+    every tick; a unit in flight that the scheduler did not put there (after a
+    restart) is looked at whatever the news."""
+    from sqlalchemy import event
+
+    settings = Settings(data_dir=tmp_path / "data", broker_url="", database_url="")
+    engine, sessions = open_ledger(settings)
+    executor = NewsExecutor(slots=4)
+    scheduler = Scheduler(settings, sessions, Store(settings.data_dir), executor)
+    with sessions.begin() as session:
+        job = jobs.create_job(session, scheduler.store, settings, SYSTEM, JobCreate(**WIDE),
+                              utcnow()).id
+    visits: list[str] = []
+    event.listen(engine, "before_cursor_execute",
+                 lambda _c, _cur, statement, *_a: visits.append(statement)
+                 if "units.state IN" in statement and "units.job_id = ?" in statement else None)
+
+    def states() -> Counter:
+        with sessions() as session:
+            return Counter(session.scalars(select(WorkUnit.state).where(WorkUnit.job_id == job)))
+    try:
+        scheduler.tick()  # planned (a queued job is always visited) and 4 enqueued
+        scheduler.tick()  # the first tick after a start looks at every job in flight
+        assert states()["queued"] == 4
+        visits.clear()
+        executor.finish(job, 0)
+        scheduler.tick()  # landed, but no news of it: not visited
+        assert visits == [] and states()["queued"] == 4
+        executor.pending_news = {job}
+        scheduler.tick()
+        assert len(visits) == 1 and states()["done"] == 1 and states()["queued"] == 4
+        visits.clear()
+        scheduler._tracked.clear()  # as after a restart: units in flight it did not send
+        scheduler.tick()
+        assert len(visits) == 1
+    finally:
+        engine.dispose()

@@ -156,6 +156,14 @@ class Executor(ABC):
         so the scheduler looks again before its next regular tick. Optional:
         without it, the scheduler just polls."""
 
+    def news(self) -> set[str] | None:
+        """The jobs whose units in flight this executor has news of (one
+        finished, failed, died or began rendering) since the last call; None
+        if it cannot tell (the default), and the scheduler then looks at every
+        job with units in flight on every tick. A job it has no news of waits
+        for the next tick without a transaction of its own."""
+        return None
+
     def work_ahead(self) -> bool:
         """Has every render process a unit waiting for it behind the one it
         renders? Then the scheduler may pace its ticks (`Scheduler._pause`):

@@ -73,6 +73,8 @@ class LocalExecutor(Executor):
         self.seconds = 0.0
         self._progress = lambda: None
         self._unit_seconds = 0.1  # a running mean of render seconds per unit (see capacity)
+        self._news: set[str] = set()  # jobs with a unit finished since the last `news()`
+        self._seen_rendering: set[int] = set()  # pool tags rendering at the last `news()`
         self.disabled = False  # drained by an admin: no new submissions (see capacity)
 
     def _scene(self, scene_hash: str) -> str:
@@ -119,12 +121,26 @@ class LocalExecutor(Executor):
                                    job_id=ticket.job_id)
         if ticket.is_input:
             self._input_tasks.add(task_id)
-        future.add_done_callback(lambda _future: self._progress())
+        future.add_done_callback(lambda _future: self._landed(ticket.job_id))
         with self._lock:
             self._futures[task_id] = future
             self._tag_of[task_id] = tag
             self._unit_of[tag] = (ticket.job_id, ticket.index)
         return task_id
+
+    def _landed(self, job_id: str) -> None:
+        with self._lock:
+            self._news.add(job_id)
+        self._progress()
+
+    def news(self) -> set[str]:
+        rendering = set(self._pool.rendering())
+        with self._lock:
+            news, self._news = self._news, set()
+            news.update(self._unit_of[tag][0] for tag in rendering - self._seen_rendering
+                        if tag in self._unit_of)
+            self._seen_rendering = rendering
+        return news
 
     def observe(self, flights: Sequence[Flight], now: datetime) -> list[Observation]:
         rendering = set(self._pool.rendering())
