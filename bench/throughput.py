@@ -30,7 +30,7 @@ Russian roulette that makes samples cheap but noisy does not win by it.
    scenes here and on a 100 k-triangle mesh scene (bench/heavy_mesh.py).
 6. Farm overhead: a job of about 10 s and one of about 1 s submitted over
    HTTP to `rayfarm serve` (embedded executor, SQLite, a temporary data
-   dir), timed from the POST until the job is done (median of 3), one pass
+   dir), timed from the POST until the job is done (median of 5), one pass
    and progressive, with the service process's CPU seconds, each service
    run right after the same job on the pool (this VM's speed drifts by up
    to a third within minutes: run in blocks, the two drifted apart). Against two
@@ -268,14 +268,18 @@ def _pool_run(pool, scene_name: str, size, depth: int, spp: int, seed: int, prog
     return time.perf_counter() - t0
 
 
+PAIRS = 5  # pool-then-service pairs per job in the farm section
+
+
 def farm_times(scene_name: str, size, depth: int, spp_list: list[int], workers: int,
                sampler: str) -> dict:
     """The same jobs through `renderer.render` on a local pool of `workers` processes
     (no service: same plan of 64-pixel tiles, same merge) and through a fresh
     `rayfarm serve` (embedded executor, `workers` processes), run alternately
     (pool, service, pool, service, ...), so that this VM's drifting speed
-    weighs on both alike; medians of 3. Returns {spp: {progressive: (pool
-    seconds, service seconds, the service process's CPU seconds)}}."""
+    weighs on both alike; PAIRS of each. Returns {spp: {progressive: (pool
+    seconds, service seconds, the service process's CPU seconds: medians; the
+    median over the pairs of service / pool - 1)}}."""
     import socket
 
     import httpx
@@ -334,14 +338,15 @@ def farm_times(scene_name: str, size, depth: int, spp_list: list[int], workers: 
             for spp in spp_list:
                 for progressive in (False, True):
                     pools, services, cpus = [], [], []
-                    for seed in (1, 2, 3):
+                    for seed in range(1, PAIRS + 1):
                         pools.append(_pool_run(pool, scene_name, size, depth, spp, seed,
                                                progressive, sampler))
                         seconds, cpu = service_run(spp, seed, progressive)
                         services.append(seconds)
                         cpus.append(cpu)
+                    share = median([b / a - 1 for a, b in zip(pools, services)])
                     out.setdefault(spp, {})[progressive] = (median(pools), median(services),
-                                                            median(cpus))
+                                                            median(cpus), share)
             return out
     finally:
         server.terminate()
@@ -500,23 +505,24 @@ def main(argv: list[str] | None = None) -> int:
                   for spp in spp_for.values()}
         farm = farm_times(scene_name, size, args.depth, list(spp_for.values()), args.workers,
                           default)
-        report(f"Seconds of one image, medians of 3: *kernel*, one unit in-process on "
+        report(f"Seconds of one image, medians: *kernel* (of 3), one unit in-process on "
                f"{args.workers} Numba threads; *pool*, `renderer.render` on a local pool of "
                f"{args.workers} processes (the job's plan of 64-pixel tiles, each a unit, "
                f"merged), no service; *service*, submit-to-done through `rayfarm serve` "
                f"(embedded executor, SQLite, {args.workers} render processes), with the "
                f"service process's CPU seconds (on {os.cpu_count()} cores, CPU the service "
-               f"uses is CPU a render process waits for); pool and service runs alternate. "
-               f"*Service's share* = service / pool - 1; *farm* = service / kernel - 1.")
+               f"uses is CPU a render process waits for); pool and service runs alternate, "
+               f"{PAIRS} pairs. *Service's share* = the median over the pairs of "
+               f"service / pool - 1; *farm* = service / kernel - 1.")
         report()
         report("| job | plan | kernel | pool | service | service CPU | service's share | farm |")
         report("|---|---|---|---|---|---|---|---|")
         for target, spp in spp_for.items():
             k = kernel[spp]
             for plan, progressive in (("one pass", False), ("progressive", True)):
-                alone, wall, cpu = farm[spp][progressive]
+                alone, wall, cpu, share = farm[spp][progressive]
                 report(f"| {spp} spp (~{target:g} s) | {plan} | {k:.2f} s | {alone:.2f} s | "
-                       f"{wall:.2f} s | {cpu:.2f} s | {100 * (wall / alone - 1):+.1f} % | "
+                       f"{wall:.2f} s | {cpu:.2f} s | {100 * share:+.1f} % | "
                        f"{100 * (wall / k - 1):+.1f} % |")
     report()
     report(NOTES)
