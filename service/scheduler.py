@@ -58,7 +58,7 @@ from collections import Counter, deque
 from datetime import datetime
 from typing import Callable, NamedTuple
 
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session, object_session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 

@@ -193,7 +193,7 @@ def make_user(local_app):
 def reference_channels(tmp_path_factory):
     """Render a job body undisturbed, in this process, through plan -> units ->
     merge; returns its EXR channels as read back from disk."""
-    from renderer import RenderSpec, merge, plan, resolve_document, run_unit, build_scene
+    from renderer import build_scene, merge, plan, resolve_document, run_unit
 
     cache: dict[str, dict] = {}
     out_dir = tmp_path_factory.mktemp("reference")
