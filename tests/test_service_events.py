@@ -57,10 +57,10 @@ def test01_a_job_stream_carries_snapshot_units_previews_progress_and_end(local_c
     # Every unit is seen done, the done ones with their worker and time: in a unit
     # event, or in the stream's first `units` snapshot if it landed before the
     # stream began (TINY's three passes are a unit each: the first lands soon).
-    snapshot = [u for k, d in events if k == "units" for u in d]
-    units = snapshot + [d for k, d in events if k == "unit"]
+    snapshot = [u for k, d in events if k == "units" for u in d]  # pending ones too
+    units = [d for k, d in events if k == "unit"]
     total = jobs[-1]["progress"]["units_total"]
-    finished = {u["index"]: u for u in units if u["state"] == "done"}
+    finished = {u["index"]: u for u in snapshot + units if u["state"] == "done"}
     assert len(finished) == total and {u["state"] for u in units} <= {"queued", "running", "done"}
     assert all(u["worker"] and u["seconds"] >= 0 and u.get("job_id", job["id"]) == job["id"]
                for u in finished.values())
