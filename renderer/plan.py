@@ -119,21 +119,25 @@ def sample_passes(spp: int, progressive: bool, tile_pixels: int = 0) -> list[tup
 MIN_UNIT_SAMPLES = 1 << 17
 
 
+def _group_shape(across: int, per_tile: int) -> tuple[int, int]:
+    """(tiles along a row, rows of tiles) of a pass's units when a tile holds
+    `per_tile` samples and a row `across` tiles: (1, 1) if a tile holds
+    `MIN_UNIT_SAMPLES`; else runs of tiles along a row that do, or, if a whole
+    row does not, bands of whole rows that do."""
+    group = max(1, -(-MIN_UNIT_SAMPLES // max(per_tile, 1)))  # tiles per unit
+    if group < across:
+        return group, 1
+    return across, -(-group // across)
+
+
 def _tile_groups(width: int, height: int, tile: int, per_tile: int
                  ) -> list[tuple[int, int, int, int]]:
-    """A pass's unit regions, row-major: the job's tiles, or, if a tile holds
-    fewer than `MIN_UNIT_SAMPLES` (`per_tile` samples), runs of adjacent
-    tiles of a row, or bands of whole rows of tiles, that hold that many."""
-    group = max(1, -(-MIN_UNIT_SAMPLES // max(per_tile, 1)))  # tiles per unit
-    across = -(-width // tile)
-    if group == 1:
-        return _tiles(width, height, tile)
-    if group < across:  # runs of `group` tiles (the last one of a row shorter)
-        step = group * tile
-        return [(x, y, min(x + step, width), min(y + tile, height))
-                for y in range(0, height, tile) for x in range(0, width, step)]
-    rows = -(-group // across) * tile  # bands of whole rows of tiles
-    return [(0, y, width, min(y + rows, height)) for y in range(0, height, rows)]
+    """A pass's unit regions, row-major (`_group_shape`; the last run of a row
+    and the last band may be shorter)."""
+    run, rows = _group_shape(-(-width // tile), per_tile)
+    xs, ys = run * tile, rows * tile
+    return [(x, y, min(x + xs, width), min(y + ys, height))
+            for y in range(0, height, ys) for x in range(0, width, xs)]
 
 
 def tile_pixels(spec: RenderSpec) -> int:
@@ -167,9 +171,6 @@ def count_units(spec: RenderSpec, progressive: bool = False) -> int:
     pixels = tile_pixels(spec)
     total = 0
     for s0, s1 in sample_passes(spec.spp, progressive, pixels):
-        group = max(1, -(-MIN_UNIT_SAMPLES // max(pixels * (s1 - s0), 1))) if progressive else 1
-        if group < across:
-            total += -(-across // group) * down
-        else:
-            total += -(-down // -(-group // across))
+        run, rows = _group_shape(across, pixels * (s1 - s0)) if progressive else (1, 1)
+        total += -(-across // run) * -(-down // rows)
     return total

@@ -318,7 +318,7 @@ class Scheduler:
             self.artefacts.new_tick()
             self.ticks += 1
 
-    def _census(self) -> "_Census":
+    def _census(self) -> _Census:
         """The scheduled jobs (higher priority first, then oldest) and their
         units in flight: two small queries, whatever the pending units (the
         units in flight are few: every executor bounds them)."""
