@@ -108,15 +108,19 @@ def sample_passes(spp: int, progressive: bool, tile_pixels: int = 0) -> list[tup
     return [(0, blocks[first - 1][1])] + blocks[first:]
 
 
-# The camera samples a progressive pass's unit renders, at least: about 0.1 s
-# on one core. A unit costs the service the same whatever it holds (its rows,
-# its film stored, its events: about 10 ms of CPU on the 2-core machine), and
-# a progressive job's early passes hold a few samples per pixel, so there a
-# pass groups adjacent tiles into one unit: along a row of tiles, then whole
-# rows. A 302-spp job of 64-pixel tiles on 256 x 256 pixels goes from 128
-# units to 96. Grouping changes no byte of the image: every pixel renders the
-# same sample blocks in the same order, whatever unit it is in.
-MIN_UNIT_SAMPLES = 1 << 17
+# The camera samples a progressive pass's unit renders, at least: 0.4 s on
+# one core of the 2-core AVX-512 machine, 0.5 s on the AVX2 one. A unit costs
+# the service the same whatever it holds (its rows, its film stored and
+# fsynced, its events: 4-5 ms of CPU there), and the render processes wait
+# for that CPU on a machine whose cores they use; a progressive job's passes
+# hold at most 64 samples per pixel (sample_blocks), so a pass groups
+# adjacent tiles into one unit: along a row of tiles, then whole rows. A
+# 382-spp job of 64-pixel tiles on 256 x 256 pixels has 48 units (112 at
+# 2^17: its service took 0.77 s of CPU at 2^19 instead of 1.00 s). Grouping
+# changes no byte of the image: every pixel renders the same sample blocks
+# in the same order, whatever unit it is in. Units stay well below a second,
+# so fair share (service.fairshare) still switches jobs often.
+MIN_UNIT_SAMPLES = 1 << 19
 
 
 def _group_shape(across: int, per_tile: int) -> tuple[int, int]:

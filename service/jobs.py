@@ -276,6 +276,8 @@ def result_file(session: Session, store: Store, actor: Principal, job_id: str, k
     `ResultNotReady`."""
     job = get_job(session, actor, job_id)
     if kind in ("preview.png", "noise.png"):
+        if job.status in states.SCHEDULED_JOB:  # someone looks: keep it written (service.previews)
+            store.mark_watched(job.id, kind.removesuffix(".png"))
         path = store.preview_path(job.id) if kind == "preview.png" else store.noise_path(job.id)
         if not path.is_file():
             raise ResultNotReady(f"job '{job_id}' is {job.status}; its {kind} exists once "

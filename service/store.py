@@ -8,6 +8,8 @@
     <data_dir>/jobs/<job_id>/result.exr        the merged image
     <data_dir>/jobs/<job_id>/preview.png       its tonemapped preview
     <data_dir>/jobs/<job_id>/noise.png         its noise heatmap
+    <data_dir>/jobs/<job_id>/preview.watched   empty: its mtime is the last GET of
+    <data_dir>/jobs/<job_id>/noise.watched       preview.png / noise.png (service.previews)
 
 Every write is atomic (temporary file + rename), so a reader sees a whole
 file or none. Paths are built only from validated ids, so nothing is ever
@@ -71,6 +73,35 @@ class Store:
 
     def noise_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "noise.png"
+
+    def watch_path(self, job_id: str, image: str) -> Path:
+        """The marker whose mtime says when `image` ("preview" or "noise") was last fetched."""
+        if image not in ("preview", "noise"):
+            raise ValueError(f"not a running image: {image!r}")
+        return self.job_dir(job_id) / f"{image}.watched"
+
+    # -- who looks at a running job -------------------------------------------
+    def mark_watched(self, job_id: str, image: str) -> None:
+        """Note that a client fetched the job's `image` ("preview" or "noise")
+        now. A file in the data dir, so every replica's GETs reach the
+        scheduler's replica. Never creates the job's directory: before its
+        first unit there is nothing to watch (the first preview is written
+        anyway), and a job deleted meanwhile stays gone."""
+        path = self.watch_path(job_id, image)
+        try:
+            os.utime(path)
+        except FileNotFoundError:
+            try:
+                os.close(os.open(path, os.O_WRONLY | os.O_CREAT, 0o644))
+            except FileNotFoundError:
+                pass
+
+    def watched_at(self, job_id: str, image: str) -> float:
+        """time.time() of the last `mark_watched(job_id, image)`; -inf if never."""
+        try:
+            return self.watch_path(job_id, image).stat().st_mtime
+        except OSError:
+            return float("-inf")
 
     # -- reads and atomic writes ----------------------------------------------
     def put_scene(self, scene_hash: str, text: str) -> None:

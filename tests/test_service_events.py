@@ -97,6 +97,8 @@ def test03_cancel_ends_the_stream_and_delete_removes_everything(local_client, lo
     assert local_client.post(f"/jobs/{job['id']}/cancel").status_code == 409
     job_dir = local_settings.data_dir / "jobs" / job["id"]
     assert (job_dir / "preview.png").is_file()
+    # The GET of the running job's preview said someone is looking (service.previews).
+    assert (job_dir / "preview.watched").is_file() and not (job_dir / "noise.watched").exists()
     assert local_client.delete(f"/jobs/{job['id']}").status_code == 204
     assert local_client.get(f"/jobs/{job['id']}").status_code == 404
     assert local_client.get(f"/jobs/{job['id']}/units").status_code == 404

@@ -1,8 +1,11 @@
 """service.previews: a job's running preview is the plain sum (Film.add) of
 the films that landed, written at most once per PREVIEW_INTERVAL, rebuilt
-from the stored films after an eviction or restart."""
+from the stored films after an eviction or restart; after the first, only
+the images a client fetched lately are written."""
 
 from __future__ import annotations
+
+import os
 
 import numpy as np
 
@@ -22,6 +25,12 @@ def tile(x0: int, value: float, samples: int = 4) -> PartialFilm:
     return film
 
 
+def watched(store: Store, *images: str) -> Store:
+    for image in images:
+        store.mark_watched(JOB, image)
+    return store
+
+
 def test01_the_frame_is_the_sum_of_what_landed_and_writes_are_throttled(tmp_path):
     store = Store(tmp_path)
     done: list[int] = []
@@ -29,6 +38,7 @@ def test01_the_frame_is_the_sum_of_what_landed_and_writes_are_throttled(tmp_path
     first = [(0, tile(0, 0.25)), (1, tile(4, 0.5))]
     assert previews.refresh(JOB, 8, 4, first) == 2  # the first landing is written at once
     assert store.preview_path(JOB).is_file() and store.noise_path(JOB).is_file()
+    watched(store, "preview", "noise")
     frame = previews._frames[JOB].film
     expected = merge(8, 4, [f for _, f in first])
     np.testing.assert_allclose(frame.mean(), expected.mean(), rtol=1e-6)
@@ -63,6 +73,7 @@ def test03_a_costly_preview_is_written_less_often(tmp_path, monkeypatch):
     store = Store(tmp_path)
     previews = RunningPreviews(store, EventHub(), lambda job_id: [])
     assert previews.refresh(JOB, 8, 4, [(0, tile(0, 0.25))]) == 1
+    watched(store, "preview")
     frame = previews._frames[JOB]
     assert frame.interval == module.PREVIEW_INTERVAL  # a tiny frame: the floor
     monkeypatch.setattr(module, "PREVIEW_PACE", 1e7)  # as if a write took 1e-7 of the pace
@@ -73,3 +84,48 @@ def test03_a_costly_preview_is_written_less_often(tmp_path, monkeypatch):
     assert previews.refresh(JOB, 8, 4, [(2, tile(0, 1.0))]) is None and previews.dirty(JOB)
     frame.written -= frame.interval
     assert previews.refresh(JOB, 8, 4, []) == 3
+
+
+def test04_after_the_first_only_what_someone_looks_at_is_written(tmp_path, monkeypatch):
+    """An unwatched job's frame takes what lands but writes nothing after its
+    first images (and asks for no visit); a GET of one image (Store.mark_watched)
+    brings that image's writes back, and an old GET counts for nothing."""
+    from service import previews as module
+
+    store = Store(tmp_path)
+    previews = RunningPreviews(store, EventHub(), lambda job_id: [])
+    assert previews.refresh(JOB, 8, 4, [(0, tile(0, 0.25))]) == 1  # the first: both images
+    frame = previews._frames[JOB]
+
+    def stamp(path):  # the bytes: a write of the grown frame changes them
+        return path.read_bytes()
+
+    def later():  # past the throttle and the markers' read interval
+        frame.written -= 2 * frame.interval
+        frame.watch_read -= 2 * module.PREVIEW_INTERVAL
+
+    first = (stamp(store.preview_path(JOB)), stamp(store.noise_path(JOB)))
+    later()
+    assert previews.refresh(JOB, 8, 4, [(1, tile(4, 0.5))]) is None  # nobody looks
+    assert frame.dirty and not previews.dirty(JOB)  # no visits for it either
+    assert (stamp(store.preview_path(JOB)), stamp(store.noise_path(JOB))) == first
+    assert frame.film.weight[0, 4] == 4  # the unit is in the frame all the same
+
+    store.mark_watched(JOB, "preview")
+    later()
+    assert previews.dirty(JOB)  # written at the next tick, with no unit landing
+    assert previews.refresh(JOB, 8, 4, []) == 2
+    assert stamp(store.preview_path(JOB)) != first[0] and stamp(store.noise_path(JOB)) == first[1]
+
+    old = store.watch_path(JOB, "preview")  # fetched longer ago than WATCH_SECONDS
+    past = old.stat().st_mtime - module.WATCH_SECONDS - 1
+    os.utime(old, (past, past))
+    later()
+    assert previews.refresh(JOB, 8, 4, [(2, tile(0, 1.0))]) is None and not previews.dirty(JOB)
+
+
+def test05_marking_a_job_watched_never_makes_its_directory(tmp_path):
+    """A GET before the first unit, or racing a delete, leaves no directory behind."""
+    store = Store(tmp_path)
+    store.mark_watched(JOB, "noise")
+    assert not store.job_dir(JOB).exists() and store.watched_at(JOB, "noise") == float("-inf")

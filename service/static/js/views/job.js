@@ -348,7 +348,7 @@ export function jobView(root, jobId) {
       ["resolution", `${job.width} × ${job.height}`],
       ["tile size", job.tile_size],
       ["seed", job.seed],
-      ["passes", job.progressive ? "progressive (1, 1, 2, 4, … spp)" : "one"],
+      ["passes", job.progressive ? "progressive (doubling, up to 64 spp a pass)" : "one"],
       ["priority", job.priority],
     ]));
   }

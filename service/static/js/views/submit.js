@@ -65,7 +65,7 @@ export function submitView(root) {
         h("div.form-grid", {}, NUMBER_FIELDS.map(([name, label, , hint]) => field(name, label, numbers[name], hint))),
         h("div", { style: { height: "12px" } }),
         field("progressive", "Passes", h("label.check", {}, progressive,
-          "progressive: 1, 1, 2, 4, … spp per pass, the preview sharpens while it runs")))),
+          "progressive: passes that double up to 64 spp each, the preview sharpens while it runs")))),
       h("div.actions", {}, submit, h("span.muted", {}, "The service checks every field.")))));
   if (!may.submit()) {
     for (const control of [submit, uploadButton, upload]) {
