@@ -171,7 +171,9 @@ def result_exr(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep)
 @router.get("/{job_id}/preview.png", response_class=FileResponse,
             responses={200: {"content": {"image/png": {}}}, **responses(404)})
 def preview_png(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> FileResponse:
-    """A tonemapped sRGB preview, refreshed as units land (404 until the first one has)."""
+    """A tonemapped sRGB preview (404 until the first unit has landed). It is
+    refreshed as units land while it is being fetched: a job nobody looks at
+    keeps its first preview until its final one (service.previews)."""
     path = jobs.result_file(session, farm.store, actor, job_id, "preview.png")
     return FileResponse(path, media_type="image/png", headers=_NO_STORE)
 
@@ -181,7 +183,7 @@ def preview_png(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep
 def noise_png(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> FileResponse:
     """The noise heatmap: each pixel's relative standard error (from the variance
     channels) on a log scale from 0.1 % (dark) to 100 % (bright) through an
-    inferno colormap; grey where fewer than two samples landed. Refreshed with
-    the preview (404 until the first unit is done)."""
+    inferno colormap; grey where fewer than two samples landed. Refreshed like
+    the preview, while it is being fetched (404 until the first unit is done)."""
     path = jobs.result_file(session, farm.store, actor, job_id, "noise.png")
     return FileResponse(path, media_type="image/png", headers=_NO_STORE)
