@@ -39,8 +39,14 @@ def read_events(response, stop=lambda kind, data: kind == "end", limit: float = 
     return events
 
 
+# Test01's job: four units, about a second of work, so that the stream opens
+# while it runs. (TINY at 16 spp is 16384 samples, a few ms once warm: it could
+# finish between the POST and the GET, and the stream saw only "done".)
+STREAMED = dict(TINY, width=64, height=64, spp=256, tile_size=16)
+
+
 def test01_a_job_stream_carries_snapshot_units_previews_progress_and_end(local_client):
-    job = submit(local_client, dict(TINY, spp=16))
+    job = submit(local_client, STREAMED)
     with local_client.stream("GET", f"/jobs/{job['id']}/events") as response:
         assert response.status_code == 200
         assert response.headers["content-type"].startswith("text/event-stream")
@@ -52,11 +58,11 @@ def test01_a_job_stream_carries_snapshot_units_previews_progress_and_end(local_c
     assert [j["status"] for j in jobs][-1] == "done" and "running" in [j["status"] for j in jobs]
     # Progress only grows, ends at every sample, and an ETA was measured on the way.
     done = [j["progress"]["samples_done"] for j in jobs]
-    assert done == sorted(done) and done[-1] == 32 * 32 * 16 == jobs[-1]["progress"]["samples_total"]
+    assert done == sorted(done) and done[-1] == 64 * 64 * 256 == jobs[-1]["progress"]["samples_total"]
     assert any(j["progress"]["eta"] and j["status"] == "running" for j in jobs)
     # Every unit is seen done, the done ones with their worker and time: in a unit
     # event, or in the stream's first `units` snapshot if it landed before the
-    # stream began (TINY's three passes are a unit each: the first lands soon).
+    # stream began (its passes are a unit each: the first lands soon).
     snapshot = [u for k, d in events if k == "units" for u in d]  # pending ones too
     units = [d for k, d in events if k == "unit"]
     total = jobs[-1]["progress"]["units_total"]
