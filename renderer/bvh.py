@@ -13,6 +13,17 @@ veach-mis and 20 % on a 100 k-triangle mesh (bench/heavy_mesh.py). Float32
 boxes (rounded outwards, half the bytes) were slower on all three: the
 conversions cost more than the memory they save at these sizes.
 
+Tried and not kept (2026-11-26, AVX-512 machine, bench/traversal.py's rays):
+8-wide nodes whose eight slab tests are one loop Numba's loop vectorizer
+turns into zmm instructions, with leaves of up to 8 triangles in padded
+structure-of-arrays slots tested branch-free in one vector pass (the same
+hits, bit for bit). Against this 4-wide scalar traversal: cornell-box
+camera / bounce / shadow rays 0.97x / 1.19x / 1.32x, veach-mis 0.81x /
+1.11x / 0.91x, the 100 k-triangle mesh 0.89x / 0.96x / 1.03x. A single ray
+keeps too little work per node for the vector units to pay for the spills
+and the per-node selection that follows; packets or wavefronts of rays are
+what vectorize (Mitsuba's LLVM backend traces 16 rays per instruction).
+
 TRAVERSAL_COST is 2, not pbrt's 1/8: in these scalar Numba kernels a node's
 slab test costs about as much as a triangle test, and on cornell-box the
 shallower tree (31 nodes instead of 43) rendered ~20 % more samples/s.
