@@ -67,7 +67,9 @@ def _typed_options(method: str, options: dict[str, str]) -> dict:
 def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
     args = build_parser(prog).parse_args(argv)
     from .local import render
+    from .metadata import exr_metadata
     from .registry import METHODS
+    from .runtime import scene_text
 
     options = {}
     for item in args.option:
@@ -101,7 +103,8 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
     film = render(doc, spec, workers=args.workers, progress=lambda unit, part: bar.update(1))
     bar.close()
     seconds = time.perf_counter() - t0
-    film.write_exr(out, {"scene": doc.get("name") or str(args.scene), **spec.to_dict()})
+    film.write_exr(out, exr_metadata(spec, film.stats, scene=doc.get("name") or str(args.scene),
+                                     scene_hash=scene_text(doc)[0]))
     film.write_png(out.with_suffix(".png"))
     s = film.stats
     print(f"wrote {out} and {out.with_suffix('.png')}: {spec.width}x{spec.height}, {spec.spp} spp, "

@@ -44,9 +44,11 @@ so a unit's good result could fail as "unreadable". JSON has no such state.
 
 from __future__ import annotations
 
+import importlib.metadata
 import io
 import json
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Iterable
 
@@ -278,7 +280,9 @@ class Film(PartialFilm):
 
     def write_exr(self, path: str | Path, metadata: dict | None = None) -> None:
         """Write float32 R, G, B (mean radiance) and var.R/G/B (variance of
-        the mean) with `metadata` as string header attributes."""
+        the mean), with `metadata` as `rayfarm.<key>` header attributes (see
+        renderer.metadata: strings, 32-bit ints, floats; anything else as
+        JSON) and the standard `software`, `capDate` and `utcOffset`."""
         import OpenEXR
 
         mean = self.mean().astype(np.float32)
@@ -286,9 +290,12 @@ class Film(PartialFilm):
         channels = {"R": mean[..., 0].copy(), "G": mean[..., 1].copy(), "B": mean[..., 2].copy(),
                     "var.R": var[..., 0].copy(), "var.G": var[..., 1].copy(),
                     "var.B": var[..., 2].copy()}
-        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                  "software": f"rayfarm {_version()}",
+                  "capDate": datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S"),
+                  "utcOffset": 0.0}
         for key, value in (metadata or {}).items():
-            header[f"rayfarm.{key}"] = value if isinstance(value, str) else json.dumps(value)
+            header[f"rayfarm.{key}"] = _exr_attribute(key, value)
         path = Path(path)
         tmp = path.with_name(path.name + ".part")
         with OpenEXR.File(header, channels) as exr:
@@ -370,6 +377,29 @@ def merge(width: int, height: int, parts: Iterable[PartialFilm]) -> Film:
     for part in parts:
         film.add(part)
     return film
+
+
+def _exr_attribute(key: str, value):
+    """A header value the OpenEXR package writes as the type it is: str, a
+    32-bit int (bools as 0/1), a float; anything else as JSON text. The
+    package stores an int beyond 32 bits as 0 without a word: refused here."""
+    if isinstance(value, bool):
+        return int(value)
+    if isinstance(value, int):
+        if not -(1 << 31) <= value < (1 << 31):
+            raise ValueError(f"EXR attribute {key!r}: {value} does not fit a 32-bit int "
+                             "(write it as a decimal string)")
+        return value
+    if isinstance(value, (str, float)):
+        return value
+    return json.dumps(value, sort_keys=True)
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("rayfarm")
+    except importlib.metadata.PackageNotFoundError:  # a source tree that was never installed
+        return "unknown"
 
 
 def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:

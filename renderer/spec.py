@@ -33,10 +33,15 @@ DEFAULT_MAX_WORK = 1 << 32
 class RenderSpec:
     """Everything that decides a render's pixels, apart from the scene.
 
-    >>> RenderSpec(method="path", spp=16, depth=5, width=256, height=256)
+    An alias names its method (`path` is `path-mis`): the spec keeps the
+    method's own name, so what is stored, reported and written to an EXR says
+    one method one way.
+
+    >>> RenderSpec(method="path", spp=16, depth=5, width=256, height=256).method
+    'path-mis'
     """
 
-    method: str = "path"
+    method: str = "path-mis"
     spp: int = 16
     depth: int = 5
     width: int = 256
@@ -45,6 +50,11 @@ class RenderSpec:
     seed: int = 0
     sampler: str = "sobol"
     options: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        method = METHODS.get(self.method) if isinstance(self.method, str) else None
+        if method is not None and method.name != self.method:
+            object.__setattr__(self, "method", method.name)  # frozen: set once, here
 
     def validate(self, max_work: int = DEFAULT_MAX_WORK, scene: dict | None = None) -> "RenderSpec":
         """Check bounds and registry names (and, given the resolved `scene`

@@ -2,27 +2,30 @@
 addition, then one division: `renderer.merge`) into `result.exr`, with the
 final `preview.png` and `noise.png`.
 
-    write_result(store, job_id, width, height, units=16, metadata={"method": "path", ...})
+    write_result(store, job_id, spec, units=16, scene="cornell-box", scene_hash=key)
+
+The EXR's header is `renderer.metadata.exr_metadata`'s: the same keys as a
+file from `rayfarm render`.
 """
 
 from __future__ import annotations
 
-from renderer import PartialFilm, merge
+from renderer import PartialFilm, RenderSpec, merge
+from renderer.metadata import exr_metadata
 
 from .store import Store
 
-__all__ = ["EXR_METADATA_KEYS", "write_result"]
-
-EXR_METADATA_KEYS = ("job_id", "scene", "scene_hash", "method", "spp", "depth", "seed",
-                     "sampler", "tile_size", "width", "height")
+__all__ = ["write_result"]
 
 
-def write_result(store: Store, job_id: str, width: int, height: int, units: int,
-                 metadata: dict) -> None:
-    """Merge units 0..units-1 of the job and write its EXR (with `metadata` as
-    `rayfarm.*` header attributes) and PNGs; raises what reading or writing raises."""
-    film = merge(width, height, (PartialFilm.from_bytes(store.unit_film(job_id, i))
-                                 for i in range(units)))
-    film.write_exr(store.result_path(job_id), {k: str(metadata[k]) for k in EXR_METADATA_KEYS})
+def write_result(store: Store, job_id: str, spec: RenderSpec, units: int, *, scene: str,
+                 scene_hash: str) -> None:
+    """Merge units 0..units-1 of the job and write its EXR and PNGs; raises
+    what reading or writing raises."""
+    film = merge(spec.width, spec.height, (PartialFilm.from_bytes(store.unit_film(job_id, i))
+                                           for i in range(units)))
+    film.write_exr(store.result_path(job_id),
+                   exr_metadata(spec, film.stats, scene=scene, scene_hash=scene_hash,
+                                job_id=job_id))
     film.write_png(store.preview_path(job_id))
     film.write_noise_png(store.noise_path(job_id))

@@ -74,7 +74,7 @@ from .leader import Leadership, LeadershipLost
 from .metrics import FarmMetrics
 from .models import Job, User, WorkUnit, utcnow
 from .previews import RunningPreviews
-from .results import EXR_METADATA_KEYS, write_result
+from .results import write_result
 from .settings import Settings
 from .store import Store
 
@@ -697,14 +697,13 @@ class Scheduler:
             job = session.get(Job, job_id)
             if job is None or job.status != "running" or job.units_done != job.units_total:
                 return
-            spec, n_units = dict(job.spec), job.units_total
-            metadata = {"job_id": job.id, "scene": job.scene, "scene_hash": job.scene_hash,
-                        **{k: spec[k] for k in EXR_METADATA_KEYS if k in spec}}
-            width, height = job.width, job.height
+            spec, n_units = RenderSpec.from_dict(job.spec), job.units_total
+            scene, scene_hash = job.scene, job.scene_hash
         error = waiting = None
         try:
             try:
-                write_result(self.store, job_id, width, height, n_units, metadata)
+                write_result(self.store, job_id, spec, n_units, scene=scene,
+                             scene_hash=scene_hash)
             except OSError as exc:
                 if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
                     raise

@@ -77,3 +77,35 @@ def test04_the_submission_count_is_the_solver_s(name):
     for size in (auto, 0.05, 0.3, 2.0):
         assert FEM.patch_total(tri_p, sph_r, size) == FEM.patch_count(scene, size)
     assert FEM.patch_count(scene, auto) == len(FEM.mesh_patches(scene, auto).kind)
+
+
+def test05_an_alias_names_its_method_in_the_spec():
+    """One method, one name: what is stored or written says `path-mis`, never `path`."""
+    for alias, method in ((m, meth) for meth in set(METHODS.values()) for m in meth.aliases):
+        spec = RenderSpec(method=alias, spp=1, depth=1, width=4, height=4).validate()
+        assert spec.method == method.name and spec.to_dict()["method"] == method.name
+    assert RenderSpec().method == "path-mis"
+    assert RenderSpec(method="nonsense").method == "nonsense"  # left for validate to name
+
+
+def test06_exr_attributes_are_typed_and_never_silently_wrong(tmp_path):
+    """The OpenEXR package stores an int beyond 32 bits as 0: write_exr refuses
+    one, and the metadata writes such counts (seed, samples, rays) as text."""
+    from renderer import merge, read_exr
+    from renderer.metadata import METADATA_KEYS, exr_metadata
+
+    film = merge(2, 2, [])
+    with pytest.raises(ValueError, match="32-bit"):
+        film.write_exr(tmp_path / "big.exr", {"seed": 1 << 40})
+    assert not (tmp_path / "big.exr").exists()
+    spec = RenderSpec(method="path", spp=3, depth=2, width=2, height=2, seed=(1 << 63) - 1,
+                      options={"heuristic": "balance"})
+    stats = {"samples": 1 << 40, "rays": 5 << 40, "seconds": 1.25}
+    film.write_exr(tmp_path / "m.exr", exr_metadata(spec, stats, scene="s", scene_hash="h"))
+    _, header = read_exr(tmp_path / "m.exr")
+    got = {k[len("rayfarm."):]: v for k, v in header.items() if k.startswith("rayfarm.")}
+    assert tuple(sorted(got)) == tuple(sorted(METADATA_KEYS))
+    assert got["seed"] == str((1 << 63) - 1) and got["samples"] == str(1 << 40)
+    assert got["rays"] == str(5 << 40) and got["render_seconds"] == 1.25
+    assert (got["spp"], got["depth"], got["denoised"]) == (3, 2, 0)
+    assert got["method"] == "path-mis" and got["options"] == '{"heuristic": "balance"}'

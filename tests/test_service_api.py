@@ -29,7 +29,8 @@ def assert_422(response, field: str, *words: str) -> str:
 
 def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_channels):
     job = submit(local_client, TINY)
-    assert job["status"] == "queued" and job["width"] == 32 and job["method"] == "path"
+    # one method, one name: the alias `path` is stored as the method it names
+    assert job["status"] == "queued" and job["width"] == 32 and job["method"] == "path-mis"
     job = poll_job(get_json(local_client), job["id"])
     assert job["status"] == "done", job
     # Progressive by default: 3 sample passes (1, 1, 2 spp), each one unit (its 16
@@ -49,7 +50,8 @@ def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_ch
     assert channels["R"].shape == (32, 32)
     assert header["rayfarm.job_id"] == job["id"]
     assert header["rayfarm.scene"] == "cornell-box"
-    assert header["rayfarm.spp"] == "4" and header["rayfarm.tile_size"] == "8"
+    assert header["rayfarm.spp"] == 4 and header["rayfarm.tile_size"] == 8  # typed: ints
+    assert header["rayfarm.method"] == "path-mis" and header["rayfarm.samples"] == str(32 * 32 * 4)
     assert header["rayfarm.scene_hash"] == job["scene_hash"]
     # The farm's merge of stored unit films is the renderer's own render, bit for bit.
     assert_bit_identical(channels, reference_channels(TINY))

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 
 import pytest
 
+from renderer import read_exr
+from renderer.metadata import METADATA_KEYS
 from service.cli import main
 
 from conftest import ADMIN_HEADERS, rayfarm_command
@@ -68,6 +71,30 @@ def test05_serve_in_embedded_mode_renders_over_http(embedded_serve, tmp_path, re
         (tmp_path / "out.exr").write_bytes(client.get(job["result_url"]).content)
     assert "Traceback" not in serve.log(), serve.log()
     assert_bit_identical(channels_of(tmp_path / "out.exr"), reference_channels(TINY))
+    # `rayfarm render` of the same job writes the same pixels and the same
+    # header keys with the same types (renderer.metadata)
+    local = tmp_path / "local.exr"
+    assert main(["render", TINY["scene"], "--method", TINY["method"], "--spp", str(TINY["spp"]),
+                 "--depth", str(TINY["depth"]), "--tile-size", str(TINY["tile_size"]),
+                 "--seed", str(TINY["seed"]), "--width", str(TINY["width"]),
+                 "--height", str(TINY["height"]), "--workers", "1", "--quiet",
+                 "--out", str(local)]) == 0
+    assert_bit_identical(channels_of(local), channels_of(tmp_path / "out.exr"))
+    _, farm_header = read_exr(tmp_path / "out.exr")
+    _, local_header = read_exr(local)
+    farm_keys = {k: type(v) for k, v in farm_header.items() if k.startswith("rayfarm.")}
+    assert farm_keys == {k: type(v) for k, v in local_header.items() if k.startswith("rayfarm.")}
+    assert set(farm_keys) == {f"rayfarm.{k}" for k in METADATA_KEYS}
+    differ = {"rayfarm.job_id", "rayfarm.render_seconds"}  # the farm's job, timings
+    assert {k: farm_header[k] for k in farm_keys if k not in differ} \
+        == {k: local_header[k] for k in farm_keys if k not in differ}
+    assert (farm_header["rayfarm.job_id"], local_header["rayfarm.job_id"]) == (job_id, "")
+    assert farm_header["rayfarm.method"] == "path-mis" and farm_header["rayfarm.depth"] == 3
+    assert farm_header["rayfarm.samples"] == str(32 * 32 * 4)
+    for header in (farm_header, local_header):
+        assert header["software"].startswith("rayfarm ") and header["utcOffset"] == 0.0
+        assert re.fullmatch(r"\d{4}:\d\d:\d\d \d\d:\d\d:\d\d", header["capDate"])
+        assert isinstance(header["rayfarm.render_seconds"], float)
 
 
 def test06_serve_prints_a_login_url_that_logs_a_browser_in(tmp_path):

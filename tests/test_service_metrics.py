@@ -118,10 +118,10 @@ def test02_a_tiny_job_moves_the_counters_by_exactly_its_own(client):
     assert grew("rayfarm_rays_total") == job["rays"]
     assert grew("rayfarm_jobs", state="done") == 1
     assert grew("rayfarm_units", state="done") == units
-    assert grew("rayfarm_unit_render_seconds_count", method="path") == units
+    assert grew("rayfarm_unit_render_seconds_count", method="path-mis") == units
     assert grew("rayfarm_unit_render_seconds_count", method="raster") == 0
     unit_seconds = job["stats"]["seconds_per_unit"] * units
-    assert grew("rayfarm_unit_render_seconds_sum", method="path") == pytest.approx(unit_seconds)
+    assert grew("rayfarm_unit_render_seconds_sum", method="path-mis") == pytest.approx(unit_seconds)
     assert value(after, "rayfarm_queue_depth") == 0  # nothing waits any more
 
 
@@ -219,11 +219,11 @@ def test05_the_scheduler_reports_requeues_ticks_and_done_units(tmp_path):
         scheduler.tick()  # unit 0 lost, unit 1 failed: both enqueued again
         assert get("rayfarm_units_requeued_total", {"reason": "lost"}) == 1
         assert get("rayfarm_units_requeued_total", {"reason": "failed"}) == 1
-        assert get("rayfarm_unit_render_seconds_count", {"method": "path"}) is None
+        assert get("rayfarm_unit_render_seconds_count", {"method": "path-mis"}) is None
         for index in range(4):
             executor.finish(job_id, index)
         scheduler.tick()
-        assert get("rayfarm_unit_render_seconds_count", {"method": "path"}) == 4
+        assert get("rayfarm_unit_render_seconds_count", {"method": "path-mis"}) == 4
         assert get("rayfarm_units", {"state": "done"}) == 4
         assert get("rayfarm_queue_depth") == 8  # 4 more went in flight
         assert get("rayfarm_scheduler_tick_seconds_count") == scheduler.ticks == 3
