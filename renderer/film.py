@@ -27,6 +27,13 @@ and Var(X) = sigma^2 / n. So each batch also carries S_b^2 / n_b (`splat_sq`)
 and the merge only adds. With equal batches this is the plain batch-means
 variance; it needs K >= 2 batches (reported as +inf otherwise).
 
+AOVs. A tile method that defines them also sums, per pixel and in the same
+block fold as the radiance, each sample's first-hit albedo (RGB), shading
+normal (XYZ) and depth: `aov`, (h, w, AOV_CHANNELS). The merge adds them like
+`sum`, so they are tiling-invariant too; the EXR holds their means
+(`AOV_LAYERS`: the layer names), and every film's `samples.Y`, the camera
+samples per pixel (`weight`).
+
 Artefacts. A prepass unit's result (a photon map, a radiosity solution, a
 bootstrap estimate, per-pixel statistics carried to the next iteration) is a
 film with named arrays in `artefact`, often over an empty region; the units
@@ -55,7 +62,14 @@ from typing import Iterable
 import numpy as np
 
 __all__ = ["PartialFilm", "Film", "sample_blocks", "merge", "read_exr", "tonemap_srgb8",
-           "relative_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP"]
+           "relative_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP", "AOV_LAYERS",
+           "AOV_CHANNELS"]
+
+# The AOV channels a film's `aov` sums, in order, and the EXR channels their
+# means are written as: "layer.channel", the convention tev, Nuke and
+# Blender's compositor show as layers (Nuke's own depth layer is depth.Z).
+AOV_LAYERS = ("albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z", "depth.Z")
+AOV_CHANNELS = len(AOV_LAYERS)
 
 # Block sizes grow 1, 1, 2, 4, ... (pbrt-v4's doubling waves) up to this cap.
 MAX_BLOCK = 64
@@ -90,6 +104,7 @@ class PartialFilm:
     splat_paths: float = 0.0
     splat_batches: int = 0
     artefact: dict = field(default_factory=dict)  # name -> numpy array
+    aov: np.ndarray | None = None  # (h, w, AOV_CHANNELS) sums (module doc, "AOVs")
 
     @property
     def height(self) -> int:
@@ -100,9 +115,11 @@ class PartialFilm:
         return self.sum.shape[1]
 
     @classmethod
-    def zeros(cls, x0: int, y0: int, width: int, height: int) -> "PartialFilm":
+    def zeros(cls, x0: int, y0: int, width: int, height: int,
+              aov: bool = False) -> "PartialFilm":
         return cls(x0, y0, np.zeros((height, width, 3)), np.zeros((height, width, 3)),
-                   np.zeros((height, width)), {"samples": 0, "rays": 0, "seconds": 0.0})
+                   np.zeros((height, width)), {"samples": 0, "rays": 0, "seconds": 0.0},
+                   aov=np.zeros((height, width, AOV_CHANNELS)) if aov else None)
 
     @classmethod
     def splat_batch(cls, splat: np.ndarray, paths: float) -> "PartialFilm":
@@ -128,6 +145,8 @@ class PartialFilm:
         arrays = {"sum": self.sum, "sum_sq": self.sum_sq, "weight": self.weight}
         if self.splat is not None:
             arrays.update(splat=self.splat, splat_sq=self.splat_sq)
+        if self.aov is not None:
+            arrays["aov"] = self.aov
         for name, value in self.artefact.items():
             arrays[f"artefact.{name}"] = value
         header = {"origin": [int(self.x0), int(self.y0)], "stats": self.stats,
@@ -193,6 +212,12 @@ class PartialFilm:
             film.splat, film.splat_sq = arrays["splat"], arrays["splat_sq"]
             paths, batches = header["splat_count"]
             film.splat_paths, film.splat_batches = float(paths), int(batches)
+        aov = arrays.get("aov")
+        if aov is not None and (aov.ndim != 3 or aov.shape[:2] != film.weight.shape
+                                or aov.shape[2] != AOV_CHANNELS):
+            raise ValueError(f"film array 'aov' has shape {aov.shape}, not "
+                             f"{film.weight.shape + (AOV_CHANNELS,)}")
+        film.aov = aov
         film.artefact = {name[len("artefact."):]: value
                          for name, value in arrays.items() if name.startswith("artefact.")}
         return film
@@ -260,6 +285,18 @@ class Film(PartialFilm):
                 out = np.full_like(out, np.inf)
         return out
 
+    def aovs(self) -> dict[str, np.ndarray]:
+        """The AOVs' per-pixel means by EXR channel name (AOV_LAYERS; empty for
+        a film without them), and `samples.Y`, the camera samples per pixel.
+        Pixels with no sample read 0."""
+        out = {"samples.Y": self.weight.copy()}
+        if self.aov is not None:
+            n = self.weight[..., None]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                means = np.where(n > 0, self.aov / np.maximum(n, 1e-300), 0.0)
+            out.update({name: means[..., i] for i, name in enumerate(AOV_LAYERS)})
+        return out
+
     def add(self, part: PartialFilm) -> None:
         """Merge one partial film into this frame (plain addition)."""
         ys = slice(part.y0, part.y0 + part.height)
@@ -267,6 +304,10 @@ class Film(PartialFilm):
         self.sum[ys, xs] += part.sum
         self.sum_sq[ys, xs] += part.sum_sq
         self.weight[ys, xs] += part.weight
+        if part.aov is not None:
+            if self.aov is None:
+                self.aov = np.zeros((self.height, self.width, AOV_CHANNELS))
+            self.aov[ys, xs] += part.aov
         if part.splat is not None:
             if self.splat is None:
                 self.splat = np.zeros((self.height, self.width, 3))
@@ -279,8 +320,9 @@ class Film(PartialFilm):
             self.stats[key] = self.stats.get(key, 0) + part.stats.get(key, 0)
 
     def write_exr(self, path: str | Path, metadata: dict | None = None) -> None:
-        """Write float32 R, G, B (mean radiance) and var.R/G/B (variance of
-        the mean), with `metadata` as `rayfarm.<key>` header attributes (see
+        """Write float32 R, G, B (mean radiance), var.R/G/B (variance of the
+        mean), the AOVs (`aovs`: samples.Y, and albedo, normal and depth where
+        the method made them), with `metadata` as `rayfarm.<key>` header attributes (see
         renderer.metadata: strings, 32-bit ints, floats; anything else as
         JSON) and the standard `software`, `capDate` and `utcOffset`."""
         import OpenEXR
@@ -290,6 +332,8 @@ class Film(PartialFilm):
         channels = {"R": mean[..., 0].copy(), "G": mean[..., 1].copy(), "B": mean[..., 2].copy(),
                     "var.R": var[..., 0].copy(), "var.G": var[..., 1].copy(),
                     "var.B": var[..., 2].copy()}
+        channels.update({name: np.ascontiguousarray(a, dtype=np.float32)
+                         for name, a in self.aovs().items()})
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
                   "software": f"rayfarm {_version()}",
                   "capDate": datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S"),

@@ -81,6 +81,10 @@ class Method:
     phases: tuple[str, ...] = ("tile",)
     check_scene: Callable | None = None
     warm_options: tuple[dict, ...] = field(default=(), compare=False)
+    # The AOV layers (film.py) its films carry beyond the beauty, var and
+    # samples, and, when there are none, why: what GET /methods says.
+    aovs: tuple[str, ...] = ()
+    aov_note: str = "writes no albedo, normal or depth layers yet"
 
     def render(self, scene, spec, unit, inputs: dict | None = None):
         """Run one unit of a job of this method (its options checked here)."""
@@ -119,6 +123,7 @@ class Method:
     def describe(self) -> dict:
         return {"name": self.name, "aliases": list(self.aliases), "description": self.description,
                 "family": self.family, "phases": list(self.phases),
+                "aovs": list(self.aovs), "aov_note": None if self.aovs else self.aov_note,
                 "options": [{"name": o.name, "type": o.type.__name__, "default": o.default,
                              "choices": list(o.choices) if o.choices else None,
                              "bounds": list(o.bounds) if o.bounds else None,

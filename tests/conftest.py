@@ -97,7 +97,9 @@ def channels_of(exr_path: Path) -> dict[str, np.ndarray]:
 
 
 def assert_bit_identical(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> None:
-    for name in ("R", "G", "B", "var.R", "var.G", "var.B"):
+    """Every channel the same bytes: beauty, var, and the AOVs (film.py)."""
+    assert set(a) == set(b) and {"R", "G", "B", "var.R", "var.G", "var.B", "samples.Y"} <= set(a)
+    for name in sorted(a):
         assert a[name].dtype == b[name].dtype and a[name].shape == b[name].shape, name
         assert a[name].tobytes() == b[name].tobytes(), f"channel {name} differs"
 

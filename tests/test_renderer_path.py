@@ -117,7 +117,8 @@ def test05_tiling_invariance_is_bit_exact(cornell):
         assert np.array_equal(a.sum, other.sum)
         assert np.array_equal(a.sum_sq, other.sum_sq)
         assert np.array_equal(a.weight, other.weight)
-    assert a.mean().max() > 0
+        assert np.array_equal(a.aov, other.aov)  # the AOVs take the same fold
+    assert a.mean().max() > 0 and a.aov[..., 6].max() > 0
 
 
 def test06_progressive_passes_merge_to_the_same_bits(cornell):
@@ -128,6 +129,7 @@ def test06_progressive_passes_merge_to_the_same_bits(cornell):
     assert len(plan(spec, progressive=True)) == 4 and len(plan(spec)) == 9
     assert np.array_equal(whole.sum, passes.sum)
     assert np.array_equal(whole.sum_sq, passes.sum_sq)
+    assert np.array_equal(whole.aov, passes.aov)
     # the first pass took two canonical blocks (64-pixel tiles are far below the floor,
     # a quarter of spp caps it): the bytes are the same whatever the passes
     assert sorted({(u.sample_start, u.sample_end) for u in plan(spec, progressive=True)}) == [
@@ -238,3 +240,55 @@ def test11_mirror_sphere_reflects_the_sky_times_its_tint():
     assert img[0, 0] == pytest.approx([1.0, 1.0, 1.0], abs=1e-12)  # the sky itself
     assert np.all((img >= 0.8 - 1e-12) & (img <= 1.0 + 1e-12))
 
+
+
+# -- AOVs (film.py): albedo, normal, depth of the first diffuse or glossy hit ----------------
+
+def test12_albedo_aov_of_a_diffuse_furnace_is_its_reflectance(furnace_emitter):
+    """Every camera sample of the furnace hits its grey sphere (albedo 0.5):
+    the albedo layer is that reflectance in every pixel, whatever the noise
+    of the beauty."""
+    spec = RenderSpec(spp=16, depth=3, width=16, height=16, tile_size=8, seed=2)
+    aovs = render_inline(furnace_emitter, spec).aovs()
+    for c in "RGB":
+        assert np.all(aovs[f"albedo.{c}"] == 0.5), c
+    assert np.all(aovs["samples.Y"] == 16)
+    # a pixel's normal is the mean of unit normals over its footprint on the
+    # sphere: a hair shorter than 1, never longer
+    length = np.linalg.norm(np.stack([aovs[f"normal.{c}"] for c in "XYZ"], axis=-1), axis=-1)
+    assert np.all((length > 0.999) & (length <= 1.0 + 1e-12))
+
+
+def test13_albedo_aov_follows_mirrors_and_glass_to_the_next_diffuse_surface():
+    """A mirror or glass sphere in a grey-walled (albedo 0.25) emitting sphere:
+    the albedo seen through it is the walls' 0.25 (Open Image Denoise's
+    convention), not the mirror's tint 0.8 and not 0."""
+    for material in ("mirror", "glass"):
+        scene = build_scene(resolve_document({
+            "camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "fov": 40, "width": 16,
+                       "height": 16},
+            "materials": {"grey": {"type": "diffuse", "albedo": 0.25},
+                          "glass": {"type": "dielectric", "ior": 1.5},
+                          "mirror": {"type": "mirror", "tint": 0.8}},
+            "shapes": [{"type": "sphere", "radius": 10, "material": "grey", "flip_normals": True,
+                        "emitter": {"type": "area", "radiance": 1}},
+                       {"type": "sphere", "radius": 1, "material": material}]}))
+        spec = RenderSpec(spp=8, depth=16, width=16, height=16, tile_size=16)
+        aovs = render_inline(scene, spec).aovs()
+        assert np.allclose(aovs["albedo.G"], 0.25, rtol=0, atol=1e-15), material
+        # depth is the first hit's distance: the sphere at the centre (4 - 1 = 3)
+        assert 3.0 <= aovs["depth.Z"][8, 8] < 3.05 and aovs["depth.Z"][0, 0] > 10, material
+
+
+def test14_normal_aov_of_an_axis_aligned_wall_is_that_axis(cornell):
+    """Cornell box walls are axis-aligned: pixels that see only one wall hold
+    its normal exactly (the red wall faces +x, the green one -x, the floor +y)."""
+    spec = RenderSpec(spp=4, depth=1, width=32, height=32, tile_size=16, seed=3)
+    aovs = render_inline(cornell, spec).aovs()
+    n = np.stack([aovs[f"normal.{c}"] for c in "XYZ"], axis=-1)
+    albedo = np.stack([aovs[f"albedo.{c}"] for c in "RGB"], axis=-1)
+    assert albedo[16, 1, 0] > 3 * albedo[16, 1, 1]  # the red wall
+    assert tuple(n[16, 1]) == (1.0, 0.0, 0.0)
+    assert albedo[16, 30, 1] > 2 * albedo[16, 30, 0]  # the green wall
+    assert tuple(n[16, 30]) == (-1.0, 0.0, 0.0)
+    assert tuple(n[29, 8]) == (0.0, 1.0, 0.0)  # the floor

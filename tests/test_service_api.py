@@ -46,7 +46,8 @@ def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_ch
     from renderer import read_exr
 
     channels, header = read_exr(exr)
-    assert {"R", "G", "B", "var.R", "var.G", "var.B"} <= set(channels)
+    assert {"R", "G", "B", "var.R", "var.G", "var.B", "samples.Y", "albedo.R", "albedo.G",
+            "albedo.B", "normal.X", "normal.Y", "normal.Z", "depth.Z"} == set(channels)
     assert channels["R"].shape == (32, 32)
     assert header["rayfarm.job_id"] == job["id"]
     assert header["rayfarm.scene"] == "cornell-box"
@@ -204,6 +205,11 @@ def test14_registries_scenes_docs_and_dashboard(local_client):
     methods = local_client.get("/methods").json()
     assert [m["name"] for m in methods] == [m.name for m in dict.fromkeys(METHODS.values())]
     assert methods[0] == next(iter(METHODS.values())).describe()
+    # which AOV layers each method writes, and why not where it writes none
+    by_name = {m["name"]: m for m in methods}
+    assert by_name["path-mis"]["aovs"] == ["albedo", "normal", "depth"]
+    assert by_name["path-mis"]["aov_note"] is None
+    assert by_name["light"]["aovs"] == [] and "splatted" in by_name["light"]["aov_note"]
     samplers = local_client.get("/samplers").json()
     assert [s["name"] for s in samplers] == list(SAMPLERS)
     assert [s["name"] for s in samplers if s["default"]] == ["sobol"]  # what a job gets unasked

@@ -120,6 +120,8 @@ def render_light(scene, spec, unit, inputs=None, options=None) -> PartialFilm:
 
 METHODS = (Method(
     name="light",
+    aov_note="its image is splatted from light paths: no camera sample of "
+             "a pixel has a first hit to take albedo, normal or depth from",
     description="Light tracing: paths start on lights and every vertex connects to the "
                 "pinhole camera, splatting anywhere on the image.",
     run=render_light,

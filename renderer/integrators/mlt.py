@@ -439,6 +439,8 @@ def run_mlt(scene, spec, unit, inputs, opts: dict) -> PartialFilm:
 
 METHODS = (Method(
     name="mlt",
+    aov_note="its image is splatted from Markov chains of whole paths: no "
+             "camera sample of a pixel has a first hit to take albedo, normal or depth from",
     description="Primary-sample-space Metropolis light transport (Kelemen) over BDPT: a "
                 "bootstrap estimates the normalisation, independent chains splat; spp = "
                 "mutations per pixel.",

@@ -67,11 +67,15 @@ from ..kernels.sampling import (
     to_world,
     uniform_hemisphere,
 )
-from ..kernels.tile import add_block, add_sample, n_samples, store_pixel
+from ..kernels.tile import (add_aov_block, add_aov_sample, add_block, add_sample, n_samples,
+                            store_aov, store_pixel)
 from ..registry import SAMPLERS, Method, Option
 from ..samplers import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIM_RR, DIM_STRATEGY,
                         DIMS_PER_BOUNCE, u1d, u2d)
 from .tile import start_tile, tile_plan
+
+# The AOVs every method of the family writes (li_path, film.py).
+PATH_AOVS = ("albedo", "normal", "depth")
 
 # Strategies of the path family (one kernel, switched at run time).
 BSDF_ONLY, NEE, ONE_SAMPLE, MIS, DIRECT = 0, 1, 2, 3, 4
@@ -94,6 +98,11 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
     lobes. Random numbers come from the pixel sampler `smp` for sample
     `index` of `pixel` (`key` is that sample's hash key, the fast path of the
     `random` sampler; `memo` the row's sampler scratch, samplers/dispatch.py).
+
+    Also returns the sample's AOVs (film.py): the albedo and shading normal of
+    the first diffuse or glossy surface, followed through mirrors and glass as
+    Intel Open Image Denoise expects (0 if the path never reaches one), and
+    the distance to the first hit (0 for a miss).
     """
     lr, lg, lb = 0.0, 0.0, 0.0
     br, bg, bb = 1.0, 1.0, 1.0
@@ -103,6 +112,8 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
     prev_pdf = 0.0
     vx, vy, vz = ox, oy, oz  # the previous path vertex, on its surface (not offset)
     rays = 0
+    aov_set = False
+    alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     n_lights = sc.light_type.shape[0]
     # unpacked once: see geometry.py on passing SceneArrays into hot calls
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
@@ -118,6 +129,13 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
         hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
         nx, ny, nz, mat, light = surface_at_arrays(tri_n, tri_mat, tri_light, sph, sph_flip,
                                                    sph_mat, sph_light, prim, hx, hy, hz)
+        if bounce == 0:
+            first_t = t
+        mtype = mat_type[mat]
+        if not aov_set and (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY):
+            aov_set = True
+            alb_r, alb_g, alb_b = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+            an_x, an_y, an_z = nx, ny, nz
         cos_o = -(dx * nx + dy * ny + dz * nz)
         if light >= 0 and cos_o > 0.0:
             w = 1.0
@@ -138,7 +156,6 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
         base = 2 + DIMS_PER_BOUNCE * bounce
         have_rr = False  # the Russian roulette number, drawn with the light pick
         u_rr = 0.0
-        mtype = mat_type[mat]
         if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
             if cos_o <= 0.0:
                 break  # one-sided: the back of a diffuse or glossy surface is black
@@ -231,18 +248,21 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
                 br *= s
                 bg *= s
                 bb *= s
-    return lr, lg, lb, rays
+    return lr, lg, lb, rays, alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t
 
 
 @kernel_parallel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
-                 strategy, heuristic, hemisphere, out_sum, out_sq, out_w, row_rays, stacks, memos):
-    """The tile loop (integrators/tile.py) over `li_path`; rows in parallel."""
+                 strategy, heuristic, hemisphere, out_sum, out_sq, out_w, out_aov, row_rays, stacks,
+                 memos, aov_rows):
+    """The tile loop (integrators/tile.py) over `li_path`, with the AOVs'
+    fold beside the radiance's; rows in parallel."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     n = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
         memo = memos[row]
+        scr = aov_rows[row]
         y = y0 + row
         rays = 0
         for x in range(x0, x1):
@@ -254,14 +274,17 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     key = sample_key(seed, pixel, s)
                     fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-                    r, g, b, nr = li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth,
-                                          strategy, heuristic, hemisphere, smp, seed, pixel, s,
-                                          spp, memo)
+                    r, g, b, nr, alr, alg, alb, anx, any_, anz, dist = li_path(
+                        sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic,
+                        hemisphere, smp, seed, pixel, s, spp, memo)
                     rays += nr
                     sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
+                    add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
                 ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
                                                    sr, sg, sb, tr, tg, tb)
+                add_aov_block(scr)
             store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n)
+            store_aov(out_aov, row, x - x0, scr)
         row_rays[row] = rays
 
 
@@ -269,11 +292,11 @@ def render_tile(scene, spec, unit, inputs, options, *, strategy: int) -> Partial
     """Run the kernel over one unit's tile and sample range."""
     heuristic = BALANCE if options.get("heuristic") == "balance" else POWER
     hemisphere = UNIFORM if options.get("hemisphere") == "uniform" else COSINE
-    t = start_tile(scene, spec, unit)
+    t = start_tile(scene, spec, unit, aov=True)
     _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
                  spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
                  spec.spp, strategy, heuristic, hemisphere, t.film.sum, t.film.sum_sq,
-                 t.film.weight, t.row_rays, t.stacks, t.memos)
+                 t.film.weight, t.film.aov, t.row_rays, t.stacks, t.memos, t.aov_rows)
     return t.finish(unit)
 
 
@@ -286,6 +309,7 @@ METHODS = (
         options=(Option("hemisphere", str, "cosine", "diffuse lobe sampling: cosine-weighted "
                         "(pdf cos/pi) or uniform (pdf 1/2pi)", ("cosine", "uniform")),),
         plan=tile_plan,
+        aovs=PATH_AOVS,
     ),
     Method(
         name="path-nee",
@@ -293,6 +317,7 @@ METHODS = (
                     "point at every non-specular vertex.",
         run=partial(render_tile, strategy=NEE),
         plan=tile_plan,
+        aovs=PATH_AOVS,
     ),
     Method(
         name="path-onesample",
@@ -300,6 +325,7 @@ METHODS = (
                     "BSDF sampling with probability 1/2, weighted by the mixture pdf.",
         run=partial(render_tile, strategy=ONE_SAMPLE),
         plan=tile_plan,
+        aovs=PATH_AOVS,
     ),
     Method(
         name="direct",
@@ -307,6 +333,7 @@ METHODS = (
                     "first diffuse hit, perfect mirror and glass chains followed up to depth.",
         run=partial(render_tile, strategy=DIRECT),
         plan=tile_plan,
+        aovs=PATH_AOVS,
     ),
     Method(
         name="path-mis",
@@ -317,5 +344,6 @@ METHODS = (
         options=(Option("heuristic", str, "power", "MIS weights: Veach's power (beta = 2) or "
                         "balance heuristic", ("power", "balance")),),
         plan=tile_plan,
+        aovs=PATH_AOVS,
     ),
 )

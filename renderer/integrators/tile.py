@@ -32,7 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..film import PartialFilm, sample_blocks
+from ..film import AOV_CHANNELS, PartialFilm, sample_blocks
 from ..kernels.geometry import STACK_SIZE
 from ..plan import plan
 from ..registry import SAMPLERS
@@ -60,7 +60,8 @@ class TileRun(NamedTuple):
     """What a tile kernel is handed for one unit (`start_tile`): the unit's
     zeroed film, its canonical sample blocks, the camera, and per-row scratch
     (rays traced per row, a BVH traversal stack per row, the sampler's memo
-    per row, samplers.memo_rows: kernels allocate nothing)."""
+    per row, samplers.memo_rows; the AOV fold's sums per row, kernels/tile.py:
+    kernels allocate nothing)."""
 
     film: PartialFilm
     blocks: np.ndarray
@@ -68,6 +69,7 @@ class TileRun(NamedTuple):
     row_rays: np.ndarray
     stacks: np.ndarray
     memos: np.ndarray
+    aov_rows: np.ndarray
 
     def finish(self, unit, rays: int | None = None) -> PartialFilm:
         """The film with its stats (samples, rays: the rows' sum unless given)."""
@@ -76,10 +78,12 @@ class TileRun(NamedTuple):
         return self.film
 
 
-def start_tile(scene, spec, unit) -> TileRun:
+def start_tile(scene, spec, unit, aov: bool = False) -> TileRun:
+    """The unit's TileRun; with `aov`, its film sums the AOVs (film.py) too."""
     w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
-    return TileRun(PartialFilm.zeros(unit.x0, unit.y0, w, h),
+    return TileRun(PartialFilm.zeros(unit.x0, unit.y0, w, h, aov=aov),
                    unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
                    camera_array(scene.camera, spec.width, spec.height),
                    np.zeros(h, np.int64), np.empty((h, STACK_SIZE), np.int64),
-                   memo_rows(SAMPLERS[spec.sampler].id, spec.spp, h))
+                   memo_rows(SAMPLERS[spec.sampler].id, spec.spp, h),
+                   np.zeros((h, 2 * AOV_CHANNELS)))
