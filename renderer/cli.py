@@ -42,6 +42,9 @@ def build_parser(prog: str = "rayfarm render") -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--out", default="render.exr", help="output EXR path (PNG preview beside it)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--denoise", action="store_true",
+                   help="also write denoised.R/G/B (Open Image Denoise over the whole frame, "
+                        "with the albedo and normal AOVs) and <out>.denoised.png")
     return p
 
 
@@ -103,8 +106,15 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
     film = render(doc, spec, workers=args.workers, progress=lambda unit, part: bar.update(1))
     bar.close()
     seconds = time.perf_counter() - t0
+    clean = None
+    if args.denoise:
+        from .denoise import denoise_film
+
+        clean = denoise_film(film)
+        film.write_png(out.with_suffix(".denoised.png"), clean)
     film.write_exr(out, exr_metadata(spec, film.stats, scene=doc.get("name") or str(args.scene),
-                                     scene_hash=scene_text(doc)[0]))
+                                     scene_hash=scene_text(doc)[0], denoised=clean is not None),
+                   denoised=clean)
     film.write_png(out.with_suffix(".png"))
     s = film.stats
     print(f"wrote {out} and {out.with_suffix('.png')}: {spec.width}x{spec.height}, {spec.spp} spp, "

@@ -319,12 +319,15 @@ class Film(PartialFilm):
         for key in ("samples", "rays", "seconds"):
             self.stats[key] = self.stats.get(key, 0) + part.stats.get(key, 0)
 
-    def write_exr(self, path: str | Path, metadata: dict | None = None) -> None:
+    def write_exr(self, path: str | Path, metadata: dict | None = None,
+                  denoised: np.ndarray | None = None) -> None:
         """Write float32 R, G, B (mean radiance), var.R/G/B (variance of the
         mean), the AOVs (`aovs`: samples.Y, and albedo, normal and depth where
         the method made them), with `metadata` as `rayfarm.<key>` header attributes (see
         renderer.metadata: strings, 32-bit ints, floats; anything else as
-        JSON) and the standard `software`, `capDate` and `utcOffset`."""
+        JSON) and the standard `software`, `capDate` and `utcOffset`; given
+        `denoised` (h, w, 3: renderer.denoise), also denoised.R/G/B beside the
+        raw beauty, which stays as it is."""
         import OpenEXR
 
         mean = self.mean().astype(np.float32)
@@ -334,6 +337,10 @@ class Film(PartialFilm):
                     "var.B": var[..., 2].copy()}
         channels.update({name: np.ascontiguousarray(a, dtype=np.float32)
                          for name, a in self.aovs().items()})
+        if denoised is not None:
+            channels.update({f"denoised.{c}": np.ascontiguousarray(denoised[..., i],
+                                                                   dtype=np.float32)
+                             for i, c in enumerate("RGB")})
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
                   "software": f"rayfarm {_version()}",
                   "capDate": datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S"),
@@ -346,15 +353,17 @@ class Film(PartialFilm):
             exr.write(str(tmp))
         tmp.replace(path)  # readers never see a half-written file
 
-    def write_png(self, path: str | Path) -> None:
-        """Write a tonemapped sRGB preview (exposure 1, clamped)."""
+    def write_png(self, path: str | Path, rgb: np.ndarray | None = None) -> None:
+        """Write a tonemapped sRGB preview (exposure 1, clamped) of the film,
+        or of `rgb` (its denoised beauty) if given."""
         from PIL import Image
 
         path = Path(path)
         tmp = path.with_name(path.name + ".part")
         # compress_level 1: previews are rewritten while a job renders; zlib's
         # default level 6 takes longer for files about as small
-        Image.fromarray(tonemap_srgb8(self.mean())).save(tmp, format="PNG", compress_level=1)
+        image = tonemap_srgb8(self.mean() if rgb is None else rgb)
+        Image.fromarray(image).save(tmp, format="PNG", compress_level=1)
         tmp.replace(path)
 
     def write_noise_png(self, path: str | Path) -> None:

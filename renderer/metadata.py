@@ -18,7 +18,7 @@ as a number where the value is one (`exrheader`, tev, Nuke's metadata view):
 | spp, depth, width, height, tile_size | int | |
 | samples, rays | string | decimal: they outgrow 32 bits |
 | render_seconds | float | the units' render time, summed over units (not wall time) |
-| denoised | int | 1 if the pixels went through a denoiser, else 0 |
+| denoised | int | 1 if the file also holds denoised.R/G/B (the raw R/G/B stay as rendered), else 0 |
 
 The OpenEXR package writes Python ints as 32-bit `int` attributes (a larger
 value is stored as 0, silently) and Python floats as 32-bit `float`; it has no

@@ -163,7 +163,8 @@ def _submit(args: argparse.Namespace, client: RayfarmClient) -> int:
                         spp=args.spp, depth=args.depth, tile_size=args.tile_size,
                         seed=args.seed, sampler=args.sampler, width=args.width,
                         height=args.height, options=options or None, priority=args.priority,
-                        progressive=False if args.no_progressive else None)
+                        progressive=False if args.no_progressive else None,
+                        denoise=True if args.denoise else None)
     print(job["id"], flush=True)  # stdout holds the id alone: ID=$(rayfarm submit ...)
     _say("submit", f"job {job['id']} {job['status']}: {job['scene']} {job['method']} "
                    f"{job['width']}x{job['height']} {job['spp']} spp ({client.base_url})")
@@ -420,6 +421,9 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                         help="a method option, e.g. --option heuristic=balance (repeatable)")
     submit.add_argument("--no-progressive", action="store_true",
                         help="render all samples of a tile in one unit (no improving preview)")
+    submit.add_argument("--denoise", action="store_true",
+                        help="when done, also denoise the merged frame (denoised.R/G/B in the "
+                             "EXR, beside the raw image)")
     submit.add_argument("--watch", action="store_true",
                         help="then follow the job like `rayfarm watch`")
     submit.add_argument("--quiet", action="store_true", help="with --watch: no progress bar")

@@ -94,7 +94,8 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
               scene=scene_name[:200],
               scene_hash=key, spec=spec.to_dict(), width=spec.width, height=spec.height,
               units_total=0, units_done=0, samples=0, rays=0, priority=request.priority,
-              progressive=request.progressive, paused_seconds=0.0, unit_seconds=0.0,
+              progressive=request.progressive, denoise=request.denoise,
+              paused_seconds=0.0, unit_seconds=0.0,
               units_retried=0)
     session.add(job)
     events.note(job)
@@ -275,6 +276,15 @@ def result_file(session: Session, store: Store, actor: Principal, job_id: str, k
     `noise.png` (written as its units land, so there before it is done); else
     `ResultNotReady`."""
     job = get_job(session, actor, job_id)
+    if kind == "denoised.png":
+        if job.status != "done" or not job.denoise:
+            raise ResultNotReady(f"job '{job_id}' is {job.status}"
+                                 + ("" if job.denoise else " and was not submitted with denoise")
+                                 + f"; its {kind} exists once a denoised job is done")
+        path = store.denoised_path(job.id)
+        if not path.is_file():
+            raise NotFound(f"job '{job_id}' has no {kind}")
+        return path
     if kind in ("preview.png", "noise.png"):
         if job.status in states.SCHEDULED_JOB:  # someone looks: keep it written (service.previews)
             store.mark_watched(job.id, kind.removesuffix(".png"))

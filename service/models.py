@@ -77,6 +77,9 @@ class Job(Base):
     # Planned as tiles x sample passes (1, 1, 2, 4, ... spp), so the preview improves.
     progressive: Mapped[bool] = mapped_column(Boolean, default=False,
                                               server_default=text("false"))
+    # Denoise the merged frame once it is done (renderer.denoise): denoised.R/G/B
+    # in the EXR beside the raw beauty, and denoised.png.
+    denoise: Mapped[bool] = mapped_column(Boolean, default=False, server_default=text("false"))
     # Time after its start the job could not run (finished pauses; failed until
     # retried) and the start of the current pause, so elapsed time, throughput
     # and ETA count only the time it could run.

@@ -19,13 +19,21 @@ __all__ = ["write_result"]
 
 
 def write_result(store: Store, job_id: str, spec: RenderSpec, units: int, *, scene: str,
-                 scene_hash: str) -> None:
-    """Merge units 0..units-1 of the job and write its EXR and PNGs; raises
+                 scene_hash: str, denoise: bool = False) -> None:
+    """Merge units 0..units-1 of the job and write its EXR and PNGs (with
+    `denoise`, the whole merged frame denoised once: renderer.denoise); raises
     what reading or writing raises."""
     film = merge(spec.width, spec.height, (PartialFilm.from_bytes(store.unit_film(job_id, i))
                                            for i in range(units)))
+    clean = None
+    if denoise:
+        from renderer.denoise import denoise_film
+
+        clean = denoise_film(film)
+        film.write_png(store.denoised_path(job_id), clean)
     film.write_exr(store.result_path(job_id),
                    exr_metadata(spec, film.stats, scene=scene, scene_hash=scene_hash,
-                                job_id=job_id))
+                                job_id=job_id, denoised=clean is not None),
+                   denoised=clean)
     film.write_png(store.preview_path(job_id))
     film.write_noise_png(store.noise_path(job_id))

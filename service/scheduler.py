@@ -698,12 +698,12 @@ class Scheduler:
             if job is None or job.status != "running" or job.units_done != job.units_total:
                 return
             spec, n_units = RenderSpec.from_dict(job.spec), job.units_total
-            scene, scene_hash = job.scene, job.scene_hash
+            scene, scene_hash, denoise = job.scene, job.scene_hash, bool(job.denoise)
         error = waiting = None
         try:
             try:
                 write_result(self.store, job_id, spec, n_units, scene=scene,
-                             scene_hash=scene_hash)
+                             scene_hash=scene_hash, denoise=denoise)
             except OSError as exc:
                 if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
                     raise

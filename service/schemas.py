@@ -120,6 +120,12 @@ class JobCreate(RequestModel):
                                                       "spp per pass) so the preview improves "
                                                       "while the job runs; the final image is "
                                                       "the same")
+    denoise: StrictBool = Field(False, description="when done, also denoise the merged frame "
+                                                   "(Intel Open Image Denoise with the albedo "
+                                                   "and normal AOVs): denoised.R/G/B in the EXR "
+                                                   "beside the raw beauty, and denoised.png. A "
+                                                   "biased post-process: the raw image and its "
+                                                   "var channels stay as rendered")
 
 
 class JobUpdate(RequestModel):
@@ -175,6 +181,7 @@ class JobPublic(BaseModel):
     options: dict[str, Any]
     priority: int
     progressive: bool
+    denoise: bool
     progress: Progress
     stats: JobStats
     created: datetime
@@ -188,6 +195,9 @@ class JobPublic(BaseModel):
     result_url: str | None
     preview_url: str | None
     noise_url: str | None = Field(description="per-pixel noise heatmap (relative standard error)")
+    denoised_url: str | None = Field(None, description="the denoised frame's preview (jobs "
+                                                       "with `denoise`, once done): a biased "
+                                                       "post-process of the raw image")
     events_url: str = Field(description="server-sent events of this job")
 
     @classmethod
@@ -212,6 +222,7 @@ class JobPublic(BaseModel):
             tile_size=spec["tile_size"], seed=spec["seed"], sampler=spec["sampler"],
             width=job.width, height=job.height, options=spec.get("options", {}),
             priority=job.priority or 0, progressive=bool(job.progressive),
+            denoise=bool(job.denoise),
             progress=Progress(units_done=job.units_done, units_total=job.units_total,
                               samples_done=job.samples, samples_total=total,
                               fraction=min(job.samples / total, 1.0) if total else 0.0,
@@ -229,6 +240,7 @@ class JobPublic(BaseModel):
             # The preview is written as units land (see Scheduler): there from the first one.
             preview_url=f"/jobs/{job.id}/preview.png" if done or job.units_done else None,
             noise_url=f"/jobs/{job.id}/noise.png" if done or job.units_done else None,
+            denoised_url=f"/jobs/{job.id}/denoised.png" if done and job.denoise else None,
             events_url=f"/jobs/{job.id}/events")
 
 

@@ -74,6 +74,9 @@ class Store:
     def noise_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "noise.png"
 
+    def denoised_path(self, job_id: str) -> Path:
+        return self.job_dir(job_id) / "denoised.png"
+
     def watch_path(self, job_id: str, image: str) -> Path:
         """The marker whose mtime says when `image` ("preview" or "noise") was last fetched."""
         if image not in ("preview", "noise"):
@@ -168,6 +171,7 @@ class Store:
         self.result_path(job_id).unlink(missing_ok=True)
         self.preview_path(job_id).unlink(missing_ok=True)
         self.noise_path(job_id).unlink(missing_ok=True)
+        self.denoised_path(job_id).unlink(missing_ok=True)
 
     def delete_job(self, job_id: str) -> None:
         """Remove every file of a job (it is deleted)."""

@@ -105,6 +105,22 @@ def assert_bit_identical(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> 
 
 
 
+def assert_denoised_beside_raw(exr_path: Path, raw: dict[str, np.ndarray]) -> None:
+    """A denoised job's EXR: the raw channels bit-identical to `raw` (the same
+    job without denoise), denoised.R/G/B beside them, finite and not the raw
+    image, and the header saying so."""
+    from renderer import read_exr
+
+    channels, header = read_exr(exr_path)
+    assert {"denoised.R", "denoised.G", "denoised.B"} | set(raw) == set(channels)
+    assert_bit_identical({k: v for k, v in channels.items() if not k.startswith("denoised.")},
+                         raw)
+    denoised = np.stack([channels[f"denoised.{c}"] for c in "RGB"], axis=-1)
+    assert np.all(np.isfinite(denoised)) and denoised.shape == raw["R"].shape + (3,)
+    assert not np.array_equal(denoised[..., 0], raw["R"])
+    assert header["rayfarm.denoised"] == 1
+
+
 def assert_equals_renderer(exr_path: Path, body: dict) -> None:
     """The EXR is the renderer's own in-process run of the job body's DAG
     (`render_serial`), bit for bit, mean and var channels."""

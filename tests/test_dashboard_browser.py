@@ -70,6 +70,9 @@ def anon_page(browser, server):
     page.on("request", lambda req: problems.append(f"request to another host: {req.url}")
             if not req.url.startswith((server, "data:", "blob:")) else None)
     page.set_default_timeout(60_000)
+    # A console error names no URL ("Failed to load resource: ... 404"): the
+    # failed responses go to stdout, which pytest shows with a failure.
+    page.on("response", lambda r: print(f"HTTP {r.status} {r.url}") if r.status >= 400 else None)
     page.base = server
     yield page
     context.close()
@@ -627,3 +630,30 @@ def test17_an_admin_drains_and_enables_a_worker_from_the_workers_page(page):
             assert worker["disabled"] is False
         finally:  # the module's other tests need the pool
             client.post(f"/workers/{name}/enable")
+
+
+def test18_a_denoised_job_toggles_between_its_raw_and_denoised_image(page):
+    """A job submitted with denoise: once done, its page offers a Denoised view
+    labelled as a biased post-process, and a download of it; a job without
+    denoise has neither."""
+    body = {"scene": "cornell-box", "method": "path", "spp": 8, "depth": 3, "width": 64,
+            "height": 64, "tile_size": 32, "seed": 5}
+    with api(page.base) as client:
+        plain = client.post("/jobs", json=body).json()
+        job = client.post("/jobs", json=dict(body, denoise=True)).json()
+    page.goto(f"{page.base}/#/jobs/{job['id']}")
+    page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=180_000)
+    page.click("[data-view='denoised']")
+    page.wait_for_selector("#stage img#preview[data-view='denoised'][data-loaded]")
+    assert page.get_attribute("#stage img#preview", "src").startswith(
+        f"/jobs/{job['id']}/denoised.png")
+    assert "biased post-process" in page.text_content(".denoised-note")
+    assert page.get_attribute("#download-denoised", "href") == f"/jobs/{job['id']}/denoised.png"
+    shot(page, "18-job-denoised")
+    page.click("[data-view='image']")
+    page.wait_for_selector("#stage img#preview[data-view='image'][data-loaded]")
+    page.goto(f"{page.base}/#/jobs/{plain['id']}")
+    page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=180_000)
+    page.wait_for_selector("[data-view='noise']")
+    assert page.query_selector("[data-view='denoised']") is None
+    assert page.query_selector("#download-denoised") is None

@@ -14,7 +14,8 @@ from service.executors.celery_farm import CeleryExecutor
 from service.main import create_app
 from service.settings import Settings
 
-from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, get_json,
+from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, assert_denoised_beside_raw,
+                      channels_of, get_json,
                       planned_units, poll_job, submit, wait_for)
 
 pytestmark = pytest.mark.farm
@@ -86,7 +87,13 @@ def test02_end_to_end_serve_and_worker_processes_over_http(spawn_serve, spawn_wo
             assert header["rayfarm.job_id"] == job["id"]
             assert exr.channels()["RGB"].pixels.shape == (32, 32, 3)
         assert client.get(job["preview_url"]).headers["content-type"] == "image/png"
+        assert job["denoise"] is False and job["denoised_url"] is None
+        # denoise: once, in the service, over the frame the Celery workers' units merge to
+        denoised = run_job(client, dict(TINY, denoise=True), tmp_path / "denoised.exr")
+        assert denoised["denoised_url"] == f"/jobs/{denoised['id']}/denoised.png"
+        assert client.get(denoised["denoised_url"]).headers["content-type"] == "image/png"
     assert_bit_identical(channels_of(tmp_path / "e2e.exr"), reference_channels(TINY))
+    assert_denoised_beside_raw(tmp_path / "denoised.exr", reference_channels(TINY))
 
 
 def test03_sigkilled_worker_mid_job_the_job_still_finishes_bit_identical(

@@ -10,7 +10,8 @@ from PIL import Image
 
 from renderer import BOUNDS, METHODS, SAMPLERS, builtin_scene_names, resolve_document
 
-from conftest import TINY, assert_bit_identical, assert_complete_progress, channels_of, get_json, poll_job, submit
+from conftest import (TINY, assert_bit_identical, assert_complete_progress, assert_denoised_beside_raw,
+                      channels_of, get_json, poll_job, submit)
 
 
 
@@ -59,6 +60,28 @@ def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_ch
     png = local_client.get(job["preview_url"])
     assert png.status_code == 200 and png.headers["content-type"] == "image/png"
     assert Image.open(io.BytesIO(png.content)).size == (32, 32)
+    # not submitted with denoise: no denoised image, and the route says why
+    assert job["denoise"] is False and job["denoised_url"] is None
+    missing = local_client.get(f"/jobs/{job['id']}/denoised.png")
+    assert missing.status_code == 404 and "not submitted with denoise" in missing.json()["detail"]
+
+
+def test01b_a_denoised_job_keeps_its_raw_image_and_adds_the_denoised_one(
+        local_client, tmp_path, reference_channels):
+    """`"denoise": true`: the merged frame denoised once (renderer.denoise),
+    denoised.R/G/B beside the raw channels, which stay the renderer's bits."""
+    job = submit(local_client, dict(TINY, denoise=True))
+    assert job["denoise"] is True and job["denoised_url"] is None  # not before it is done
+    assert local_client.get(f"/jobs/{job['id']}/denoised.png").status_code == 404
+    job = poll_job(get_json(local_client), job["id"])
+    assert job["status"] == "done" and job["denoised_url"] == f"/jobs/{job['id']}/denoised.png"
+    exr = tmp_path / "denoised.exr"
+    exr.write_bytes(local_client.get(job["result_url"]).content)
+    assert_denoised_beside_raw(exr, reference_channels(TINY))
+    png = local_client.get(job["denoised_url"])
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert Image.open(io.BytesIO(png.content)).size == (32, 32)
+    assert png.content != local_client.get(job["preview_url"]).content
 
 
 def test02_width_and_height_default_to_the_scene_camera(local_client):

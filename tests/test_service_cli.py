@@ -11,7 +11,7 @@ from renderer import read_exr
 from renderer.metadata import METADATA_KEYS
 from service.cli import main
 
-from conftest import ADMIN_HEADERS, rayfarm_command
+from conftest import ADMIN_HEADERS, assert_denoised_beside_raw, channels_of, rayfarm_command
 
 
 def test01_console_script_lists_the_subcommands():
@@ -36,6 +36,13 @@ def test03_render_runs_a_tiny_job(tmp_path):
                  "--height", "8", "--tile-size", "8", "--workers", "1", "--quiet",
                  "--out", str(out)])
     assert code == 0 and out.is_file()
+    # --denoise: the same raw channels, and denoised.R/G/B and a denoised PNG beside them
+    denoised = tmp_path / "denoised.exr"
+    code = main(["render", "cornell-box", "--spp", "2", "--depth", "2", "--width", "8",
+                 "--height", "8", "--tile-size", "8", "--workers", "1", "--quiet", "--denoise",
+                 "--out", str(denoised)])
+    assert code == 0 and denoised.with_suffix(".denoised.png").is_file()
+    assert_denoised_beside_raw(denoised, channels_of(out))
 
 
 def test03b_render_types_method_options_and_names_a_bad_one(tmp_path, capsys):

@@ -172,11 +172,12 @@ def test02_submit_prints_only_the_job_id(tiny_job, client):
 
 def test03_submit_passes_every_option(server, client):
     out = cli("submit", *TINY_ARGS, "--sampler", "sobol", "--priority", "-5", "--no-progressive",
-              "--option", "heuristic=balance", "--method", "path-mis", server=server)
+              "--option", "heuristic=balance", "--method", "path-mis", "--denoise",
+              server=server)
     assert out.returncode == 0, out.stderr
     job = client.job(out.stdout.strip())
-    assert (job["sampler"], job["priority"], job["progressive"], job["method"], job["options"]) \
-        == ("sobol", -5, False, "path-mis", {"heuristic": "balance"}), job
+    assert (job["sampler"], job["priority"], job["progressive"], job["method"], job["options"],
+            job["denoise"]) == ("sobol", -5, False, "path-mis", {"heuristic": "balance"}, True), job
 
 
 def test04_watch_shows_progress_and_exits_0_when_done(server, client, tmp_path):

@@ -163,7 +163,9 @@ def requeue_job(job_id: str, farm: FarmDep, actor: ActorDep) -> JobPublic:
 @router.get("/{job_id}/result.exr", response_class=FileResponse,
             responses={200: {"content": {"image/x-exr": {}}}, **responses(404)})
 def result_exr(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> FileResponse:
-    """The merged image: float R, G, B and var.R/G/B (404 until the job is done)."""
+    """The merged image: float R, G, B, var.R/G/B, samples.Y, the AOV layers the
+    method writes, and denoised.R/G/B for a job with `denoise` (404 until the
+    job is done)."""
     path = jobs.result_file(session, farm.store, actor, job_id, "result.exr")
     return FileResponse(path, media_type="image/x-exr", filename=f"{job_id}.exr")
 
@@ -175,6 +177,18 @@ def preview_png(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep
     refreshed as units land while it is being fetched: a job nobody looks at
     keeps its first preview until its final one (service.previews)."""
     path = jobs.result_file(session, farm.store, actor, job_id, "preview.png")
+    return FileResponse(path, media_type="image/png", headers=_NO_STORE)
+
+
+@router.get("/{job_id}/denoised.png", response_class=FileResponse,
+            responses={200: {"content": {"image/png": {}}}, **responses(404)})
+def denoised_png(job_id: str, session: SessionDep, farm: FarmDep,
+                 actor: ActorDep) -> FileResponse:
+    """The denoised frame, tonemapped like the preview: Intel Open Image Denoise
+    run once over the merged image (no tiles, so no seams) of a job submitted
+    with `denoise` (404 until it is done). A biased post-process: the EXR keeps
+    the raw R/G/B and their variance beside denoised.R/G/B."""
+    path = jobs.result_file(session, farm.store, actor, job_id, "denoised.png")
     return FileResponse(path, media_type="image/png", headers=_NO_STORE)
 
 

@@ -27,7 +27,7 @@ export function jobView(root, jobId) {
   let job = null;
   let deleted = false;
   const units = new Map(); // index -> unit
-  let view = "image"; // or "noise"
+  let view = "image"; // or "noise", or "denoised" (a job with denoise, once done)
   let showTiles = null; // null: automatic (on while the job runs)
   let colorBy = "state";
   let unitFilter = "all";
@@ -167,14 +167,17 @@ export function jobView(root, jobId) {
   }
 
   function renderViewTabs() {
-    replace(viewTabs, [["image", "Image"], ["noise", "Noise"]].map(([key, label]) =>
+    const views = [["image", "Image"], ["noise", "Noise"]];
+    if (job && job.denoised_url) views.push(["denoised", "Denoised"]);
+    replace(viewTabs, views.map(([key, label]) =>
       h(`button${view === key ? ".active" : ""}`, { "data-view": key, role: "tab",
         onclick: () => { view = key; renderViewTabs(); loadImage(); renderLegend(); } }, label)));
   }
 
   function imageUrl() {
     if (!job || !(job.preview_url)) return null;
-    const base = view === "noise" ? job.noise_url : job.preview_url;
+    const base = view === "noise" ? job.noise_url
+      : view === "denoised" && job.denoised_url ? job.denoised_url : job.preview_url;
     return `${base}?v=${previewVersion}-${job.status === "done" ? "final" : job.progress.units_done}`;
   }
 
@@ -183,7 +186,7 @@ export function jobView(root, jobId) {
     const url = imageUrl();
     if (!url) return;
     const img = new Image();
-    img.alt = view === "noise" ? "noise heatmap" : "preview";
+    img.alt = view === "noise" ? "noise heatmap" : view === "denoised" ? "denoised" : "preview";
     img.id = "preview";
     img.dataset.view = view;
     loading = img;
@@ -198,6 +201,12 @@ export function jobView(root, jobId) {
   }
 
   function renderLegend() {
+    if (view === "denoised") {
+      replace(legend, h("span.denoised-note", {}, "Denoised: a biased post-process (Intel Open Image "
+        + "Denoise over the merged frame). The EXR keeps the raw R, G, B and their variance; "
+        + "denoised.R/G/B sit beside them."));
+      return;
+    }
     if (view === "noise") {
       replace(legend, h("span", {}, "rel. std. error"), h("span", {}, "0.1%"), h("span.noise-scale"),
         h("span", {}, "100%"), h("span", {}, h("span.sw", { style: { background: "#808080" } }), "< 2 samples"));
@@ -361,6 +370,7 @@ export function jobView(root, jobId) {
       link("EXR", job.result_url, "download-exr"),
       link("PNG", job.preview_url && job.status === "done" ? job.preview_url : null, "download-png"),
       link("Noise PNG", job.status === "done" ? job.noise_url : null, "download-noise"),
+      job.denoise ? link("Denoised PNG", job.denoised_url, "download-denoised") : null,
       h("span.muted", { style: { fontSize: "12px" } },
         job.status === "done" ? "float32 R, G, B and var.R, var.G, var.B" : "available when the job is done"));
   }
@@ -451,6 +461,7 @@ export function jobView(root, jobId) {
     document.title = `${job.id} · ${job.status} · rayfarm`;
     sizeStage();
     renderActions(); renderProgress(); renderStats(); renderParams(); renderDownloads();
+    renderViewTabs();
     if (!planned && job.progress.units_total) renderTiles();
     if (job.status === "done") loadImage();
     tiles.classList.toggle("show", tilesShown());

@@ -49,6 +49,7 @@ export function submitView(root) {
   const numbers = Object.fromEntries(NUMBER_FIELDS.map(([name, , value]) =>
     [name, h(`input#f-${name}`, { type: "number", name, value, step: 1 })]));
   const progressive = h("input#f-progressive", { type: "checkbox", checked: true });
+  const denoise = h("input#f-denoise", { type: "checkbox" });
   const submit = h("button.primary#submit-button", { type: "submit" }, "Submit job");
 
   replace(form, h("div.submit-layout", {},
@@ -65,7 +66,9 @@ export function submitView(root) {
         h("div.form-grid", {}, NUMBER_FIELDS.map(([name, label, , hint]) => field(name, label, numbers[name], hint))),
         h("div", { style: { height: "12px" } }),
         field("progressive", "Passes", h("label.check", {}, progressive,
-          "progressive: passes that double up to 64 spp each, the preview sharpens while it runs")))),
+          "progressive: passes that double up to 64 spp each, the preview sharpens while it runs")),
+        field("denoise", "Denoise", h("label.check", {}, denoise,
+          "also denoise the finished frame (Open Image Denoise; biased, the raw image is kept)")))),
       h("div.actions", {}, submit, h("span.muted", {}, "The service checks every field.")))));
   if (!may.submit()) {
     for (const control of [submit, uploadButton, upload]) {
@@ -213,7 +216,7 @@ export function submitView(root) {
     event.preventDefault();
     clearErrors();
     const body = { scene: sceneSelect.value, method: methodSelect.value, sampler: samplerSelect.value,
-      progressive: progressive.checked, options: {} };
+      progressive: progressive.checked, denoise: denoise.checked, options: {} };
     for (const [name] of NUMBER_FIELDS) {
       const raw = numbers[name].value.trim();
       if (raw !== "") body[name] = Number(raw);
