@@ -372,7 +372,8 @@ export function jobView(root, jobId) {
       link("Noise PNG", job.status === "done" ? job.noise_url : null, "download-noise"),
       job.denoise ? link("Denoised PNG", job.denoised_url, "download-denoised") : null,
       h("span.muted", { style: { fontSize: "12px" } },
-        job.status === "done" ? "float32 R, G, B and var.R, var.G, var.B" : "available when the job is done"));
+        job.status === "done" ? "float32 R, G, B, var.R/G/B, samples.Y and the AOV layers"
+          + (job.denoise ? ", denoised.R/G/B" : "") : "available when the job is done"));
   }
 
   function renderWorkers() {
