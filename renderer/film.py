@@ -25,7 +25,13 @@ estimates X_b = S_b / n_b, the weighted sample variance
 sigma^2 = sum n_b (X_b - X)^2 / (K - 1) = (sum S_b^2 / n_b - S^2 / n) / (K - 1),
 and Var(X) = sigma^2 / n. So each batch also carries S_b^2 / n_b (`splat_sq`)
 and the merge only adds. With equal batches this is the plain batch-means
-variance; it needs K >= 2 batches (reported as +inf otherwise).
+variance; it needs K >= 2 batches (reported as +inf otherwise). A splat
+image whose every batch is scaled by one shared estimate c (MLT's bootstrap
+normalization b) carries c's relative variance in `splat_scale_rel_var`:
+Var(c X) ~ Var_batches + (c X)^2 Var(c) / c^2 (first order, c independent of
+the batches), added per pixel. That term is the same error in every pixel
+(their covariance is the product of their splat means times it), which the
+batches cannot see: they all share c.
 
 AOVs. A tile method that defines them also sums, per pixel and in the same
 block fold as the radiance, each sample's first-hit albedo (RGB), shading
@@ -103,6 +109,7 @@ class PartialFilm:
     splat_sq: np.ndarray | None = None
     splat_paths: float = 0.0
     splat_batches: int = 0
+    splat_scale_rel_var: float = 0.0  # the shared scale's (Var c) / c^2 (module doc, "Splats")
     artefact: dict = field(default_factory=dict)  # name -> numpy array
     aov: np.ndarray | None = None  # (h, w, AOV_CHANNELS) sums (module doc, "AOVs")
 
@@ -137,6 +144,7 @@ class PartialFilm:
         splats its camera paths made elsewhere, as BDPT's t = 1 strategies do)."""
         self.splat, self.splat_sq = other.splat, other.splat_sq
         self.splat_paths, self.splat_batches = other.splat_paths, other.splat_batches
+        self.splat_scale_rel_var = other.splat_scale_rel_var
         return self
 
     def to_bytes(self) -> bytes:
@@ -152,6 +160,7 @@ class PartialFilm:
         header = {"origin": [int(self.x0), int(self.y0)], "stats": self.stats,
                   "splat_count": ([float(self.splat_paths), int(self.splat_batches)]
                                   if self.splat is not None else None),
+                  "splat_scale_rel_var": float(self.splat_scale_rel_var),
                   "arrays": []}
         blobs = []
         for name, value in arrays.items():
@@ -212,6 +221,7 @@ class PartialFilm:
             film.splat, film.splat_sq = arrays["splat"], arrays["splat_sq"]
             paths, batches = header["splat_count"]
             film.splat_paths, film.splat_batches = float(paths), int(batches)
+            film.splat_scale_rel_var = float(header.get("splat_scale_rel_var", 0.0))
         aov = arrays.get("aov")
         if aov is not None and (aov.ndim != 3 or aov.shape[:2] != film.weight.shape
                                 or aov.shape[2] != AOV_CHANNELS):
@@ -280,7 +290,8 @@ class Film(PartialFilm):
             k, paths = self.splat_batches, self.splat_paths
             if k >= 2:
                 spread = np.maximum(self.splat_sq - self.splat * self.splat / paths, 0.0)
-                out = out + spread / (k - 1.0) / paths
+                scaled = self.splat / paths
+                out = out + spread / (k - 1.0) / paths + scaled * scaled * self.splat_scale_rel_var
             else:
                 out = np.full_like(out, np.inf)
         return out
@@ -316,6 +327,8 @@ class Film(PartialFilm):
             self.splat_sq += part.splat_sq
             self.splat_paths += part.splat_paths
             self.splat_batches += part.splat_batches
+            # one shared scale: every batch carries the same value (or 0)
+            self.splat_scale_rel_var = max(self.splat_scale_rel_var, part.splat_scale_rel_var)
         for key in ("samples", "rays", "seconds"):
             self.stats[key] = self.stats.get(key, 0) + part.stats.get(key, 0)
 

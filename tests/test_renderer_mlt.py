@@ -282,3 +282,31 @@ def test15_mlt_counts_the_rays_it_traces():
     films = run_plan(load_scene("cornell-box"), spec)
     for film in films:
         assert film.stats["rays"] >= film.stats["paths"] > 0, film.stats
+
+
+def test16_var_channels_carry_the_bootstrap_normalization_error(cornell):
+    """Every chain unit is scaled by the one bootstrap estimate b, so b's error
+    is an error of every pixel that the chain units' batch spread cannot see.
+    The var channels add I^2 (b_stderr / b)^2 to each pixel (film.py,
+    `splat_scale_rel_var`); and b_stderr is honest: with expected-value
+    splatting every mutation carries luminance b W H exactly, so the image's
+    mean luminance is b times a constant and its spread over seeds is b's. Over
+    8 seeds its variance over the claimed one lies within the chi-square
+    (7 dof) bounds at one in a thousand each side."""
+    weights = np.array([0.212671, 0.715160, 0.072169])  # mlt.luminance
+    means, claimed = [], []
+    for k in range(8):
+        spec = RenderSpec(method="mlt", spp=16, depth=5, width=48, height=48, tile_size=48,
+                          seed=400 + k)
+        film = merge(48, 48, run_plan(cornell, spec))
+        rel_var = film.splat_scale_rel_var
+        assert rel_var > 0
+        with_b = film.variance_of_mean()
+        film.splat_scale_rel_var = 0.0
+        batches_only = film.variance_of_mean()
+        assert np.allclose(with_b - batches_only, film.mean() ** 2 * rel_var, rtol=1e-12, atol=0)
+        means.append(float((film.mean() @ weights).mean()))
+        claimed.append(rel_var)
+    means = np.array(means)
+    ratio = means.var(ddof=1) / (means.mean() ** 2 * np.mean(claimed))
+    assert chi2.ppf(0.001, 7) / 7 <= ratio <= chi2.ppf(0.999, 7) / 7, ratio

@@ -66,10 +66,14 @@ Variance (the EXR's var channels): every chain unit is one splat batch.
 The units hold disjoint sets of chains whose random numbers are independent
 and each unit's chains start from their own systematic resample of the
 bootstrap, so the batches are independent and the batch-means variance of
-film.py applies with K = number of chain units (up to 8). It leaves out the
-error of b and the correlation through the shared bootstrap (the same factor
-b for all batches). With K this small the variance estimate is itself noisy
-(K - 1 degrees of freedom).
+film.py applies with K = number of chain units (up to 8). Every batch is
+scaled by the same b, so b's error is invisible to the batches: each chain
+unit's film carries (b_stderr / b)^2 as `splat_scale_rel_var` and the var
+channels add I^2 (b_stderr / b)^2 to each pixel's I (first order, b taken as
+independent of the chains; film.py). That term is one error shared by every
+pixel: two pixels' covariance is I_p I_q (b_stderr / b)^2, and the image
+mean's relative error is at least b_stderr / b. With K this small the batch
+part is itself noisy (K - 1 degrees of freedom).
 
 Determinism: a chain's path depends on (seed, chain index, its unit's chain
 range) only, and the grouping of chains into units is a function of
@@ -433,6 +437,9 @@ def run_mlt(scene, spec, unit, inputs, opts: dict) -> PartialFilm:
     mutations = sum((c + 1) * total // chains - c * total // chains
                     for c in range(unit.sample_start, unit.sample_end))
     film = PartialFilm.splat_batch(splat, mutations)
+    # every chain unit is scaled by the same b: its error (b_stderr) is the same
+    # relative error in every pixel, which the batches cannot show (film.py)
+    film.splat_scale_rel_var = (float(boot["b_stderr"][0]) / b) ** 2 if b > 0 else 0.0
     film.stats.update(samples=mutations, rays=int(rays), paths=mutations, accepted=int(accepted))
     return film
 
