@@ -148,6 +148,12 @@ def test07_tiling_invariance_for_every_method(method):
     a = render_inline(scene, spec_for(method, spp=3, depth=3, width=24, height=20, tile_size=8, seed=4))
     b = render_inline(scene, spec_for(method, spp=3, depth=3, width=24, height=20, tile_size=32, seed=4))
     assert np.array_equal(a.sum, b.sum) and np.array_equal(a.sum_sq, b.sum_sq)
+    # the AOV layers GET /methods lists are there, and tiling-invariant too
+    assert (a.aov is not None) == bool(METHODS[method.partition("/")[0]].aovs), method
+    if a.aov is not None:
+        assert np.array_equal(a.aov, b.aov) and a.aov[..., 6].max() > 0
+        # albedo in [0, 1], normals at most unit length, distances positive
+        assert a.aov[..., :3].min() >= 0 and np.all(a.aov[..., :3] <= a.weight[..., None])
 
 
 def test08_direct_is_one_bounce_of_light_through_specular_chains():

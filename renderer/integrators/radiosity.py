@@ -102,6 +102,7 @@ from ..film import PartialFilm
 from ..kernels import kernel, kernel_inline, kernel_parallel
 from ..kernels.bsdf import (
     MAT_DIELECTRIC,
+    MAT_DIFFUSE,
     MAT_GLOSSY,
     MAT_MIRROR,
     diffuse_sample,
@@ -120,7 +121,8 @@ from ..kernels.radiosity import (
     patch_of,
 )
 from ..kernels.rng import sample_key
-from ..kernels.tile import add_block, add_sample, n_samples, store_pixel
+from ..kernels.tile import (add_aov_block, add_aov_sample, add_block, add_sample, n_samples,
+                            store_aov, store_pixel)
 from ..plan import Unit
 from ..plan import plan as tile_plan
 from ..primitives import world_mesh
@@ -167,7 +169,10 @@ def _patch_uv(geo, p, hx, hy, hz):
 @kernel_inline
 def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key, depth,
                  gather, smp, seed, pixel, index, spp, memo):
-    """Radiance arriving at o from -d through the patch solution: (r, g, b, rays)."""
+    """Radiance arriving at o from -d through the patch solution: (r, g, b,
+    rays) and the sample's AOVs as path.li_path gives them (albedo and normal
+    of the first diffuse or glossy hit through mirrors and glass, distance to
+    the first hit)."""
     k_last = hist.shape[0] - 1
     br, bg, bb = 1.0, 1.0, 1.0
     lr, lg, lb = 0.0, 0.0, 0.0
@@ -175,6 +180,8 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n_lights = sc.light_type.shape[0]
     inv_pi = 1.0 / np.pi
+    aov_set = False
+    alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for bounce in range(depth + 1):
         t, prim = intersect_arrays(nodes, info, prims, tri, sph, stack, ox, oy, oz, dx, dy, dz,
                                    np.inf, False)
@@ -185,6 +192,12 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
         nx, ny, nz, mat, light = surface_at_arrays(sc.tri_n, sc.tri_mat, sc.tri_light, sph,
                                                    sc.sph_flip, sc.sph_mat, sc.sph_light,
                                                    prim, hx, hy, hz)
+        if bounce == 0:
+            first_t = t
+        if not aov_set and (sc.mat_type[mat] == MAT_DIFFUSE or sc.mat_type[mat] == MAT_GLOSSY):
+            aov_set = True
+            alb_r, alb_g, alb_b = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
+            an_x, an_y, an_z = nx, ny, nz
         cos_o = -(dx * nx + dy * ny + dz * nz)
         p = _patch_at(sc, pt, prim, hx, hy, hz)
         left = depth - bounce
@@ -297,18 +310,21 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
         else:
             break
-    return lr, lg, lb, rays
+    return lr, lg, lb, rays, alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t
 
 
 @kernel_parallel
 def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, height, blocks,
-                  seed, depth, smp, spp, gather, out_sum, out_sq, out_w, row_rays, stacks, memos):
-    """The tile loop (integrators/tile.py) over `li_radiosity`; rows in parallel."""
+                  seed, depth, smp, spp, gather, out_sum, out_sq, out_w, out_aov, row_rays, stacks,
+                  memos, aov_rows):
+    """The tile loop (integrators/tile.py) over `li_radiosity`, with the AOVs'
+    fold beside the radiance's; rows in parallel."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     n = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
         memo = memos[row]
+        scr = aov_rows[row]
         y = y0 + row
         rays = 0
         for x in range(x0, x1):
@@ -320,14 +336,17 @@ def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, 
                     key = sample_key(seed, pixel, s)
                     fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-                    r, g, b, nr = li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz,
-                                               dx, dy, dz, key, depth, gather, smp, seed, pixel,
-                                               s, spp, memo)
+                    r, g, b, nr, alr, alg, alb, anx, any_, anz, dist = li_radiosity(
+                        sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key,
+                        depth, gather, smp, seed, pixel, s, spp, memo)
                     rays += nr
                     sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
+                    add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
                 ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
                                                    sr, sg, sb, tr, tg, tb)
+                add_aov_block(scr)
             store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n)
+            store_aov(out_aov, row, x - x0, scr)
         row_rays[row] = rays
 
 
@@ -423,7 +442,7 @@ def run_radiosity(scene, spec, unit, inputs, options) -> PartialFilm:
     if history.shape[1] != len(patches.kind):
         raise ValueError(f"radiosity solution has {history.shape[1]} patches, the mesh "
                          f"{len(patches.kind)}")
-    t = start_tile(scene, spec, unit)
+    t = start_tile(scene, spec, unit, aov=True)
     if options["display"] == "smooth":
         patch_vert, n_vert = welded_vertices(scene, options["patch_size"])
         vert_b = vertex_radiosity(history, patches.area, patch_vert, n_vert)
@@ -433,12 +452,14 @@ def run_radiosity(scene, spec, unit, inputs, options) -> PartialFilm:
                   unit.x1, unit.y1, spec.width, spec.height, t.blocks, spec.seed, spec.depth,
                   SAMPLERS[spec.sampler].id, spec.spp,
                   1 if options["final_gather"] == "on" else 0,
-                  t.film.sum, t.film.sum_sq, t.film.weight, t.row_rays, t.stacks, t.memos)
+                  t.film.sum, t.film.sum_sq, t.film.weight, t.film.aov, t.row_rays, t.stacks,
+                  t.memos, t.aov_rows)
     return t.finish(unit)
 
 
 METHODS = (Method(
     name="radiosity",
+    aovs=("albedo", "normal", "depth"),
     description="Finite element radiosity: diffuse patches, Monte Carlo form factors with "
                 "visibility, an iterative solve once per scene (cached), displayed by tiles "
                 "(optionally with a final gather).",

@@ -29,7 +29,7 @@ import math
 import numpy as np
 from numba import prange
 
-from ..film import PartialFilm
+from ..film import AOV_CHANNELS, PartialFilm
 from ..kernels import kernel, kernel_parallel
 from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY
 from ..kernels.camera import camera_ray
@@ -163,14 +163,15 @@ def _raster_pass(verts, cam, width, height, x0, y0, x1, y1, sample_x, sample_y, 
 @kernel
 def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, key, smp, seed,
            pixel, index, spp, memo):
-    """Local shading of the visible point at camera depth z on triangle tri."""
+    """Local shading of the visible point at camera depth z on triangle tri:
+    (r, g, b, distance t to it; the camera ray is a unit vector)."""
     dx, dy, dz = camera_ray(cam, width, height, fx, fy)
     t = z / (dx * cam[9] + dy * cam[10] + dz * cam[11])
     px, py, pz = cam[0] + t * dx, cam[1] + t * dy, cam[2] + t * dz
     nx, ny, nz = tri_n[tri, 0], tri_n[tri, 1], tri_n[tri, 2]
     cos_o = -(dx * nx + dy * ny + dz * nz)
     if cos_o <= 0.0:
-        return 0.0, 0.0, 0.0  # one-sided: the back side is black and emits nothing
+        return 0.0, 0.0, 0.0, t  # one-sided: the back side is black and emits nothing
     r, g, b = 0.0, 0.0, 0.0
     light = tri_light[tri]
     if light >= 0:
@@ -193,16 +194,18 @@ def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, ke
             r += fr * er * k
             g += fg * eg * k
             b += fb * eb * k
-    return r, g, b
+    return r, g, b, t
 
 
 @kernel_parallel
 def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, width, height,
-                 blocks, seed, smp, spp, centres, out_sum, out_sq, out_w, sample_x, sample_y, zbuf, idbuf,
-                 clip, block_acc, no_memo):
+                 blocks, seed, smp, spp, centres, out_sum, out_sq, out_w, out_aov, sample_x, sample_y,
+                 zbuf, idbuf, clip, block_acc, no_memo):
     """Render the tile: per sample index one z-buffer pass, then shading; sums
-    formed per sample block like every other kernel (film.py). Sample-major
-    (one z-buffer pass per sample index), so no sampler memo (`no_memo`)."""
+    formed per sample block like every other kernel (film.py), the AOVs'
+    beside them (the visible triangle's albedo if it is diffuse or glossy, its
+    normal, the distance; a rasterizer follows no mirror). Sample-major (one
+    z-buffer pass per sample index), so no sampler memo (`no_memo`)."""
     h, w = y1 - y0, x1 - x0
     for bi in range(blocks.shape[0]):
         block_acc[:, :, :] = 0.0
@@ -225,35 +228,45 @@ def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, widt
                     if tri < 0:
                         continue
                     key = sample_key(seed, (y0 + row) * width + x0 + c, s)
-                    r, g, b = _shade(sc, cam, width, height, sample_x[row, c], sample_y[row, c],
-                                     zbuf[row, c], tri, tri_n, tri_mat, tri_light, key, smp, seed,
-                                     (y0 + row) * width + x0 + c, s, spp, no_memo)
+                    r, g, b, dist = _shade(sc, cam, width, height, sample_x[row, c],
+                                           sample_y[row, c], zbuf[row, c], tri, tri_n, tri_mat,
+                                           tri_light, key, smp, seed,
+                                           (y0 + row) * width + x0 + c, s, spp, no_memo)
                     block_acc[row, c, 0] += r
                     block_acc[row, c, 1] += g
                     block_acc[row, c, 2] += b
                     block_acc[row, c, 3] += r * r
                     block_acc[row, c, 4] += g * g
                     block_acc[row, c, 5] += b * b
+                    mat = tri_mat[tri]
+                    if sc.mat_type[mat] == MAT_DIFFUSE or sc.mat_type[mat] == MAT_GLOSSY:
+                        for k in range(3):
+                            block_acc[row, c, 6 + k] += sc.mat_rgb[mat, k]
+                    for k in range(3):
+                        block_acc[row, c, 9 + k] += tri_n[tri, k]
+                    block_acc[row, c, 12] += dist
         for row in prange(h):
             for c in range(w):
                 for k in range(3):
                     out_sum[row, c, k] += block_acc[row, c, k]
                     out_sq[row, c, k] += block_acc[row, c, 3 + k]
+                for k in range(7):
+                    out_aov[row, c, k] += block_acc[row, c, 6 + k]
                 out_w[row, c] += blocks[bi, 1] - blocks[bi, 0]
 
 
 def _run(scene, spec, unit, centres=False):
     verts, tri_n, tri_mat, tri_light = raster_mesh(scene)
     w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
-    film = PartialFilm.zeros(unit.x0, unit.y0, w, h)
+    film = PartialFilm.zeros(unit.x0, unit.y0, w, h, aov=True)
     buffers = (np.empty((h, w)), np.empty((h, w)), np.empty((h, w)), np.empty((h, w), np.int64),
-               np.empty((10, 3)), np.empty((h, w, 6)))
+               np.empty((10, 3)), np.empty((h, w, 6 + AOV_CHANNELS)))
     cam = camera_array(scene.camera, spec.width, spec.height)
     _raster_tile(scene.arrays, verts, tri_n, tri_mat, tri_light, cam, unit.x0, unit.y0, unit.x1,
                  unit.y1, spec.width, spec.height,
                  unit_blocks(spec.spp, unit.sample_start, unit.sample_end), spec.seed,
                  SAMPLERS[spec.sampler].id, spec.spp, centres,
-                 film.sum, film.sum_sq, film.weight, *buffers, NO_MEMO)
+                 film.sum, film.sum_sq, film.weight, film.aov, *buffers, NO_MEMO)
     film.stats.update(samples=unit.samples, rays=0)
     return film, buffers[2]
 
@@ -283,4 +296,5 @@ METHODS = (Method(
                 "interreflection; spp supersamples for antialiasing.",
     run=render_tile,
     plan=tile_plan,
+    aovs=("albedo", "normal", "depth"),
 ),)
