@@ -66,6 +66,27 @@ def equal_rmse_spp(ladder: list[tuple[int, float]], target: float) -> float | No
     return None
 
 
+READING = """## Reading the tables
+
+- *display RMSE*: both images clamped to [0, 1] first, the range the preview
+  shows. Linear RMSE weighs a pixel by its radiance, so a handful of very
+  bright pixels can decide it.
+- cornell-box: one denoise of the merged frame is worth 4 to 10 times the
+  samples (equal-RMSE spp over spp), most at low spp, in linear and in
+  display error alike.
+- veach-mis: the display error falls (about 1.6 to 2.4 times), but the linear
+  RMSE rises to about 3.3 whatever the spp. Its linear error lives in the few
+  pixels where the smooth plates reflect the two smallest lights (radiance
+  338 and 3040; see docs/throughput.md): the denoiser treats those tiny,
+  extremely bright highlights as noise and spreads them out, which costs
+  little on screen and a lot in linear error. There the raw image's error
+  never reaches the denoised one's, so "equal-RMSE spp" says nothing (the
+  ladder's first rung). For work that measures light (the estimator lab,
+  references), use the raw R/G/B: they are unbiased and their var channels
+  say how far to trust them; the denoised layer is for looking at.
+"""
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenes", default="cornell-box,veach-mis")
@@ -128,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
                 both = np.concatenate([tonemap_srgb8(film.mean()), tonemap_srgb8(clean)], axis=1)
                 Image.fromarray(both).save(out / f"{scene_name}-{spp}spp-raw-vs-denoised.png")
         lines.append("")
+    lines.append(READING)
     if args.out:
         Path(args.out).write_text("\n".join(lines))
         print(f"wrote {args.out}")

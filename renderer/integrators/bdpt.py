@@ -28,7 +28,11 @@ from ..film import PartialFilm
 from ..kernels import kernel
 from ..kernels.rng import sample_key, uniform
 from ..kernels.sampling import BALANCE, POWER
+from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY
 from ..kernels.subpaths import (
+    V_MAT,
+    V_N,
+    V_P,
     ALL_STRATEGIES,
     camera_subpath,
     conn0,
@@ -38,15 +42,34 @@ from ..kernels.subpaths import (
     light_subpath,
     workspace,
 )
-from ..kernels.tile import add_block, add_sample, n_samples, store_pixel
+from ..kernels.tile import (add_aov_block, add_aov_sample, add_block, add_sample, n_samples,
+                            store_aov, store_pixel)
 from ..registry import SAMPLERS, Method, Option
 from ..samplers import u2d
 from .tile import start_tile
 
 
 @kernel
+def _camera_aovs(sc, V, nc):
+    """A camera subpath's AOVs (film.py), as path.li_path takes them: albedo
+    and normal of its first diffuse or glossy vertex (through mirrors and
+    glass; 0 if it reaches none), the distance to its first hit (0 for a miss)."""
+    if nc < 2:
+        return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    dx, dy, dz = V[1, V_P] - V[0, V_P], V[1, V_P + 1] - V[0, V_P + 1], V[1, V_P + 2] - V[0, V_P + 2]
+    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+    for i in range(1, nc):
+        mat = int(V[i, V_MAT])
+        if mat >= 0 and (sc.mat_type[mat] == MAT_DIFFUSE or sc.mat_type[mat] == MAT_GLOSSY):
+            return (sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2],
+                    V[i, V_N], V[i, V_N + 1], V[i, V_N + 2], dist)
+    return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, dist
+
+
+@kernel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
-                 heuristic, only_s, out_sum, out_sq, out_w, splat, u, V, stack, memo):
+                 heuristic, only_s, out_sum, out_sq, out_w, out_aov, scr, splat, u, V, stack,
+                 memo):
     """BDPT over a tile's pixels and the sample blocks `blocks` (summed per
     block as in path.py, so tile films merge bit-identically); t = 1
     strategies add to the full-frame `splat`. A plain loop, no prange: two
@@ -73,6 +96,8 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     nc, nr = camera_subpath(sc, cam, width, height, stack, V, x + u[0], y + u[1],
                                             depth + 2, u, 4)
                     rays += nr
+                    alr, alg, alb, anx, any_, anz, dist = _camera_aovs(sc, V, nc)
+                    add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
                     nl, nr = light_subpath(sc, stack, V, lrow, depth + 1, u, l0)
                     rays += nr
                     lr, lg, lb = 0.0, 0.0, 0.0
@@ -103,7 +128,9 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, lr, lg, lb)
                 ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
                                                    sr, sg, sb, tr, tg, tb)
+                add_aov_block(scr)
             store_pixel(out_sum, out_sq, out_w, y - y0, x - x0, ar, ag, ab, qr, qg, qb, n)
+            store_aov(out_aov, y - y0, x - x0, scr)
     return rays
 
 
@@ -148,14 +175,14 @@ def render_bdpt(scene, spec, unit, inputs, options) -> PartialFilm:
     """One tile unit of `bdpt`: its tile film plus its t = 1 splats as one batch
     (one light subpath per camera sample)."""
     heuristic, only_s = _options(options)
-    t = start_tile(scene, spec, unit)
+    t = start_tile(scene, spec, unit, aov=True)
     splat = np.zeros((spec.height, spec.width, 3))
     u = np.zeros(dims(spec.depth))
     V = workspace(spec.depth)
     rays = _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
                         spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
                         spec.spp, heuristic, only_s, t.film.sum, t.film.sum_sq, t.film.weight,
-                        splat, u, V, t.stacks[0], t.memos[0])
+                        t.film.aov, t.aov_rows[0], splat, u, V, t.stacks[0], t.memos[0])
     film = t.finish(unit, rays)
     film.with_splats(PartialFilm.splat_batch(splat, unit.samples))
     return film
@@ -163,6 +190,7 @@ def render_bdpt(scene, spec, unit, inputs, options) -> PartialFilm:
 
 METHODS = (Method(
     name="bdpt",
+    aovs=("albedo", "normal", "depth"),
     description="Bidirectional path tracing: camera and light subpaths connected by every "
                 "(s, t) strategy, combined by multiple importance sampling; t = 1 splats.",
     run=render_bdpt,
