@@ -112,14 +112,17 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
 
         clean = denoise_film(film)
         film.write_png(out.with_suffix(".denoised.png"), clean)
+    error = film.image_error()
     film.write_exr(out, exr_metadata(spec, film.stats, scene=doc.get("name") or str(args.scene),
-                                     scene_hash=scene_text(doc)[0], denoised=clean is not None),
+                                     scene_hash=scene_text(doc)[0], rel_error=error,
+                                     denoised=clean is not None),
                    denoised=clean)
     film.write_png(out.with_suffix(".png"))
     s = film.stats
     print(f"wrote {out} and {out.with_suffix('.png')}: {spec.width}x{spec.height}, {spec.spp} spp, "
           f"depth {spec.depth}, {seconds:.2f} s wall, {s['samples'] / seconds:,.0f} samples/s, "
-          f"{s['rays'] / seconds:,.0f} rays/s")
+          f"{s['rays'] / seconds:,.0f} rays/s, error {100 * error:.2f} % (95th percentile of "
+          f"the pixels' relative standard error)")
     return 0
 
 

@@ -68,8 +68,8 @@ from typing import Iterable
 import numpy as np
 
 __all__ = ["PartialFilm", "Film", "sample_blocks", "merge", "read_exr", "tonemap_srgb8",
-           "relative_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP", "AOV_LAYERS",
-           "AOV_CHANNELS"]
+           "relative_error", "image_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP",
+           "AOV_LAYERS", "AOV_CHANNELS"]
 
 # The AOV channels a film's `aov` sums, in order, and the EXR channels their
 # means are written as: "layer.channel", the convention tev, Nuke and
@@ -296,6 +296,10 @@ class Film(PartialFilm):
                 out = np.full_like(out, np.inf)
         return out
 
+    def image_error(self) -> float:
+        """`image_error` of this frame's mean and variance."""
+        return image_error(self.mean(), self.variance_of_mean())
+
     def aovs(self) -> dict[str, np.ndarray]:
         """The AOVs' per-pixel means by EXR channel name (AOV_LAYERS; empty for
         a film without them), and `samples.Y`, the camera samples per pixel.
@@ -419,6 +423,32 @@ def relative_error(mean: np.ndarray, variance_of_mean: np.ndarray) -> np.ndarray
     level = np.maximum(np.mean(mean, axis=-1), ERROR_FLOOR)
     with np.errstate(invalid="ignore"):
         return np.where(np.isfinite(var), np.sqrt(np.maximum(var, 0.0)) / level, np.inf)
+
+
+# The image's error statistic (`image_error`): the ERROR_PERCENTILE-th
+# percentile of the pixels' relative standard error, over the pixels brighter
+# than ERROR_LEVEL times the image's mean.
+ERROR_PERCENTILE = 95.0
+ERROR_LEVEL = 0.01
+
+
+def image_error(mean: np.ndarray, variance_of_mean: np.ndarray) -> float:
+    """One number for how noisy an image is: the 95th percentile over pixels of
+    `relative_error`, counting only pixels brighter than 1 % of the image's
+    mean (black and near-black pixels have a relative error that means nothing
+    to the eye and would decide the statistic). A percentile, not the mean: a
+    mean hides a noisy region behind a clean one; not the maximum: one
+    firefly or an edge pixel would decide it. +inf while some counted pixel's
+    variance is unknown (fewer than two samples); nan for an image with no
+    counted pixel."""
+    level = np.mean(mean, axis=-1)
+    counted = level > ERROR_LEVEL * max(float(level.mean()), 0.0)
+    if not counted.any():
+        return float("nan")
+    err = relative_error(mean, variance_of_mean)[counted]
+    if not np.all(np.isfinite(err)):
+        return float("inf")
+    return float(np.percentile(err, ERROR_PERCENTILE))
 
 
 def noise_srgb8(mean: np.ndarray, variance_of_mean: np.ndarray) -> np.ndarray:

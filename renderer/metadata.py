@@ -18,6 +18,7 @@ as a number where the value is one (`exrheader`, tev, Nuke's metadata view):
 | spp, depth, width, height, tile_size | int | |
 | samples, rays | string | decimal: they outgrow 32 bits |
 | render_seconds | float | the units' render time, summed over units (not wall time) |
+| rel_error | float | the raw image's error statistic (`film.image_error`): the 95th percentile over pixels brighter than 1 % of the image mean of the relative standard error from the var channels |
 | denoised | int | 1 if the file also holds denoised.R/G/B (the raw R/G/B stay as rendered), else 0 |
 
 The OpenEXR package writes Python ints as 32-bit `int` attributes (a larger
@@ -40,13 +41,15 @@ __all__ = ["METADATA_KEYS", "exr_metadata"]
 
 METADATA_KEYS = ("job_id", "scene", "scene_hash", "method", "options", "sampler", "seed", "spp",
                  "depth", "width", "height", "tile_size", "samples", "rays", "render_seconds",
-                 "denoised")
+                 "rel_error", "denoised")
 
 
 def exr_metadata(spec: RenderSpec, stats: dict[str, Any], *, scene: str, scene_hash: str,
-                 job_id: str = "", denoised: bool = False) -> dict[str, str | int | float]:
+                 job_id: str = "", rel_error: float = float("nan"),
+                 denoised: bool = False) -> dict[str, str | int | float]:
     """The `rayfarm.*` attributes of an image rendered with `spec` (the
-    statistics `stats` of its merged film: samples, rays, seconds)."""
+    statistics `stats` of its merged film: samples, rays, seconds; its
+    `rel_error`, film.image_error)."""
     meta: dict[str, str | int | float] = {
         "job_id": job_id, "scene": scene, "scene_hash": scene_hash,
         "method": spec.method, "options": json.dumps(spec.options, sort_keys=True),
@@ -54,7 +57,8 @@ def exr_metadata(spec: RenderSpec, stats: dict[str, Any], *, scene: str, scene_h
         "spp": spec.spp, "depth": spec.depth, "width": spec.width, "height": spec.height,
         "tile_size": spec.tile_size,
         "samples": str(int(stats.get("samples", 0))), "rays": str(int(stats.get("rays", 0))),
-        "render_seconds": float(stats.get("seconds", 0.0)), "denoised": int(bool(denoised)),
+        "render_seconds": float(stats.get("seconds", 0.0)), "rel_error": float(rel_error),
+        "denoised": int(bool(denoised)),
     }
     assert tuple(meta) == METADATA_KEYS
     return meta

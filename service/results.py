@@ -33,7 +33,8 @@ def write_result(store: Store, job_id: str, spec: RenderSpec, units: int, *, sce
         film.write_png(store.denoised_path(job_id), clean)
     film.write_exr(store.result_path(job_id),
                    exr_metadata(spec, film.stats, scene=scene, scene_hash=scene_hash,
-                                job_id=job_id, denoised=clean is not None),
+                                job_id=job_id, rel_error=film.image_error(),
+                                denoised=clean is not None),
                    denoised=clean)
     film.write_png(store.preview_path(job_id))
     film.write_noise_png(store.noise_path(job_id))

@@ -292,3 +292,23 @@ def test14_normal_aov_of_an_axis_aligned_wall_is_that_axis(cornell):
     assert albedo[16, 30, 1] > 2 * albedo[16, 30, 0]  # the green wall
     assert tuple(n[16, 30]) == (-1.0, 0.0, 0.0)
     assert tuple(n[29, 8]) == (0.0, 1.0, 0.0)  # the floor
+
+
+def test15_image_error_is_the_95th_percentile_of_lit_pixels_relative_error():
+    """film.image_error: relative standard errors of the pixels brighter than
+    1 % of the image mean, their 95th percentile; black pixels do not count,
+    and an unknown variance makes it infinite."""
+    from renderer.film import image_error, relative_error
+
+    rng = np.random.default_rng(5)
+    mean = rng.uniform(0.5, 2.0, (20, 30, 3))
+    mean[:5] = 0.0  # a black band: its relative error means nothing
+    var = (0.01 * mean) ** 2 * rng.uniform(0.5, 2.0, (20, 30, 1))
+    lit = mean.mean(axis=-1) > 0.01 * mean.mean()
+    expected = np.percentile(relative_error(mean, var)[lit], 95)
+    assert image_error(mean, var) == expected and 0.005 < expected < 0.02
+    var[10, 10] = np.inf
+    assert image_error(mean, var) == np.inf
+    # halving every variance lowers the statistic by sqrt(2)
+    var[10, 10] = var[10, 11]
+    assert image_error(mean, var / 2) == pytest.approx(image_error(mean, var) / np.sqrt(2))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import io
 
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -55,6 +56,12 @@ def test01_submit_poll_download_exr_and_png(local_client, tmp_path, reference_ch
     assert header["rayfarm.spp"] == 4 and header["rayfarm.tile_size"] == 8  # typed: ints
     assert header["rayfarm.method"] == "path-mis" and header["rayfarm.samples"] == str(32 * 32 * 4)
     assert header["rayfarm.scene_hash"] == job["scene_hash"]
+    # the achieved error statistic, as the var channels give it (float32 in the file)
+    from renderer.film import image_error
+
+    rgb = np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float64)
+    var = np.stack([channels[f"var.{c}"] for c in "RGB"], axis=-1).astype(np.float64)
+    assert header["rayfarm.rel_error"] == pytest.approx(image_error(rgb, var), rel=1e-3)
     # The farm's merge of stored unit films is the renderer's own render, bit for bit.
     assert_bit_identical(channels, reference_channels(TINY))
     png = local_client.get(job["preview_url"])
