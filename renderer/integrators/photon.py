@@ -120,7 +120,7 @@ import math
 
 import numpy as np
 
-from ..film import PartialFilm
+from ..film import AOV_CHANNELS, PartialFilm
 from ..kernels.geometry import (
     STACK_SIZE,
 )
@@ -304,7 +304,7 @@ def _run_gather(scene, spec, unit, inputs, options) -> PartialFilm:
         before = None
         st = {"N": np.zeros((h, w)), "r2": np.full((h, w), r0 * r0), "tau": np.zeros((h, w, 3)),
               "ld": np.zeros((h, w, 3)), "s1": np.zeros((h, w, 3)), "s2": np.zeros((h, w, 3)),
-              "M": np.zeros((h, w))}
+              "M": np.zeros((h, w)), "aov": np.zeros((h, w, AOV_CHANNELS))}
     vp_kmax = np.empty((h, w), np.int64)
     vp_p, vp_n, vp_wo, vp_beta = (np.empty((h, w, 3)) for _ in range(4))
     vp_mat = np.empty((h, w), np.int32)
@@ -316,8 +316,8 @@ def _run_gather(scene, spec, unit, inputs, options) -> PartialFilm:
     rays = 0
     for it in range(unit.sample_start, unit.sample_end):
         camera_pass(sc, cam, x0, y0, x1, y1, spec.width, spec.height, spec.seed, it, spec.spp,
-                    smp, spec.depth, vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld, row_rays,
-                    stacks, NO_MEMO)
+                    smp, spec.depth, vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld, st["aov"],
+                    row_rays, stacks, NO_MEMO)
         rays += int(row_rays.sum())
         ppos, pdir, ppow, phit = _photons_of(inputs, unit.needs, it)
         valid = vp_kmax >= 2
@@ -344,6 +344,7 @@ def _run_gather(scene, spec, unit, inputs, options) -> PartialFilm:
         film.weight -= before.weight
         film.sum -= before.sum
         film.sum_sq -= before.sum_sq
+        film.aov -= before.aov
     film.artefact = st
     film.stats.update({"samples": w * h * (unit.sample_end - unit.sample_start), "rays": rays})
     return film
@@ -355,7 +356,8 @@ def _estimate_film(st: dict, n: float, n_photons: int, x0: int, y0: int) -> Part
     weight n, sum n L, sum_sq n L^2 + (s2 - s1^2 / n)."""
     h, w = st["N"].shape
     mean = st["ld"] / n + st["tau"] / (n * n_photons * math.pi * st["r2"])[..., None]
-    film = PartialFilm.zeros(x0, y0, w, h)
+    film = PartialFilm.zeros(x0, y0, w, h, aov=True)
+    film.aov[:] = st["aov"]  # sums over the n iterations' camera samples (film.py, "AOVs")
     film.weight[:] = n
     film.sum[:] = n * mean
     film.sum_sq[:] = n * mean * mean + np.maximum(st["s2"] - st["s1"] * st["s1"] / n, 0.0)
@@ -368,13 +370,14 @@ def _run_knn(scene, spec, unit, inputs, options) -> PartialFilm:
     k = int(options["k"])
     ppos, pdir, ppow, phit = _photons_of(inputs, unit.needs, None)
     grid = _Grid(ppos, big_r, np.full(3, -np.inf), np.full(3, np.inf))
-    t = start_tile(scene, spec, unit)
+    t = start_tile(scene, spec, unit, aov=True)
     h = unit.y1 - unit.y0
     knn_render(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width, spec.height,
                spec.seed, spec.spp, t.blocks, SAMPLERS[spec.sampler].id, spec.depth, ppos, pdir,
                ppow, phit, grid.cell, grid.start, grid.order, grid.inv_h, big_r * big_r, k,
-               float(n_photons), t.film.sum, t.film.sum_sq, t.film.weight, t.row_rays,
-               t.stacks, t.memos, np.empty((h, k)), np.empty((h, k), np.int64))
+               float(n_photons), t.film.sum, t.film.sum_sq, t.film.weight, t.film.aov,
+               t.row_rays, t.stacks, t.memos, t.aov_rows, np.empty((h, k)),
+               np.empty((h, k), np.int64))
     return t.finish(unit)
 
 
@@ -405,6 +408,7 @@ OPTIONS = (
 
 METHODS = (Method(
     name="photon",
+    aovs=("albedo", "normal", "depth"),
     aliases=("sppm",),
     description="Photon mapping: stochastic progressive photon mapping (photon pass and "
                 "gather per iteration, radius shrinking with alpha = 2/3), or the classic "

@@ -34,7 +34,8 @@ from .ggx import glossy_eval, glossy_sample
 from .lights import sample_emission, sample_light
 from .rng import STREAM_PHOTONS, sample_key, stream_key, uniform
 from .sampling import INV_PI
-from .tile import add_block, add_sample, n_samples, store_pixel
+from .tile import (add_aov_block, add_aov_sample, add_block, add_sample, n_samples, store_aov,
+                   store_pixel)
 
 __all__ = ["trace_photons", "visible_point", "camera_pass", "build_grid", "gather_pass",
            "sppm_update", "knn_render", "PHOTON_DIMS", "DIMS_PER_PHOTON_HIT"]
@@ -142,10 +143,12 @@ def trace_photons(sc, stack, seed, g0, g1, depth, pos, dirs, power, hits):
 def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, index, spp,
                   memo):
     """Follow a camera ray through mirrors and glass to the first diffuse or
-    glossy surface. Returns (kmax, p, n, wo, beta, mat, Ld, rays): kmax =
+    glossy surface. Returns (kmax, p, n, wo, beta, mat, Ld, rays, aov): kmax =
     depth - specular bounces (the longest photon path k it may gather; -1
     when there is no visible point), Ld the emission seen along the chain
-    plus direct light at the visible point by light sampling. `memo`: the
+    plus direct light at the visible point by light sampling, aov the
+    sample's AOVs as path.li_path gives them (albedo and normal of the first
+    diffuse or glossy hit, distance to the first hit: 7 floats). `memo`: the
     sampler's row scratch (samplers/dispatch.py) or NO_MEMO."""
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
@@ -157,6 +160,8 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
     rays = 0
     kmax = -1
     hx, hy, hz, nx, ny, nz, mat = 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0
+    aov_set = False
+    alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for bounce in range(depth + 1):
         t, prim = intersect_arrays(nodes, info, prims, tri, sph, stack,
                                    ox, oy, oz, dx, dy, dz, np.inf, False)
@@ -166,6 +171,12 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
         hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
         nx, ny, nz, mat, light = surface_at_arrays(tri_n, tri_mat, tri_light, sph, sph_flip,
                                                    sph_mat, sph_light, prim, hx, hy, hz)
+        if bounce == 0:
+            first_t = t
+        if not aov_set and (mat_type[mat] == MAT_DIFFUSE or mat_type[mat] == MAT_GLOSSY):
+            aov_set = True
+            alb_r, alb_g, alb_b = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+            an_x, an_y, an_z = nx, ny, nz
         cos_o = -(dx * nx + dy * ny + dz * nz)
         if light >= 0 and cos_o > 0.0:
             lr += br * light_rgb[light, 0]
@@ -215,14 +226,17 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
             br *= wr
             bg *= wg
             bb *= wb
-    return kmax, hx, hy, hz, nx, ny, nz, -dx, -dy, -dz, br, bg, bb, mat, lr, lg, lb, rays
+    return (kmax, hx, hy, hz, nx, ny, nz, -dx, -dy, -dz, br, bg, bb, mat, lr, lg, lb, rays,
+            alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t)
 
 
 @kernel_parallel
 def camera_pass(sc, cam, x0, y0, x1, y1, width, height, seed, index, spp, smp, depth,
-                vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld, row_rays, stacks, no_memo):
-    """One camera sample (`index`) per pixel of the tile: its visible point and
-    Ld. One sample of each pixel, so no sampler memo (`no_memo`)."""
+                vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld, vp_aov, row_rays, stacks,
+                no_memo):
+    """One camera sample (`index`) per pixel of the tile: its visible point,
+    Ld and AOVs (`vp_aov`, added to: the sums over iterations). One sample of
+    each pixel, so no sampler memo (`no_memo`)."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     for row in prange(y1 - y0):
         stack = stacks[row]
@@ -235,9 +249,17 @@ def camera_pass(sc, cam, x0, y0, x1, y1, width, height, seed, index, spp, smp, d
             fu, fv = u2d(smp, key, seed, pixel, index, spp, 0, no_memo)
             dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
             (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
-             nr) = visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed,
-                                 pixel, index, spp, no_memo)
+             nr, alr, alg, alb, anx, any_, anz, dist) = visible_point(
+                sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, index, spp,
+                no_memo)
             rays += nr
+            vp_aov[row, c, 0] += alr
+            vp_aov[row, c, 1] += alg
+            vp_aov[row, c, 2] += alb
+            vp_aov[row, c, 3] += anx
+            vp_aov[row, c, 4] += any_
+            vp_aov[row, c, 5] += anz
+            vp_aov[row, c, 6] += dist
             vp_kmax[row, c] = kmax
             vp_p[row, c, 0], vp_p[row, c, 1], vp_p[row, c, 2] = px, py, pz
             vp_n[row, c, 0], vp_n[row, c, 1], vp_n[row, c, 2] = nx, ny, nz
@@ -377,10 +399,12 @@ def sppm_update(n, r2, tau, m, phi, alpha):
 @kernel_parallel
 def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, depth,
                ppos, pdir, ppow, phit, cell, start, order, inv_h, big_r2, k, n_emitted,
-               out_sum, out_sq, out_w, row_rays, stacks, memos, best_d, best_i):
+               out_sum, out_sq, out_w, out_aov, row_rays, stacks, memos, aov_rows, best_d,
+               best_i):
     """Classic photon map, visualised directly at the visible point: Ld plus
     the k-nearest-neighbour estimate sum f power / (n_emitted pi r_k^2). The
-    tile loop of renderer/integrators/tile.py over the sample blocks."""
+    tile loop of renderer/integrators/tile.py over the sample blocks, the
+    AOVs' fold beside the radiance's."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     mat_type, mat_rgb, mat_param = sc.mat_type, sc.mat_rgb, sc.mat_param
     mask = start.shape[0] - 2
@@ -389,6 +413,7 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, d
     for row in prange(y1 - y0):
         stack = stacks[row]
         memo = memos[row]
+        scr = aov_rows[row]
         bd = best_d[row]
         bi = best_i[row]
         y = y0 + row
@@ -404,9 +429,11 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, d
                     fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
                     (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
-                     nr) = visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed,
-                                         pixel, s, spp, memo)
+                     nr, alr, alg, alb, anx, any_, anz, dist) = visible_point(
+                        sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, s, spp,
+                        memo)
                     rays += nr
+                    add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
                     if kmax >= 2 and ppos.shape[0] > 0:
                         cnt = 0
                         worst = big_r2
@@ -462,5 +489,7 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, d
                     sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, lr, lg, lb)
                 ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
                                                    sr, sg, sb, tr, tg, tb)
+                add_aov_block(scr)
             store_pixel(out_sum, out_sq, out_w, row, c, ar, ag, ab, qr, qg, qb, n_blk)
+            store_aov(out_aov, row, c, scr)
         row_rays[row] = rays
