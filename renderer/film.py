@@ -33,12 +33,12 @@ the batches), added per pixel. That term is the same error in every pixel
 (their covariance is the product of their splat means times it), which the
 batches cannot see: they all share c.
 
-AOVs. A method with camera samples (all but light tracing and MLT) also sums, per pixel and in the same
-block fold as the radiance, each sample's first-hit albedo (RGB), shading
-normal (XYZ) and depth: `aov`, (h, w, AOV_CHANNELS). The merge adds them like
-`sum`, so they are tiling-invariant too; the EXR holds their means
-(`AOV_LAYERS`: the layer names), and every film's `samples.Y`, the camera
-samples per pixel (`weight`).
+AOVs. A method with camera samples (all but light tracing and MLT) also sums,
+per pixel and in the same block fold as the radiance, each sample's first-hit
+albedo (RGB), shading normal (XYZ) and depth: `aov`, (h, w, AOV_CHANNELS). The
+merge adds them like `sum`, so they are tiling-invariant too; the EXR holds
+their means (`AOV_LAYERS`: the layer names), and every film's `samples.Y`, the
+camera samples per pixel (`weight`).
 
 Artefacts. A prepass unit's result (a photon map, a radiosity solution, a
 bootstrap estimate, per-pixel statistics carried to the next iteration) is a
