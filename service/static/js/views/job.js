@@ -358,6 +358,7 @@ export function jobView(root, jobId) {
       ["tile size", job.tile_size],
       ["seed", job.seed],
       ["passes", job.progressive ? "progressive (doubling, up to 64 spp a pass)" : "one"],
+      ["denoise", job.denoise ? "after the merge (biased; raw kept)" : "no"],
       ["priority", job.priority],
     ]));
   }
