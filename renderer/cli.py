@@ -42,6 +42,13 @@ def build_parser(prog: str = "rayfarm render") -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     p.add_argument("--out", default="render.exr", help="output EXR path (PNG preview beside it)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--target", type=float, metavar="REL_ERROR",
+                   help="render to a noise target instead of a fixed spp: add sample passes, "
+                        "tile by tile, until the 95th percentile of the pixels' relative "
+                        "standard error is at most REL_ERROR (e.g. 0.05); --spp is then the "
+                        "most samples per pixel (renderer/target.py)")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="with --target: stop adding passes after this long")
     p.add_argument("--denoise", action="store_true",
                    help="also write denoised.R/G/B (Open Image Denoise over the whole frame, "
                         "with the albedo and normal AOVs) and <out>.denoised.png")
@@ -100,11 +107,30 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
 
     from tqdm import tqdm
 
-    units = METHODS[spec.method].make_plan(spec, False)
-    bar = tqdm(total=len(units), unit="unit", disable=args.quiet, desc=f"{args.scene} {spec.method}")
     t0 = time.perf_counter()
-    film = render(doc, spec, workers=args.workers, progress=lambda unit, part: bar.update(1))
-    bar.close()
+    target = None
+    if args.target is not None:
+        from .target import Target, render_to_target
+
+        try:
+            target = Target(args.target, spec.spp, args.max_seconds).validate()
+            film, report = render_to_target(
+                doc, spec, target, workers=args.workers,
+                progress=None if args.quiet else lambda p, e: print(
+                    f"pass {p}: error {100 * e:.2f} % (target {100 * target.rel_error:.2f} %)",
+                    file=sys.stderr))
+        except RenderError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        print(f"target: {report.stopped} after {report.passes} passes; {report.units_run} "
+              f"units run, {report.units_skipped} skipped; spp per pixel "
+              f"{int(film.weight.min())}..{int(film.weight.max())}")
+    else:
+        units = METHODS[spec.method].make_plan(spec, False)
+        bar = tqdm(total=len(units), unit="unit", disable=args.quiet,
+                   desc=f"{args.scene} {spec.method}")
+        film = render(doc, spec, workers=args.workers, progress=lambda unit, part: bar.update(1))
+        bar.close()
     seconds = time.perf_counter() - t0
     clean = None
     if args.denoise:
@@ -115,7 +141,7 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
     error = film.image_error()
     film.write_exr(out, exr_metadata(spec, film.stats, scene=doc.get("name") or str(args.scene),
                                      scene_hash=scene_text(doc)[0], rel_error=error,
-                                     denoised=clean is not None),
+                                     target=target, denoised=clean is not None),
                    denoised=clean)
     film.write_png(out.with_suffix(".png"))
     s = film.stats

@@ -19,6 +19,7 @@ as a number where the value is one (`exrheader`, tev, Nuke's metadata view):
 | samples, rays | string | decimal: they outgrow 32 bits |
 | render_seconds | float | the units' render time, summed over units (not wall time) |
 | rel_error | float | the raw image's error statistic (`film.image_error`): the 95th percentile over pixels brighter than 1 % of the image mean of the relative standard error from the var channels |
+| target | string | the noise target as JSON (rel_error, max_spp, max_seconds; renderer/target.py), "" for a fixed spp |
 | denoised | int | 1 if the file also holds denoised.R/G/B (the raw R/G/B stay as rendered), else 0 |
 
 The OpenEXR package writes Python ints as 32-bit `int` attributes (a larger
@@ -41,11 +42,11 @@ __all__ = ["METADATA_KEYS", "exr_metadata"]
 
 METADATA_KEYS = ("job_id", "scene", "scene_hash", "method", "options", "sampler", "seed", "spp",
                  "depth", "width", "height", "tile_size", "samples", "rays", "render_seconds",
-                 "rel_error", "denoised")
+                 "rel_error", "target", "denoised")
 
 
 def exr_metadata(spec: RenderSpec, stats: dict[str, Any], *, scene: str, scene_hash: str,
-                 job_id: str = "", rel_error: float = float("nan"),
+                 job_id: str = "", rel_error: float = float("nan"), target=None,
                  denoised: bool = False) -> dict[str, str | int | float]:
     """The `rayfarm.*` attributes of an image rendered with `spec` (the
     statistics `stats` of its merged film: samples, rays, seconds; its
@@ -58,6 +59,9 @@ def exr_metadata(spec: RenderSpec, stats: dict[str, Any], *, scene: str, scene_h
         "tile_size": spec.tile_size,
         "samples": str(int(stats.get("samples", 0))), "rays": str(int(stats.get("rays", 0))),
         "render_seconds": float(stats.get("seconds", 0.0)), "rel_error": float(rel_error),
+        "target": "" if target is None else json.dumps(
+            {"rel_error": target.rel_error, "max_spp": target.max_spp,
+             "max_seconds": target.max_seconds}, sort_keys=True),
         "denoised": int(bool(denoised)),
     }
     assert tuple(meta) == METADATA_KEYS

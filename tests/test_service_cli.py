@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 
@@ -43,6 +44,18 @@ def test03_render_runs_a_tiny_job(tmp_path):
                  "--out", str(denoised)])
     assert code == 0 and denoised.with_suffix(".denoised.png").is_file()
     assert_denoised_beside_raw(denoised, channels_of(out))
+    # --target: passes until the error statistic meets it (renderer/target.py)
+    targeted = tmp_path / "targeted.exr"
+    code = main(["render", "cornell-box", "--spp", "64", "--depth", "2", "--width", "16",
+                 "--height", "16", "--tile-size", "8", "--workers", "1", "--quiet",
+                 "--target", "0.5", "--out", str(targeted)])
+    _, header = read_exr(targeted)
+    assert code == 0 and header["rayfarm.rel_error"] <= 0.5
+    assert json.loads(header["rayfarm.target"]) == {"rel_error": 0.5, "max_spp": 64,
+                                                    "max_seconds": None}
+    code = main(["render", "cornell-box", "--method", "bdpt", "--target", "0.5",
+                 "--out", str(tmp_path / "refused.exr")])
+    assert code == 2
 
 
 def test03b_render_types_method_options_and_names_a_bad_one(tmp_path, capsys):
