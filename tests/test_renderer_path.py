@@ -206,13 +206,13 @@ def test09_cornell_is_lit_like_the_scene_says(cornell):
     assert img[4:6, 14:18].mean() > img[26:28, 14:18].mean()
 
 
-def _sphere_in_white_furnace(material):
-    """A unit sphere of `material` inside a black sphere of radius 10 that
-    emits radiance 1 inwards: whatever light the sphere reflects or
-    transmits came from that uniform sky."""
+def _sphere_in_white_furnace(material, sky_albedo=0.0):
+    """A unit sphere of `material` inside a sphere of radius 10 (diffuse, black
+    unless `sky_albedo`) that emits radiance 1 inwards: whatever light the
+    sphere reflects or transmits came from that uniform sky."""
     return build_scene(resolve_document({
         "camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "fov": 40, "width": 16, "height": 16},
-        "materials": {"black": {"type": "diffuse", "albedo": 0},
+        "materials": {"black": {"type": "diffuse", "albedo": sky_albedo},
                       "glass": {"type": "dielectric", "ior": 1.5},
                       "mirror": {"type": "mirror", "tint": 0.8}},
         "shapes": [{"type": "sphere", "radius": 10, "material": "black", "flip_normals": True,
@@ -264,15 +264,7 @@ def test13_albedo_aov_follows_mirrors_and_glass_to_the_next_diffuse_surface():
     the albedo seen through it is the walls' 0.25 (Open Image Denoise's
     convention), not the mirror's tint 0.8 and not 0."""
     for material in ("mirror", "glass"):
-        scene = build_scene(resolve_document({
-            "camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "fov": 40, "width": 16,
-                       "height": 16},
-            "materials": {"grey": {"type": "diffuse", "albedo": 0.25},
-                          "glass": {"type": "dielectric", "ior": 1.5},
-                          "mirror": {"type": "mirror", "tint": 0.8}},
-            "shapes": [{"type": "sphere", "radius": 10, "material": "grey", "flip_normals": True,
-                        "emitter": {"type": "area", "radiance": 1}},
-                       {"type": "sphere", "radius": 1, "material": material}]}))
+        scene = _sphere_in_white_furnace(material, sky_albedo=0.25)
         spec = RenderSpec(spp=8, depth=16, width=16, height=16, tile_size=16)
         aovs = render_inline(scene, spec).aovs()
         assert np.allclose(aovs["albedo.G"], 0.25, rtol=0, atol=1e-15), material
