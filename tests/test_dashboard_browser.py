@@ -641,6 +641,13 @@ def test18_a_denoised_job_toggles_between_its_raw_and_denoised_image(page):
     with api(page.base) as client:
         plain = client.post("/jobs", json=body).json()
         job = client.post("/jobs", json=dict(body, denoise=True)).json()
+        # Both done before their pages open. A job page opened while a job's
+        # units have all landed but its final merge has not written the images
+        # yet asks for a preview.png that is not there (a 404 in the console):
+        # the API says preview_url from the first landed unit, and the preview
+        # is written after that commit. Not this test's subject.
+        for job_id in (plain["id"], job["id"]):
+            assert poll_job(lambda path: client.get(path).json(), job_id)["status"] == "done"
     page.goto(f"{page.base}/#/jobs/{job['id']}")
     page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=180_000)
     page.click("[data-view='denoised']")
