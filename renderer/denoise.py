@@ -45,7 +45,7 @@ def denoise_film(film: Film) -> np.ndarray:
 
 
 def denoiser_version() -> str:
-    """`Open Image Denoise <version> (pyoidn <version>)`, for the EXR header."""
+    """"Open Image Denoise via pyoidn <version>", for reports (bench/denoise.py)."""
     import importlib.metadata
 
     return f"Open Image Denoise via pyoidn {importlib.metadata.version('pyoidn')}"

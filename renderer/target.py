@@ -158,8 +158,6 @@ def render_to_target(scene_source, spec: RenderSpec, target: Target, *, pool=Non
             report.errors.append(film.image_error())
             if progress is not None:
                 progress(p, report.errors[-1])
-        else:
-            report.stopped = "max_spp"
         if report.stopped == "max_spp" and report.errors and report.errors[-1] <= target.rel_error:
             report.stopped = "target"
     finally:

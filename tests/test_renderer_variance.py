@@ -16,7 +16,8 @@ test_renderer_mlt test16.
 Radiosity's var channels describe its display pass only: the form-factor
 rays' noise is frozen into the solution, which depends on the seed, and is
 not in them (measured here: the spread is 1.5x the prediction, z about 4).
-Marked as a known failure until the solution's variance is carried.
+Not tested here until the solution's variance is carried (an xfail that
+passes at Z would be a test that cannot fail).
 """
 
 from __future__ import annotations
@@ -55,9 +56,10 @@ def _spread_z(scene, method: str, sampler: str) -> tuple[float, float]:
 
 
 @pytest.mark.parametrize("method", [
-    pytest.param(name, marks=pytest.mark.xfail(
-        reason="radiosity's var channels leave out the solution's form-factor noise",
-        strict=False)) if name == "radiosity" else name
+    pytest.param(name, marks=pytest.mark.skip(
+        reason="radiosity's var channels leave out the solution's form-factor noise "
+               "(spread 1.5x the prediction): see the module doc")) if name == "radiosity"
+    else name
     for name in METHOD_NAMES])
 def test01_var_channels_predict_the_spread_over_seeds(cornell, method):
     """With the independent `random` sampler the spread matches the prediction."""
