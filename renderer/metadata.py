@@ -59,9 +59,7 @@ def exr_metadata(spec: RenderSpec, stats: dict[str, Any], *, scene: str, scene_h
         "tile_size": spec.tile_size,
         "samples": str(int(stats.get("samples", 0))), "rays": str(int(stats.get("rays", 0))),
         "render_seconds": float(stats.get("seconds", 0.0)), "rel_error": float(rel_error),
-        "target": "" if target is None else json.dumps(
-            {"rel_error": target.rel_error, "max_spp": target.max_spp,
-             "max_seconds": target.max_seconds}, sort_keys=True),
+        "target": "" if target is None else json.dumps(target.to_dict(), sort_keys=True),
         "denoised": int(bool(denoised)),
     }
     assert tuple(meta) == METADATA_KEYS

@@ -167,11 +167,14 @@ def plan(spec: RenderSpec, *, progressive: bool = False, small_passes: bool = Fa
     return units
 
 
-def count_units(spec: RenderSpec, progressive: bool = False) -> int:
-    """len(plan(spec, progressive=progressive)), without building the units
-    (admission refuses a plan of millions of units on this)."""
+def count_units(spec: RenderSpec, progressive: bool = False, small_passes: bool = False) -> int:
+    """len(plan(spec, progressive=progressive, small_passes=small_passes)),
+    without building the units (admission refuses a plan of millions of
+    units on this)."""
     across = -(-spec.width // spec.tile_size)
     down = -(-spec.height // spec.tile_size)
+    if small_passes:
+        return across * down * len(sample_passes(spec.spp, progressive))
     pixels = tile_pixels(spec)
     total = 0
     for s0, s1 in sample_passes(spec.spp, progressive, pixels):

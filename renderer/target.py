@@ -43,7 +43,8 @@ from .plan import Unit, plan
 from .registry import METHODS
 from .spec import BOUNDS, RenderSpec
 
-__all__ = ["Target", "TargetReport", "render_to_target", "supports_target"]
+__all__ = ["Target", "TargetReport", "passes", "render_to_target", "require_target_support",
+           "stop_reason", "supports_target", "target_plan", "units_to_run"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,11 @@ class Target:
         return self
 
 
+    def to_dict(self) -> dict:
+        return {"rel_error": self.rel_error, "max_spp": self.max_spp,
+                "max_seconds": self.max_seconds}
+
+
 @dataclass
 class TargetReport:
     """How a render to a target went: passes run, units run and skipped, what
@@ -92,17 +98,50 @@ def supports_target(method: str) -> bool:
     return m is not None and m.plan is tile_plan
 
 
-def _passes(units: list[Unit]) -> list[list[Unit]]:
+def require_target_support(method: str) -> None:
+    """Raise SpecError naming 'target' if `method` cannot render to a noise
+    target, listing those that can."""
+    if not supports_target(method):
+        allowed = ", ".join(sorted(n for n in METHODS if supports_target(n)))
+        raise SpecError("target", f"method '{method}' cannot render to a noise target "
+                                  f"(its plan is not tiles x passes); use one of: {allowed}")
+
+
+def target_plan(spec: RenderSpec, target: Target) -> tuple[RenderSpec, list[Unit]]:
+    """The spec a render to `target` runs (its spp is target.max_spp) and its
+    units: plain tiles x canonical-block passes, pass-major. Raises SpecError
+    naming 'target' for a bad target or a method that cannot render to one."""
+    target.validate()
+    require_target_support(spec.method)
+    spec = replace(spec, spp=target.max_spp)
+    return spec, plan(spec, progressive=True, small_passes=True)
+
+
+def passes(units: list[Unit]) -> list[list[Unit]]:
+    """A plan's units grouped by pass, in pass order (unit order within)."""
     by_pass: dict[int, list[Unit]] = defaultdict(list)
     for u in units:
         by_pass[u.pass_index].append(u)
     return [by_pass[p] for p in sorted(by_pass)]
 
 
-def _met(mean: np.ndarray, var: np.ndarray, rel_error: float) -> bool:
-    """The region meets the target (a region with nothing bright to refine does)."""
-    e = image_error(mean, var)
-    return math.isnan(e) or e <= rel_error
+def units_to_run(film: Film, units: list[Unit], target: Target) -> list[Unit]:
+    """Of a pass's units, those whose own region of `film` (every complete
+    pass before it, merged in unit order) does not meet the target yet; a
+    region with nothing bright to refine meets it."""
+    mean, var = film.mean(), film.variance_of_mean()
+    todo = []
+    for u in units:
+        e = image_error(mean[u.y0:u.y1, u.x0:u.x1], var[u.y0:u.y1, u.x0:u.x1])
+        if not (math.isnan(e) or e <= target.rel_error):
+            todo.append(u)
+    return todo
+
+
+def stop_reason(rel_error: float, target: Target) -> str:
+    """Why a render that ran its last planned pass stopped: "target" if its
+    statistic meets the target, else "max_spp"."""
+    return "target" if rel_error <= target.rel_error else "max_spp"
 
 
 def render_to_target(scene_source, spec: RenderSpec, target: Target, *, pool=None,
@@ -116,13 +155,9 @@ def render_to_target(scene_source, spec: RenderSpec, target: Target, *, pool=Non
     from .runtime import scene_text
     from .scene_format import resolve_document
 
-    target.validate()
     doc = resolve_document(scene_source)
-    spec = replace(spec, spp=target.max_spp).validate(scene=doc)
-    if not supports_target(spec.method):
-        allowed = ", ".join(sorted(n for n in METHODS if supports_target(n)))
-        raise SpecError("target", f"method '{spec.method}' cannot render to a noise target "
-                                  f"(its plan is not tiles x passes); use one of: {allowed}")
+    target.validate()
+    spec, units = target_plan(replace(spec, spp=target.max_spp).validate(scene=doc), target)
     key, text = scene_text(doc)
     film = merge(spec.width, spec.height, [])
     report = TargetReport()
@@ -130,14 +165,12 @@ def render_to_target(scene_source, spec: RenderSpec, target: Target, *, pool=Non
     pool = pool or LocalPool(workers)
     t0 = time.perf_counter()
     try:
-        for p, units in enumerate(_passes(plan(spec, progressive=True, small_passes=True))):
+        for p, units in enumerate(passes(units)):
             if p > 0:
                 if target.max_seconds is not None and time.perf_counter() - t0 >= target.max_seconds:
                     report.stopped = "max_seconds"
                     break
-                mean, var = film.mean(), film.variance_of_mean()
-                todo = [u for u in units if not _met(mean[u.y0:u.y1, u.x0:u.x1],
-                                                     var[u.y0:u.y1, u.x0:u.x1], target.rel_error)]
+                todo = units_to_run(film, units, target)
                 report.units_skipped += len(units) - len(todo)
                 if not todo:
                     report.stopped = "target"
@@ -158,8 +191,8 @@ def render_to_target(scene_source, spec: RenderSpec, target: Target, *, pool=Non
             report.errors.append(film.image_error())
             if progress is not None:
                 progress(p, report.errors[-1])
-        if report.stopped == "max_spp" and report.errors and report.errors[-1] <= target.rel_error:
-            report.stopped = "target"
+        if report.stopped == "max_spp" and report.errors:
+            report.stopped = stop_reason(report.errors[-1], target)
     finally:
         if own_pool:
             pool.shutdown()

@@ -27,7 +27,8 @@ from collections import deque
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from renderer import METHODS, RenderSpec
+from renderer import METHODS, RenderSpec, Unit
+from renderer.target import Target, target_plan
 from worker.settings import RoleLimits
 
 from . import states
@@ -36,7 +37,7 @@ from .errors import InvalidRequest, RateLimited
 from .models import Job
 from .settings import Settings
 
-__all__ = ["limits_for", "check_job", "planned_units", "unit_floor", "admit_job", "count_active_jobs", "RateLimiter",
+__all__ = ["limits_for", "check_job", "job_plan", "planned_units", "unit_floor", "admit_job", "count_active_jobs", "RateLimiter",
            "check_submission_rate", "check_upload_rate", "ACTIVE_JOBS_RETRY_AFTER"]
 
 # Retry-After of a refusal for too many active jobs: a hint, since nobody knows
@@ -55,14 +56,17 @@ def _setting(actor: Principal, field: str) -> str:
     return f"RAYFARM_LIMITS_{actor.role.upper()}__{field.upper()}"
 
 
-def unit_floor(spec: RenderSpec, progressive: bool) -> int:
+def unit_floor(spec: RenderSpec, progressive: bool, target: Target | None = None) -> int:
     """A lower bound of the job's planned units, computed without planning:
     the tile plan's count for tile and radiosity plans (exact for tile
-    plans), tiles x passes for BDPT,
-    an iteration's photon unit for SPPM. A request for millions of units is
-    refused on this, before `planned_units` would build them (seconds of CPU)."""
+    plans and for a noise target's tiles x canonical-block passes), tiles x
+    passes for BDPT, an iteration's photon unit for SPPM. A request for
+    millions of units is refused on this, before `planned_units` would build
+    them (seconds of CPU)."""
     from renderer.plan import count_units, sample_passes, tile_pixels
 
+    if target is not None:
+        return count_units(spec, True, small_passes=True)
     method = METHODS[spec.method]
     if method.family in ("tile", "radiosity"):  # the tile plan's units (radiosity's display)
         return count_units(spec, progressive)
@@ -74,10 +78,20 @@ def unit_floor(spec: RenderSpec, progressive: bool) -> int:
     return 1  # light tracing and MLT: a few dozen units whatever the job
 
 
-def planned_units(spec: RenderSpec, progressive: bool) -> int:
+def job_plan(spec: RenderSpec, progressive: bool, target: Target | None = None) -> list[Unit]:
+    """The job's work units: its method's plan, or with a noise target the
+    target's plan (renderer.target.target_plan; `spec.spp` is its max_spp)."""
+    if target is not None:
+        return target_plan(spec, target)[1]
+    return METHODS[spec.method].make_plan(spec, progressive)
+
+
+def planned_units(spec: RenderSpec, progressive: bool, target: Target | None = None) -> int:
     """How many work units the job would be planned into (the planner is pure,
     so this is exact, also for DAG methods). Check `unit_floor` first."""
-    return len(METHODS[spec.method].make_plan(spec, progressive))
+    if target is not None:
+        return unit_floor(spec, progressive, target)
+    return len(job_plan(spec, progressive))
 
 
 def check_job(settings: Settings, actor: Principal, spec: RenderSpec, units: int,
@@ -111,10 +125,11 @@ def check_job(settings: Settings, actor: Principal, spec: RenderSpec, units: int
 
 
 def admit_job(session: Session, settings: Settings, actor: Principal, spec: RenderSpec,
-              progressive: bool) -> int:
-    """Every admission check of a job, cheapest first; returns its planned units."""
-    check_job(settings, actor, spec, units=unit_floor(spec, progressive), active_jobs=0)
-    units = planned_units(spec, progressive)
+              progressive: bool, target: Target | None = None) -> int:
+    """Every admission check of a job, cheapest first; returns its planned
+    units. A target job is checked at its budget (spp = max_spp)."""
+    check_job(settings, actor, spec, units=unit_floor(spec, progressive, target), active_jobs=0)
+    units = planned_units(spec, progressive, target)
     check_job(settings, actor, spec, units=units,
               active_jobs=count_active_jobs(session, actor.user))
     return units

@@ -357,7 +357,8 @@ class RayfarmClient:
         """POST /jobs: `scene` (a built-in name, an uploaded scene's id or a
         document), `method`, `spp`, `depth`, and optionally `tile_size`,
         `seed`, `sampler`, `width`, `height`, `options`, `priority`,
-        `progressive`, `denoise`. Fields that are None are left to the service's
+        `progressive`, `denoise`, `target` ({rel_error, max_spp, max_seconds}:
+        render to a noise target; spp is then the ceiling). Fields that are None are left to the service's
         defaults. Returns the queued job."""
         return self._json("POST", "/jobs", json={k: v for k, v in fields.items() if v is not None})
 

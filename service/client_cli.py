@@ -80,6 +80,11 @@ def _duration(seconds: float | None) -> str:
     return f"{hours}h{minutes:02d}m"
 
 
+def _percent(e: float | None) -> str:
+    """0.0183 -> 1.83 %; None (not known yet) -> ?"""
+    return "?" if e is None else f"{100 * e:.3g} %"
+
+
 def _count(n: float | None) -> str:
     """1234567 -> 1.23M (three significant digits), 512 -> 512."""
     if n is None:
@@ -164,10 +169,14 @@ def _submit(args: argparse.Namespace, client: RayfarmClient) -> int:
                         seed=args.seed, sampler=args.sampler, width=args.width,
                         height=args.height, options=options or None, priority=args.priority,
                         progressive=False if args.no_progressive else None,
-                        denoise=True if args.denoise else None)
+                        denoise=True if args.denoise else None,
+                        target=None if args.target is None else {
+                            "rel_error": args.target, "max_seconds": args.max_seconds})
     print(job["id"], flush=True)  # stdout holds the id alone: ID=$(rayfarm submit ...)
+    goal = (f"to {_percent(job['target']['rel_error'])} error, at most {job['spp']} spp"
+            if job.get("target") else f"{job['spp']} spp")
     _say("submit", f"job {job['id']} {job['status']}: {job['scene']} {job['method']} "
-                   f"{job['width']}x{job['height']} {job['spp']} spp ({client.base_url})")
+                   f"{job['width']}x{job['height']} {goal} ({client.base_url})")
     if args.watch:
         return _follow(client, job["id"], quiet=args.quiet, command="submit")
     return 0
@@ -188,10 +197,17 @@ class _ProgressBar:
         progress, stats = job["progress"], job["stats"]
         total = max(int(progress["samples_total"]), 1)
         desc = f"{self.job_id} {job['status']:<8}"
-        text = (f"{_count(progress['samples_done'])}/{_count(progress['samples_total'])} samples, "
-                f"units {progress['units_done']}/{progress['units_total'] or '?'}, "
-                f"{_count(stats.get('samples_per_second'))} samples/s, "
-                f"elapsed {_duration(progress['elapsed'])}, ETA {_duration(progress['eta'])}")
+        if job.get("target"):  # a target job's progress speaks in error
+            text = (f"error {_percent(progress.get('rel_error'))} -> "
+                    f"{_percent(progress.get('target_rel_error'))}, "
+                    f"{len(job.get('passes') or [])} passes, "
+                    f"{progress.get('units_skipped', 0)} units skipped, "
+                    f"elapsed {_duration(progress['elapsed'])}, ETA {_duration(progress['eta'])}")
+        else:
+            text = (f"{_count(progress['samples_done'])}/{_count(progress['samples_total'])} "
+                    f"samples, units {progress['units_done']}/{progress['units_total'] or '?'}, "
+                    f"{_count(stats.get('samples_per_second'))} samples/s, "
+                    f"elapsed {_duration(progress['elapsed'])}, ETA {_duration(progress['eta'])}")
         if self.bar is None:
             self.bar = _make_bar(total, min(int(progress["samples_done"]), total), desc, text)
             return
@@ -241,9 +257,12 @@ def _follow(client: RayfarmClient, job_id: str, *, quiet: bool, command: str) ->
         return EXIT_FAILED
     job = client.job(job_id)
     if job["status"] == "done":
+        reached = (f", error {_percent(job['progress'].get('rel_error'))} (target "
+                   f"{_percent(job['target']['rel_error'])}, stopped by {job['target_stop']})"
+                   if job.get("target") else "")
         _say(command, f"job {job_id} done: {_count(job['samples'])} samples in "
                       f"{_duration(job['progress']['elapsed'])} "
-                      f"({_count(job['stats']['samples_per_second'])} samples/s); "
+                      f"({_count(job['stats']['samples_per_second'])} samples/s){reached}; "
                       f"rayfarm fetch {job_id} -o {job_id}.exr")
         return 0
     _say(command, f"job {job_id} {job['status']}: {job.get('error') or 'no error recorded'}")
@@ -424,6 +443,13 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
     submit.add_argument("--denoise", action="store_true",
                         help="when done, also denoise the merged frame (denoised.R/G/B in the "
                              "EXR, beside the raw image)")
+    submit.add_argument("--target", type=float, metavar="REL_ERROR",
+                        help="render to a noise target instead of a fixed spp, e.g. 0.01: "
+                             "passes are added tile by tile until the 95th percentile of the "
+                             "pixels' relative standard error is at most that; --spp is then "
+                             "the most samples per pixel")
+    submit.add_argument("--max-seconds", type=float,
+                        help="with --target: stop adding passes after this long")
     submit.add_argument("--watch", action="store_true",
                         help="then follow the job like `rayfarm watch`")
     submit.add_argument("--quiet", action="store_true", help="with --watch: no progress bar")

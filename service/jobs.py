@@ -22,6 +22,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
 from renderer import RenderSpec, SceneError, builtin_scene_names, resolve_document, scene_text
+from renderer.target import Target, require_target_support
 
 from . import admission, events, scenes, states
 from .access import Principal, require_change, require_submit, visible_jobs
@@ -76,30 +77,53 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
     require_submit(actor)
     doc, scene_name = _resolve_scene(session, store, actor, request.scene)
     camera = doc["camera"]
-    spec = RenderSpec(method=request.method, spp=request.spp, depth=request.depth,
+    target = _target(request)
+    spec = RenderSpec(method=request.method,
+                      spp=request.spp if target is None else target.max_spp, depth=request.depth,
                       width=camera["width"] if request.width is None else request.width,
                       height=camera["height"] if request.height is None else request.height,
                       tile_size=request.tile_size, seed=request.seed, sampler=request.sampler,
                       options=dict(request.options))
     spec.validate(settings.max_work, scene=doc)
+    if target is not None:
+        require_target_support(spec.method)
     tiles = math.ceil(spec.width / spec.tile_size) * math.ceil(spec.height / spec.tile_size)
     if tiles > settings.max_units:
         least = math.ceil(math.sqrt(spec.width * spec.height / settings.max_units))
         raise InvalidRequest("tile_size", f"{tiles} tiles exceed the limit of {settings.max_units} "
                                           f"work units; use tile_size >= {least}")
-    admission.admit_job(session, settings, actor, spec, request.progressive)
+    admission.admit_job(session, settings, actor, spec, request.progressive, target)
     key, text = scene_text(doc)
     store.put_scene(key, text)
     job = Job(id=new_job_id(), created=now, status="queued", owner=actor.user,
               scene=scene_name[:200],
               scene_hash=key, spec=spec.to_dict(), width=spec.width, height=spec.height,
               units_total=0, units_done=0, samples=0, rays=0, priority=request.priority,
-              progressive=request.progressive, denoise=request.denoise,
+              progressive=request.progressive or target is not None, denoise=request.denoise,
+              target=None if target is None else target.to_dict(), units_skipped=0,
               paused_seconds=0.0, unit_seconds=0.0,
               units_retried=0)
     session.add(job)
     events.note(job)
     return job
+
+
+def _target(request: JobCreate) -> Target | None:
+    """The request's noise target, checked (its max_spp defaults to spp; one
+    of them is needed, and they may not disagree), or None for a fixed spp."""
+    t = request.target
+    if t is None:
+        if request.spp is None:
+            raise InvalidRequest("spp", "is required (or give a target with max_spp)")
+        return None
+    if t.max_spp is None and request.spp is None:
+        raise InvalidRequest("target.max_spp", "is required: the most samples per pixel to "
+                                               "spend (or give spp)")
+    if t.max_spp is not None and request.spp is not None and t.max_spp != request.spp:
+        raise InvalidRequest("spp", f"is {request.spp} but target.max_spp is {t.max_spp}; give "
+                                    "one of them (with a target, spp is the ceiling)")
+    return Target(rel_error=t.rel_error, max_spp=t.max_spp if t.max_spp is not None
+                  else request.spp, max_seconds=t.max_seconds).validate()
 
 
 def get_job(session: Session, actor: Principal, job_id: str) -> Job:
@@ -216,6 +240,8 @@ def requeue_job(session: Session, store: Store, actor: Principal, job_id: str,
     for unit in session.scalars(select(WorkUnit).where(WorkUnit.job_id == job.id)):
         session.delete(unit)  # in-flight tasks: the scheduler cancels units that left
     job.units_total = job.units_done = job.samples = job.rays = job.units_retried = 0
+    job.units_skipped, job.units_open, job.rel_error = 0, None, None
+    job.target_stop, job.pass_log = None, None
     job.unit_seconds = job.paused_seconds = 0.0
     job.started = job.paused_at = None
     session.flush()

@@ -80,6 +80,23 @@ class Job(Base):
     # Denoise the merged frame once it is done (renderer.denoise): denoised.R/G/B
     # in the EXR beside the raw beauty, and denoised.png.
     denoise: Mapped[bool] = mapped_column(Boolean, default=False, server_default=text("false"))
+    # Rendered to a noise target (renderer.target; service.targets): the target
+    # as JSON {rel_error, max_spp, max_seconds} (spec["spp"] is max_spp), else None.
+    target: Mapped[dict | None] = mapped_column(JSON)
+    # A target job's units that may run: a prefix of its plan, the passes
+    # decided so far (None: every unit, as for any other job).
+    units_open: Mapped[int | None] = mapped_column(Integer)
+    # Units a target job skipped: their region met the target before their pass
+    # (counted in units_done too: finished without a film).
+    units_skipped: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
+    # The image's error statistic (renderer.film.image_error) after the last
+    # complete pass of a target job, and of the result once done; None before.
+    rel_error: Mapped[float | None] = mapped_column(Float)
+    # Why a target job stopped: "target", "max_spp" or "max_seconds" (None before).
+    target_stop: Mapped[str | None] = mapped_column(String(16))
+    # A target job's complete passes: [{pass, spp, samples, seconds, rel_error,
+    # active}] (service.targets), the convergence it made and what its ETA reads.
+    pass_log: Mapped[list | None] = mapped_column(JSON)
     # Time after its start the job could not run (finished pauses; failed until
     # retried) and the start of the current pause, so elapsed time, throughput
     # and ETA count only the time it could run.

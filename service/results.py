@@ -2,7 +2,9 @@
 addition, then one division: `renderer.merge`) into `result.exr`, with the
 final `preview.png` and `noise.png`.
 
-    write_result(store, job_id, spec, units=16, scene="cornell-box", scene_hash=key)
+    write_result(store, job_id, spec, range(16), scene="cornell-box", scene_hash=key)
+
+A target job's skipped units have no film: `units` lists those merged.
 
 The EXR's header is `renderer.metadata.exr_metadata`'s: the same keys as a
 file from `rayfarm render`.
@@ -10,21 +12,27 @@ file from `rayfarm render`.
 
 from __future__ import annotations
 
+from typing import Iterable
+
 from renderer import PartialFilm, RenderSpec, merge
 from renderer.metadata import exr_metadata
+from renderer.target import Target
 
 from .store import Store
 
 __all__ = ["write_result"]
 
 
-def write_result(store: Store, job_id: str, spec: RenderSpec, units: int, *, scene: str,
-                 scene_hash: str, denoise: bool = False) -> None:
-    """Merge units 0..units-1 of the job and write its EXR and PNGs (with
-    `denoise`, the whole merged frame denoised once: renderer.denoise); raises
-    what reading or writing raises."""
+def write_result(store: Store, job_id: str, spec: RenderSpec, units: Iterable[int], *,
+                 scene: str, scene_hash: str, denoise: bool = False,
+                 target: Target | None = None) -> float:
+    """Merge the job's `units` (indices, in unit order) and write its EXR and
+    PNGs (with `denoise`, the whole merged frame denoised once:
+    renderer.denoise); returns the image's error statistic
+    (film.image_error); raises what reading or writing raises."""
     film = merge(spec.width, spec.height, (PartialFilm.from_bytes(store.unit_film(job_id, i))
-                                           for i in range(units)))
+                                           for i in units))
+    rel_error = film.image_error()
     clean = None
     if denoise:
         from renderer.denoise import denoise_film
@@ -33,8 +41,9 @@ def write_result(store: Store, job_id: str, spec: RenderSpec, units: int, *, sce
         film.write_png(store.denoised_path(job_id), clean)
     film.write_exr(store.result_path(job_id),
                    exr_metadata(spec, film.stats, scene=scene, scene_hash=scene_hash,
-                                job_id=job_id, rel_error=film.image_error(),
+                                job_id=job_id, rel_error=rel_error, target=target,
                                 denoised=clean is not None),
                    denoised=clean)
     film.write_png(store.preview_path(job_id))
     film.write_noise_png(store.noise_path(job_id))
+    return rel_error

@@ -63,9 +63,10 @@ from sqlalchemy.orm import Session, object_session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
 
-from renderer import METHODS, PartialFilm, RenderSpec
+from renderer import PartialFilm, RenderSpec
 
 from . import blocklist, events, states
+from .admission import job_plan
 from .artefacts import Artefacts
 from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
@@ -75,6 +76,7 @@ from .metrics import FarmMetrics
 from .models import Job, User, WorkUnit, utcnow
 from .previews import RunningPreviews
 from .results import write_result
+from .targets import TargetJobs, at_barrier, job_target
 from .settings import Settings
 from .store import Store
 
@@ -101,6 +103,12 @@ class _JobRow(NamedTuple):
     created: datetime
     units_total: int
     units_done: int
+    units_open: int | None  # a target job's units that may run (service.targets)
+
+    @property
+    def open_pending(self) -> int:
+        """Open units not finished (upper bound of those pending: minus those in flight)."""
+        return (self.units_total if self.units_open is None else self.units_open) - self.units_done
 
 
 class _Advanced(NamedTuple):
@@ -109,6 +117,7 @@ class _Advanced(NamedTuple):
     status: str
     units_total: int
     units_done: int
+    units_open: int | None
     in_flight: int
 
     @property
@@ -134,7 +143,8 @@ class _Census:
             self.flying.pop(job_id, None)
             return
         self.jobs[job_id] = self.jobs[job_id]._replace(
-            status=after.status, units_total=after.units_total, units_done=after.units_done)
+            status=after.status, units_total=after.units_total, units_done=after.units_done,
+            units_open=after.units_open)
         self.flying[job_id] = after.in_flight
 
 
@@ -162,6 +172,7 @@ class Scheduler:
         self.metrics = metrics if metrics is not None else FarmMetrics()  # service.metrics
         self._tracked: dict[tuple[str, int], tuple[str, ...]] = {}  # units we put in flight
         self.previews = RunningPreviews(store, self.events, self._done_units)
+        self.targets = TargetJobs(store)  # the pass decisions of target jobs
         self._stop = threading.Event()
         # Set when the executor reports a unit finished: the next tick starts
         # before poll_interval, so short units don't leave the pool idle
@@ -262,6 +273,7 @@ class Scheduler:
                     self.executor.cancel(job_id, task_ids)
             self._tracked = {}
             self.previews = RunningPreviews(self.store, self.events, self._done_units)
+            self.targets = TargetJobs(self.store)
             self.leading = leading
         return leading
 
@@ -286,6 +298,7 @@ class Scheduler:
         self._cancel_departed(census.live)
         self._drop_departed_artefacts(census.jobs)
         self.previews.keep_only(census.jobs)
+        self.targets.keep_only(census.jobs)
         self.artefacts.new_tick()
         self._blocked = {}
         try:
@@ -325,7 +338,7 @@ class Scheduler:
         with self.sessions() as session:
             jobs = {row.id: _JobRow(*row) for row in session.execute(
                 select(Job.id, Job.owner, Job.status, Job.priority, Job.created,
-                       Job.units_total, Job.units_done)
+                       Job.units_total, Job.units_done, Job.units_open)
                 .where(Job.status.in_(states.SCHEDULED_JOB))
                 .order_by(Job.priority.desc(), Job.created, Job.id))}
             live = {(job_id, index) for job_id, index in session.execute(
@@ -344,6 +357,8 @@ class Scheduler:
             return True
         if job.status == "running" and job.units_done == job.units_total:
             return True  # complete: merge (e.g. the service stopped before it could)
+        if at_barrier(job.status, job.units_open, job.units_done, job.units_total):
+            return True  # a target job's next pass to decide (e.g. after a restart)
         return self.previews.dirty(job.id)  # a throttled preview to write
 
     def _cancel_departed(self, live: set[tuple[str, int]]) -> None:
@@ -394,8 +409,14 @@ class Scheduler:
                     break  # the job failed
             if landed:
                 job.note_samples(sum(int(f.stats.get("samples", 0)) for _, f in landed), now)
-            after = _Advanced(job.status, job.units_total, job.units_done,
-                              sum(u.state in states.IN_FLIGHT for u in flying))
+            in_flight = sum(u.state in states.IN_FLIGHT for u in flying)
+            if not in_flight and at_barrier(job.status, job.units_open, job.units_done,
+                                            job.units_total):
+                # In the transaction that collected the pass's last unit: a
+                # landed pass and its decision commit together.
+                self.targets.decide(session, job, now)
+            after = _Advanced(job.status, job.units_total, job.units_done, job.units_open,
+                              in_flight)
             width, height, method = job.width, job.height, job.spec.get("method", "")
         for _, film in landed:  # committed: each unit counts once
             self.metrics.unit_done(method, float(film.stats.get("seconds", 0.0)),
@@ -422,7 +443,7 @@ class Scheduler:
         jobs, flying = census.jobs, census.flying
         contenders = [Contender(j.id, j.owner, j.priority or 0, j.created, flying[j.id])
                       for j in jobs.values() if j.status == "running"
-                      and j.units_total - j.units_done - flying[j.id] > 0]
+                      and j.open_pending - flying[j.id] > 0]
         if not contenders:
             return
         slots = max(self.executor.capacity(sum(flying.values())), 0)
@@ -462,17 +483,19 @@ class Scheduler:
 
     def _ready_units(self, session: Session, job: Job, limit: int) -> list[WorkUnit]:
         """Up to `limit` pending units of the job whose needs are all done, in
-        unit order. Tile jobs need nothing; a DAG's later stages wait here.
+        unit order. Tile jobs need nothing; a DAG's later stages wait here, and
+        a target job's passes not yet decided (`Job.units_open`).
         Read in batches: a huge job's pending units are never all loaded, and a
         tile job's dispatch of one slot loads a few rows, not 64 (each a JSON
         document to decode: that was most of a busy scheduler's CPU)."""
         ready: list[WorkUnit] = []
         done: set[int] | None = None
         after, batch_size = -1, max(2 * limit, 16)
+        bound = job.units_total if job.units_open is None else job.units_open
         while len(ready) < limit:
             batch = list(session.scalars(
                 select(WorkUnit).where(WorkUnit.job_id == job.id, WorkUnit.state == "pending",
-                                       WorkUnit.index > after)
+                                       WorkUnit.index > after, WorkUnit.index < bound)
                 .order_by(WorkUnit.index).limit(batch_size)))
             if not batch:
                 break
@@ -493,10 +516,13 @@ class Scheduler:
         return ready
 
     def _plan(self, session: Session, job: Job, now: datetime) -> None:
-        spec = RenderSpec.from_dict(job.spec)
-        units = METHODS[spec.method].make_plan(spec, bool(job.progressive))
+        spec, target = RenderSpec.from_dict(job.spec), job_target(job)
+        units = job_plan(spec, bool(job.progressive), target)
         self.previews.drop(job.id)  # planned anew (e.g. requeued): a fresh preview
         self.artefacts.forget(job.id)
+        self.targets.forget(job.id)
+        if target is not None:  # its first pass (service.targets)
+            job.units_open = sum(u.pass_index == 0 for u in units)
         for unit in units:
             session.add(WorkUnit(job_id=job.id, index=unit.index, state="pending",
                                  unit=unit.to_dict(), attempts=0, task_ids=[]))
@@ -699,11 +725,17 @@ class Scheduler:
                 return
             spec, n_units = RenderSpec.from_dict(job.spec), job.units_total
             scene, scene_hash, denoise = job.scene, job.scene_hash, bool(job.denoise)
+            target = job_target(job)
+            # A target job's skipped units have no film (service.targets).
+            indices = (list(session.scalars(select(WorkUnit.index).where(
+                WorkUnit.job_id == job_id, WorkUnit.state == "done").order_by(WorkUnit.index)))
+                if job.units_skipped else range(n_units))
         error = waiting = None
+        rel_error = float("nan")
         try:
             try:
-                write_result(self.store, job_id, spec, n_units, scene=scene,
-                             scene_hash=scene_hash, denoise=denoise)
+                rel_error = write_result(self.store, job_id, spec, indices, scene=scene,
+                                         scene_hash=scene_hash, denoise=denoise, target=target)
             except OSError as exc:
                 if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
                     raise
@@ -731,7 +763,9 @@ class Scheduler:
                 return
             if job.error and job.error.startswith(RESULT_STORE_FAILED):
                 job.error = None
+            self.targets.forget(job_id)
             if error is None:
+                self.targets.finished(job, rel_error)
                 states.change_job(job, "done", self.clock())
                 self._drop_artefacts(session, job)
             else:

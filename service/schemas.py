@@ -28,8 +28,9 @@ from renderer import BOUNDS, METHODS, SAMPLERS, RenderSpec
 
 from .executors import WorkerInfo
 from .models import ApiToken, Job, User, WorkUnit
+from .targets import error_eta
 
-__all__ = ["RequestModel", "UnitLogPublic", "UnitAttemptLog", "JobCreate", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS",
+__all__ = ["RequestModel", "UnitLogPublic", "UnitAttemptLog", "JobCreate", "TargetRequest", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS",
            "Progress", "ScenePublic", "UnitPublic", "WorkerPublic", "LoginRequest", "Me", "UserCreate",
            "UserUpdate", "UserPublic", "TokenCreate", "TokenPublic", "TokenCreated"]
 
@@ -93,6 +94,19 @@ def _bounded(name: str, description: str):
                                       json_schema_extra={"minimum": lo, "maximum": hi})]
 
 
+class TargetRequest(RequestModel):
+    """`target` of a job: render passes until the image's error statistic
+    meets `rel_error`, or a budget runs out (renderer/target.py)."""
+
+    rel_error: float = Field(description="the relative standard error to reach, e.g. 0.01 for "
+                                         "1 %: the 95th percentile over the pixels brighter than "
+                                         "1 % of the image mean, from the var channels (0..1]")
+    max_spp: StrictInt | None = Field(None, description="samples per pixel at most (default: "
+                                                        "the job's spp)")
+    max_seconds: float | None = Field(None, description="stop after this many seconds of running "
+                                                        "(checked between passes)")
+
+
 class JobCreate(RequestModel):
     """A render request: `POST /jobs`."""
 
@@ -105,7 +119,8 @@ class JobCreate(RequestModel):
                     "or an inline scene document")
     method: str = Field(description="rendering method (GET /methods)",
                         json_schema_extra={"enum": list(METHODS)})
-    spp: _bounded("spp", "samples per pixel")
+    spp: _bounded("spp", "samples per pixel (with a target: at most, the default max_spp)") \
+        | None = None
     depth: _bounded("depth", "maximum path depth")
     tile_size: _bounded("tile_size", "side of a work unit's tile in pixels") = _DEFAULTS.tile_size
     seed: _bounded("seed", "random seed; same seed, same pixels") = _DEFAULTS.seed
@@ -126,6 +141,10 @@ class JobCreate(RequestModel):
                                                    "beside the raw beauty, and denoised.png. A "
                                                    "biased post-process: the raw image and its "
                                                    "var channels stay as rendered")
+    target: TargetRequest | None = Field(None, description="render to a noise target instead of "
+                                                           "a fixed spp: passes are added, tile "
+                                                           "by tile, until the error meets it "
+                                                           "(tile methods only; GET /methods)")
 
 
 class JobUpdate(RequestModel):
@@ -146,7 +165,15 @@ class Progress(BaseModel):
                                               "start, pauses excluded (null before the start)")
     eta: float | None = Field(description="seconds left at the job's recent samples/s, at "
                                           "least a mean unit's render time while units are "
-                                          "left (null unless running with samples done)")
+                                          "left (null unless running with samples done); a "
+                                          "target job's: until its error meets the target")
+    rel_error: float | None = Field(None, description="the image's error statistic (95th "
+                                                      "percentile of the relative standard "
+                                                      "error): after the last complete pass of "
+                                                      "a target job, of the result once done")
+    target_rel_error: float | None = Field(None, description="a target job's target")
+    units_skipped: int = Field(0, description="a target job's units skipped: their region met "
+                                              "the target first (counted in units_done)")
 
 
 class JobStats(BaseModel):
@@ -182,6 +209,13 @@ class JobPublic(BaseModel):
     priority: int
     progressive: bool
     denoise: bool
+    target: dict[str, Any] | None = Field(None, description="the noise target (rel_error, "
+                                                            "max_spp, max_seconds), if any")
+    target_stop: str | None = Field(None, description="why a target job stopped: target, "
+                                                      "max_spp or max_seconds")
+    passes: list[dict[str, Any]] = Field(default_factory=list, description=(
+        "a target job's complete passes: spp reached, samples, seconds, rel_error after it, "
+        "pixels still refined"))
     progress: Progress
     stats: JobStats
     created: datetime
@@ -210,6 +244,8 @@ class JobPublic(BaseModel):
         eta = None
         if done:
             eta = 0.0
+        elif job.target and job.status == "running":
+            eta = error_eta(job)
         elif job.status == "running" and (job.recent_rate or rate):
             eta = max(total - job.samples, 0) / (job.recent_rate or rate)
             if job.units_done < job.units_total and job.unit_seconds and job.units_done:
@@ -222,11 +258,14 @@ class JobPublic(BaseModel):
             tile_size=spec["tile_size"], seed=spec["seed"], sampler=spec["sampler"],
             width=job.width, height=job.height, options=spec.get("options", {}),
             priority=job.priority or 0, progressive=bool(job.progressive),
-            denoise=bool(job.denoise),
+            denoise=bool(job.denoise), target=job.target, target_stop=job.target_stop,
+            passes=job.pass_log or [],
             progress=Progress(units_done=job.units_done, units_total=job.units_total,
                               samples_done=job.samples, samples_total=total,
                               fraction=min(job.samples / total, 1.0) if total else 0.0,
-                              elapsed=elapsed, eta=eta),
+                              elapsed=elapsed, eta=eta, rel_error=job.rel_error,
+                              target_rel_error=(job.target or {}).get("rel_error"),
+                              units_skipped=job.units_skipped or 0),
             stats=JobStats(samples_per_second=rate,
                            recent_samples_per_second=job.recent_rate if job.status == "running"
                            else None,

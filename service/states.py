@@ -13,6 +13,7 @@
               │          └──┘ (enqueued again: lost message or retry)
               └──────────┴────────────┴──► failed | canceled
               failed | canceled ──► pending   (retry of a failed job)
+              pending ──► skipped   (a target job's region met its target: service.targets)
 
 Nothing else assigns `Job.status` or `WorkUnit.state`; a change the table does
 not allow raises `IllegalTransition`. The timestamps that belong to a status
@@ -44,11 +45,12 @@ JOB_TRANSITIONS: dict[str, frozenset[str]] = {
 }
 
 UNIT_TRANSITIONS: dict[str, frozenset[str]] = {
-    "pending": frozenset({"queued", "canceled"}),
+    "pending": frozenset({"queued", "canceled", "skipped"}),
     # queued -> queued: the message was lost, or the attempt failed and is retried.
     "queued": frozenset({"queued", "running", "done", "failed", "canceled"}),
     "running": frozenset({"queued", "done", "failed", "canceled"}),
     "done": frozenset(),
+    "skipped": frozenset(),
     # A retry of a failed job: its failed units and those canceled with it run again.
     "failed": frozenset({"pending"}),
     "canceled": frozenset({"pending"}),
@@ -60,7 +62,7 @@ ACTIVE_JOB = ("queued", "running")
 SCHEDULED_JOB = ("queued", "running", "paused")  # the scheduler looks at these (paused: collect only)
 FINAL_JOB = ("done", "failed", "canceled")
 IN_FLIGHT = ("queued", "running")
-FINAL_UNIT = ("done", "failed", "canceled")
+FINAL_UNIT = ("done", "skipped", "failed", "canceled")
 
 
 def change_job(job: Job, new: str, now: datetime, *, error: str | None = None) -> None:

@@ -18,6 +18,8 @@ from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, assert_denoised
                       channels_of, get_json,
                       planned_units, poll_job, submit, wait_for)
 
+from test_service_target import TARGET_JOB, assert_target_job, target_reference
+
 pytestmark = pytest.mark.farm
 
 
@@ -92,8 +94,13 @@ def test02_end_to_end_serve_and_worker_processes_over_http(spawn_serve, spawn_wo
         denoised = run_job(client, dict(TINY, denoise=True), tmp_path / "denoised.exr")
         assert denoised["denoised_url"] == f"/jobs/{denoised['id']}/denoised.png"
         assert client.get(denoised["denoised_url"]).headers["content-type"] == "image/png"
+        # a noise target: the pass barrier's decisions over Celery workers' units
+        targeted = run_job(client, TARGET_JOB, tmp_path / "target.exr")
+        assert_target_job(targeted, TARGET_JOB)
     assert_bit_identical(channels_of(tmp_path / "e2e.exr"), reference_channels(TINY))
     assert_denoised_beside_raw(tmp_path / "denoised.exr", reference_channels(TINY))
+    assert_bit_identical(channels_of(tmp_path / "target.exr"),
+                         target_reference(TARGET_JOB, tmp_path / "target-ref.exr"))
 
 
 def test03_sigkilled_worker_mid_job_the_job_still_finishes_bit_identical(

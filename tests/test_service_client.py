@@ -508,3 +508,20 @@ def test20_the_token_comes_from_the_flag_the_environment_or_a_token_file(server,
     with RayfarmClient(server, token="rf_wrong") as farm:
         with pytest.raises(Unauthorized):
             farm.jobs()
+
+
+def test21_submit_to_a_noise_target_watches_the_error_fall(server, client):
+    """`rayfarm submit --target REL --spp CEILING --watch`: the job stops at its
+    target, the bar and the last line speak in error (service/targets.py)."""
+    out = cli("submit", "cornell-box", "--method", "path-mis", "--depth", "5", "--width", "32",
+              "--height", "32", "--tile-size", "8", "--seed", "3", "--spp", "1024",
+              "--target", "0.25", "--watch", server=server, timeout=300)
+    assert out.returncode == 0, out.stderr
+    job = client.job(out.stdout.strip())
+    assert job["status"] == "done" and job["target_stop"] == "target"
+    assert job["target"] == {"rel_error": 0.25, "max_spp": 1024, "max_seconds": None}
+    assert "to 25 % error, at most 1024 spp" in out.stderr, out.stderr
+    frames = out.stderr.replace("\r", "\n")
+    assert "-> 25 %" in frames and "units skipped" in frames, frames
+    assert "(target 25 %, stopped by target)" in out.stderr, out.stderr
+    assert "Traceback" not in out.stderr
