@@ -40,6 +40,18 @@ merge adds them like `sum`, so they are tiling-invariant too; the EXR holds
 their means (`AOV_LAYERS`: the layer names), and every film's `samples.Y`, the
 camera samples per pixel (`weight`).
 
+Shared estimates (jackknife). A radiosity image reads one solution, whose
+random numbers (form-factor rays, light samples) every pixel shares: the
+spread of the camera samples cannot see its noise. The solution carries J
+delete-a-group jackknife replicates (renderer/radiosity_solve.py), and a
+film sums, per pixel and in the same block fold, each sample's change under
+each replicate: `jackknife`, (h, w, J, 3). With D_b that sum over the n
+samples, the replicate's pixel moves by d_b = D_b / n, and the solution's
+share of the pixel's variance is the jackknife's (J - 1) / J sum_b (d_b -
+mean d)^2, added to the camera samples' (they are independent of it). It
+carries the covariance of the patches a pixel sees, since each replicate
+is a whole solution; neighbouring pixels' errors are correlated through it.
+
 Artefacts. A prepass unit's result (a photon map, a radiosity solution, a
 bootstrap estimate, per-pixel statistics carried to the next iteration) is a
 film with named arrays in `artefact`, often over an empty region; the units
@@ -68,7 +80,7 @@ from typing import Iterable
 import numpy as np
 
 __all__ = ["PartialFilm", "Film", "sample_blocks", "merge", "read_exr", "tonemap_srgb8",
-           "relative_error", "image_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP",
+           "relative_error", "error_floor", "image_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP",
            "AOV_LAYERS", "AOV_CHANNELS"]
 
 # The AOV channels a film's `aov` sums, in order, and the EXR channels their
@@ -112,6 +124,7 @@ class PartialFilm:
     splat_scale_rel_var: float = 0.0  # the shared scale's (Var c) / c^2 (module doc, "Splats")
     artefact: dict = field(default_factory=dict)  # name -> numpy array
     aov: np.ndarray | None = None  # (h, w, AOV_CHANNELS) sums (module doc, "AOVs")
+    jackknife: np.ndarray | None = None  # (h, w, J, 3) sums (module doc, "Shared estimates")
 
     @property
     def height(self) -> int:
@@ -155,6 +168,8 @@ class PartialFilm:
             arrays.update(splat=self.splat, splat_sq=self.splat_sq)
         if self.aov is not None:
             arrays["aov"] = self.aov
+        if self.jackknife is not None:
+            arrays["jackknife"] = self.jackknife
         for name, value in self.artefact.items():
             arrays[f"artefact.{name}"] = value
         header = {"origin": [int(self.x0), int(self.y0)], "stats": self.stats,
@@ -228,6 +243,12 @@ class PartialFilm:
             raise ValueError(f"film array 'aov' has shape {aov.shape}, not "
                              f"{film.weight.shape + (AOV_CHANNELS,)}")
         film.aov = aov
+        jackknife = arrays.get("jackknife")
+        if jackknife is not None and (jackknife.ndim != 4 or jackknife.shape[:2]
+                                      != film.weight.shape or jackknife.shape[3] != 3):
+            raise ValueError(f"film array 'jackknife' has shape {jackknife.shape}, not "
+                             f"{film.weight.shape + ('J', 3)}")
+        film.jackknife = jackknife
         film.artefact = {name[len("artefact."):]: value
                          for name, value in arrays.items() if name.startswith("artefact.")}
         return film
@@ -294,6 +315,12 @@ class Film(PartialFilm):
                 out = out + spread / (k - 1.0) / paths + scaled * scaled * self.splat_scale_rel_var
             else:
                 out = np.full_like(out, np.inf)
+        if self.jackknife is not None and self.jackknife.shape[2] >= 2:
+            j = self.jackknife.shape[2]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                d = self.jackknife / np.maximum(self.weight, 1e-300)[..., None, None]
+            spread = ((d - d.mean(axis=2, keepdims=True)) ** 2).sum(axis=2)
+            out = out + np.where(n > 0, (j - 1.0) / j * spread, 0.0)
         return out
 
     def image_error(self) -> float:
@@ -323,6 +350,10 @@ class Film(PartialFilm):
             if self.aov is None:
                 self.aov = np.zeros((self.height, self.width, AOV_CHANNELS))
             self.aov[ys, xs] += part.aov
+        if part.jackknife is not None:
+            if self.jackknife is None:
+                self.jackknife = np.zeros((self.height, self.width) + part.jackknife.shape[2:])
+            self.jackknife[ys, xs] += part.jackknife
         if part.splat is not None:
             if self.splat is None:
                 self.splat = np.zeros((self.height, self.width, 3))
@@ -432,7 +463,14 @@ ERROR_PERCENTILE = 95.0
 ERROR_LEVEL = 0.01
 
 
-def image_error(mean: np.ndarray, variance_of_mean: np.ndarray) -> float:
+def error_floor(mean: np.ndarray) -> float:
+    """The brightness below which `image_error` does not count a pixel:
+    ERROR_LEVEL times the image's mean (of the channel averages)."""
+    return ERROR_LEVEL * max(float(np.mean(mean)), 0.0)
+
+
+def image_error(mean: np.ndarray, variance_of_mean: np.ndarray,
+                floor: float | None = None) -> float:
     """One number for how noisy an image is: the 95th percentile over pixels of
     `relative_error`, counting only pixels brighter than 1 % of the image's
     mean (black and near-black pixels have a relative error that means nothing
@@ -440,9 +478,10 @@ def image_error(mean: np.ndarray, variance_of_mean: np.ndarray) -> float:
     mean hides a noisy region behind a clean one; not the maximum: one
     firefly or an edge pixel would decide it. +inf while some counted pixel's
     variance is unknown (fewer than two samples); nan for an image with no
-    counted pixel."""
+    counted pixel. `floor` (default: `error_floor(mean)`) is the brightness a
+    counted pixel exceeds: a region of an image is judged with the image's."""
     level = np.mean(mean, axis=-1)
-    counted = level > ERROR_LEVEL * max(float(level.mean()), 0.0)
+    counted = level > (error_floor(mean) if floor is None else floor)
     if not counted.any():
         return float("nan")
     err = relative_error(mean, variance_of_mean)[counted]

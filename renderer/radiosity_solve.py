@@ -267,9 +267,10 @@ def hemicube_directions(res: int) -> tuple[np.ndarray, np.ndarray]:
     return np.ascontiguousarray(dirs), weight / weight.sum()
 
 
-def form_factor_hits(scene, patches: Patches, options: dict, seed: int):
+def form_factor_hits(scene, patches: Patches, options: dict, seed: int, batches: int = 0):
     """Cast every patch's form-factor rays: (hits (P, n) int32, weight (n,),
-    irradiance from the lights (P, 3), rays traced), with
+    irradiance from the lights (P, 3), its part from each of `batches`
+    jackknife batches of light samples (P, batches, 3), rays traced), with
     F_ij = sum of weight[s] over the rays s of i with hits[i, s] == j."""
     p = len(patches.kind)
     n_light = int(options["ff_rays"])
@@ -280,19 +281,83 @@ def form_factor_hits(scene, patches: Patches, options: dict, seed: int):
         weight = np.full(n_light, 1.0 / n_light)
     hits = np.empty((p, len(weight)), np.int32)
     irradiance = np.zeros((p, 3))
+    irr_batches = np.zeros((p, batches, 3))
     rays = np.zeros(p, np.int64)
     stacks = np.empty((p, STACK_SIZE), np.int64)
     mode = DIRECT_ALL if options["direct"] == "sampled" else DIRECT_POINT
     form_factor_rays(scene.arrays, patches.kind, patches.geo, patches.normal, patches.tri_start,
                      patches.tri_k, patches.cells, patches.sph_start, patches.sph_nz,
-                     patches.sph_nphi, seed, hemicube, n_light, mode, hits, irradiance, rays,
-                     stacks)
-    return hits, weight, irradiance, int(rays.sum())
+                     patches.sph_nphi, seed, hemicube, n_light, mode, hits, irradiance,
+                     irr_batches, rays, stacks)
+    return hits, weight, irradiance, irr_batches, int(rays.sum())
 
 
-def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
+# Jackknife batches of the solution's random numbers (its variance: `solve`).
+JACKKNIFE = 8
+# The replicates' changes are J times the solution's size, and travel to every
+# tile unit: beyond this many bytes they are not made (the var channels then
+# leave out the solution's share, as before they existed; stats say so).
+JACKKNIFE_BYTES = 256 << 20
+
+
+def _solve_system(options: dict, hits, weight, emit, rho, source, offset, area) -> tuple[np.ndarray, int]:
+    """B = source + rho F (B - offset) by the options' solver: (history, iterations)."""
+    tol = float(options["tolerance"])
+    if options["solver"] == "jacobi":
+        history = np.empty((MAX_DEPTH + 1, len(emit), 3))
+        k = solve_jacobi(hits, weight, rho, emit, source, offset, tol, history)
+        return history[:k + 1].copy(), k
+    if options["solver"] == "gauss-seidel":
+        b = emit.copy()
+        iterations = solve_gauss_seidel(hits, weight, rho, source, offset, tol, 100000, b)
+        return np.stack([emit, b]), iterations
+    y = source - offset
+    unshot = y.copy()
+    # the hit lists transposed: who reaches j, with which ray weight
+    src = np.repeat(np.arange(len(emit), dtype=np.int32), hits.shape[1])
+    ray_weight = np.tile(weight, len(emit))
+    dst = hits.ravel()
+    order = np.argsort(dst, kind="stable")
+    order = order[dst[order] >= 0]
+    col_start = np.searchsorted(dst[order], np.arange(len(emit) + 1)).astype(np.int64)
+    iterations = solve_progressive(col_start, np.ascontiguousarray(src[order]),
+                                   np.ascontiguousarray(ray_weight[order]), rho, area,
+                                   tol, 1000 * len(emit) + 1000, y, unshot)
+    return np.stack([emit, y + offset]), iterations
+
+
+def _jackknife(options: dict, hits, weight, emit, rho, irradiance, irr_batches, offset, area,
+               history: np.ndarray) -> np.ndarray:
+    """The delete-a-group jackknife replicates of the solution, as changes
+    (J, K+1, P, 3): replicate b solves the same system without batch b of the
+    random numbers (the Monte Carlo form-factor rays s with s % J == b, and
+    the light samples likewise), the rest reweighted to stay unbiased. Their
+    spread estimates the solution's variance over seeds (integrators/
+    radiosity.py, "Variance"). A hemicube's rays are no random numbers: its
+    replicates drop light samples only."""
+    n_batches = irr_batches.shape[1]
+    n_light = int(options["ff_rays"])
+    out = np.empty((n_batches,) + history.shape)
+    s = np.arange(len(weight))
+    for b in range(n_batches):
+        kept = n_light - len(range(b, n_light, n_batches))
+        irr = (irradiance - irr_batches[:, b]) * (n_light / kept)
+        if options["form_factors"] == "hemicube":
+            w = weight
+        else:
+            w = np.where(s % n_batches == b, 0.0, 1.0 / np.count_nonzero(s % n_batches != b))
+        source = np.ascontiguousarray(emit + rho * irr)
+        rep, _ = _solve_system(options, hits, w, emit, rho, source, offset, area)
+        last = len(rep) - 1
+        for k in range(len(history)):  # a replicate may converge a step sooner or later
+            out[b, k] = rep[min(k, last)] - history[k]
+    return out
+
+
+def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, np.ndarray, dict]:
     """Mesh, cast the form-factor rays and solve: (B(k) history (K+1, P, 3),
-    stats). Not cached (see `solution`)."""
+    its jackknife replicates' changes (J, K+1, P, 3), stats). Not cached (see
+    `solution`)."""
     t0 = time.perf_counter()
     patches = mesh(scene, float(options["patch_size"]) or auto_patch_size(scene))
     n_rays = (3 * int(options["hemicube_res"]) ** 2 if options["form_factors"] == "hemicube"
@@ -301,39 +366,27 @@ def solve(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
         raise SpecError("options", f"{len(patches.kind)} patches x {n_rays} rays per patch "
                                    f"exceeds {MAX_HITS} stored hits: fewer rays or larger patches")
     t1 = time.perf_counter()
-    hits, weight, irradiance, rays = form_factor_hits(scene, patches, options, seed)
+    batches = min(JACKKNIFE, int(options["ff_rays"]))
+    batches = batches if batches >= 2 else 0  # one light sample: no replicate is possible
+    hits, weight, irradiance, irr_batches, rays = form_factor_hits(scene, patches, options, seed,
+                                                                   batches)
     t2 = time.perf_counter()
     emit, rho = patches.emit, patches.rho
     source = np.ascontiguousarray(emit + rho * irradiance)  # E + D
     offset = emit if options["direct"] == "sampled" else np.zeros_like(emit)
-    tol = float(options["tolerance"])
-    if options["solver"] == "jacobi":
-        history = np.empty((MAX_DEPTH + 1, len(emit), 3))
-        k = solve_jacobi(hits, weight, rho, emit, source, offset, tol, history)
-        history = history[:k + 1].copy()
-        iterations = k
-    elif options["solver"] == "gauss-seidel":
-        b = emit.copy()
-        iterations = solve_gauss_seidel(hits, weight, rho, source, offset, tol, 100000, b)
-        history = np.stack([emit, b])
-    else:
-        y = source - offset
-        unshot = y.copy()
-        # the hit lists transposed: who reaches j, with which ray weight
-        src = np.repeat(np.arange(len(emit), dtype=np.int32), hits.shape[1])
-        ray_weight = np.tile(weight, len(emit))
-        dst = hits.ravel()
-        order = np.argsort(dst, kind="stable")
-        order = order[dst[order] >= 0]
-        col_start = np.searchsorted(dst[order], np.arange(len(emit) + 1)).astype(np.int64)
-        iterations = solve_progressive(col_start, np.ascontiguousarray(src[order]),
-                                       np.ascontiguousarray(ray_weight[order]), rho, patches.area,
-                                       tol, 1000 * len(emit) + 1000, y, unshot)
-        history = np.stack([emit, y + offset])
+    history, iterations = _solve_system(options, hits, weight, emit, rho, source, offset,
+                                        patches.area)
     t3 = time.perf_counter()
-    return history, {"patches": len(emit), "rays": rays, "iterations": int(iterations),
-                     "mesh_seconds": t1 - t0, "form_factor_seconds": t2 - t1,
-                     "solve_seconds": t3 - t2}
+    if batches * history.nbytes <= JACKKNIFE_BYTES:
+        deltas = _jackknife(options, hits, weight, emit, rho, irradiance, irr_batches, offset,
+                            patches.area, history)
+    else:
+        deltas = np.zeros((0,) + history.shape)
+    t4 = time.perf_counter()
+    return history, deltas, {"patches": len(emit), "rays": rays, "iterations": int(iterations),
+                             "mesh_seconds": t1 - t0, "form_factor_seconds": t2 - t1,
+                             "solve_seconds": t3 - t2, "jackknife_seconds": t4 - t3,
+                             "jackknife": len(deltas)}
 
 
 # ---------------------------------------------------------------- the cache
@@ -373,33 +426,35 @@ def clear_cache() -> None:
     _SOLUTIONS.clear()
 
 
-def solution(scene, options: dict, seed: int) -> tuple[np.ndarray, dict]:
-    """The solution for (scene, options, seed): from the in-process LRU, the
-    disk cache, or `solve` (then stored in both). stats["cached"] says which."""
+def solution(scene, options: dict, seed: int) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The solution for (scene, options, seed) and its jackknife replicates'
+    changes (`solve`): from the in-process LRU, the disk cache, or `solve`
+    (then stored in both). stats["cached"] says which."""
     key = solution_key(scene, options, seed)
     if key in _SOLUTIONS:
         _SOLUTIONS.move_to_end(key)
-        return _SOLUTIONS[key], {"cached": "memory", "rays": 0}
+        return (*_SOLUTIONS[key], {"cached": "memory", "rays": 0})
     disk = disk_cache()
-    history, stats = None, None
+    both, stats = None, None
     data = disk.get(key) if disk is not None else None
     if data is not None:
         try:
-            history = np.load(io.BytesIO(data), allow_pickle=False)
-            stats = {"cached": "disk", "rays": 0}
-        except (OSError, ValueError):
-            history = None
-    if history is None:
-        history, stats = solve(scene, options, seed)
+            stacked = np.load(io.BytesIO(data), allow_pickle=False)  # history, then replicates
+            both, stats = (stacked[0], stacked[1:]), {"cached": "disk", "rays": 0}
+        except (OSError, ValueError, IndexError):
+            both = None
+    if both is None:
+        history, deltas, stats = solve(scene, options, seed)
+        both = (history, deltas)
         stats["cached"] = "no"
         if disk is not None:  # a full or read-only cache only costs the reuse
             buffer = io.BytesIO()
-            np.save(buffer, history, allow_pickle=False)
+            np.save(buffer, np.concatenate([history[None], deltas]), allow_pickle=False)
             disk.put(key, buffer.getvalue())
-    _SOLUTIONS[key] = history
+    _SOLUTIONS[key] = both
     while len(_SOLUTIONS) > LRU_CAPACITY:
         _SOLUTIONS.popitem(last=False)
-    return history, stats
+    return (*both, stats)
 
 
 def auto_patch_size(scene) -> float:

@@ -119,6 +119,12 @@ class RunningPreviews:
                              self.store.watched_at(job_id, "noise") >= since)
         return frame.watched
 
+    def ever_written(self, job_id: str) -> bool:
+        """Has this job's running preview been written (since this scheduler
+        started, or the frame was last dropped)?"""
+        frame = self._frames.get(job_id)
+        return frame is not None and frame.ever_written
+
     def keep_only(self, job_ids) -> None:
         """Forget the frames of jobs no longer scheduled."""
         for job_id in [j for j in self._frames if j not in job_ids]:

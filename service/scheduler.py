@@ -418,23 +418,37 @@ class Scheduler:
             after = _Advanced(job.status, job.units_total, job.units_done, job.units_open,
                               in_flight)
             width, height, method = job.width, job.height, job.spec.get("method", "")
+            written = None
+            if landed and not self.previews.ever_written(job_id):
+                # The API shows preview_url from the first landed unit on: its
+                # image is written before the commit that lands it, also when
+                # that commit completes the job (whose final images come later,
+                # from the merge). Later previews are written after the commit.
+                written = self._refresh_preview(job_id, width, height, landed)
         for _, film in landed:  # committed: each unit counts once
             self.metrics.unit_done(method, float(film.stats.get("seconds", 0.0)),
                                    int(film.stats.get("samples", 0)), int(film.stats.get("rays", 0)))
         for task_ids in released:  # only once the ledger says done (or failed)
             self.executor.release(task_ids)
-        if not after.complete:  # a complete job's preview comes from the final merge
-            try:
-                written = self.previews.refresh(job_id, width, height, landed)
-                if written is not None:
-                    # Written after the tick's commit: a job deleted in between
-                    # would get its directory back (with the PNGs in it) for good.
-                    self._forget_if_deleted(job_id)
-                    self.previews.publish(job_id, written)
-            except Exception:  # a preview is a courtesy; never stop the job for it
-                log.exception("preview of job %s failed", job_id)
-                self.previews.drop(job_id)
+        if written is None and not after.complete:  # a complete job's comes from the merge
+            written = self._refresh_preview(job_id, width, height, landed)
+        if written is not None:
+            # Written around the tick's commit: a job deleted meanwhile would
+            # get its directory back (with the PNGs in it) for good.
+            self._forget_if_deleted(job_id)
+            self.previews.publish(job_id, written)
         return after
+
+    def _refresh_preview(self, job_id: str, width: int, height: int,
+                         landed: list[tuple[int, PartialFilm]]) -> int | None:
+        """`RunningPreviews.refresh`, never raising: a preview is a courtesy,
+        it never stops a job."""
+        try:
+            return self.previews.refresh(job_id, width, height, landed)
+        except Exception:
+            log.exception("preview of job %s failed", job_id)
+            self.previews.drop(job_id)
+            return None
 
     def _dispatch(self, census: _Census) -> None:
         """Fill the executor's free slots by fair share (module doc, step 3).

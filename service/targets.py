@@ -166,7 +166,7 @@ class TargetJobs:
         job.units_done += len(skip)
         job.units_skipped = (job.units_skipped or 0) + len(skip)
         job.units_open = job.units_total if stop else job.units_open + len(next_pass)
-        job.rel_error = error
+        job.rel_error = error if math.isfinite(error) else None  # inf: a pixel of 1 sample
         job.target_stop = stop
         active = sum((u.unit["x1"] - u.unit["x0"]) * (u.unit["y1"] - u.unit["y0"]) for u in run)
         job.pass_log = [*(job.pass_log or []), {

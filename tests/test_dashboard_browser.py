@@ -641,11 +641,7 @@ def test18_a_denoised_job_toggles_between_its_raw_and_denoised_image(page):
     with api(page.base) as client:
         plain = client.post("/jobs", json=body).json()
         job = client.post("/jobs", json=dict(body, denoise=True)).json()
-        # Both done before their pages open. A job page opened while a job's
-        # units have all landed but its final merge has not written the images
-        # yet asks for a preview.png that is not there (a 404 in the console):
-        # the API says preview_url from the first landed unit, and the preview
-        # is written after that commit. Not this test's subject.
+        # Both done before their pages open: the toggle is the subject here.
         for job_id in (plain["id"], job["id"]):
             assert poll_job(lambda path: client.get(path).json(), job_id)["status"] == "done"
     page.goto(f"{page.base}/#/jobs/{job['id']}")
@@ -664,3 +660,34 @@ def test18_a_denoised_job_toggles_between_its_raw_and_denoised_image(page):
     page.wait_for_selector("[data-view='noise']")
     assert page.query_selector("[data-view='denoised']") is None
     assert page.query_selector("#download-denoised") is None
+
+
+def test19_a_job_submitted_to_a_noise_target_speaks_in_error(page):
+    """The form's noise target (%) sends `target`; the job page's progress label
+    and rows speak in error ("error 24.1 % -> 25 %"), say why it stopped and
+    how many units were skipped, and the units table filters the skipped ones."""
+    page.goto(f"{page.base}/#/submit")
+    page.wait_for_selector("#f-method option[value='path-mis']", state="attached")
+    page.wait_for_selector("#f-scene option[value='cornell-box']", state="attached")
+    page.select_option("#f-method", "path-mis")
+    for name, value in (("spp", "1024"), ("depth", "5"), ("width", "32"), ("height", "32"),
+                        ("tile_size", "8"), ("seed", "3"), ("target", "25")):
+        page.fill(f"#f-{name}", value)
+    page.click("#submit-button")
+    page.wait_for_url("**/#/jobs/*")
+    job_id = page.url.rsplit("/", 1)[1]
+    page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=180_000)
+    with api(page.base) as client:
+        job = client.get(f"/jobs/{job_id}").json()
+    assert job["target"] == {"rel_error": 0.25, "max_spp": 1024, "max_seconds": None}
+    assert job["target_stop"] == "target"
+    label = page.text_content("#view .progress.big .label")
+    assert label.startswith("error ") and label.endswith("→ 25 %"), label
+    assert page.text_content("#target-stop") == "target met"
+    assert f"{job['progress']['units_skipped']} skipped" in page.text_content("#units")
+    assert page.text_content("#param-target") == "25 %"
+    page.click("[data-units='skipped']")
+    states = page.eval_on_selector_all("#units-table tbody tr td .badge",
+                                       "els => els.map(e => e.dataset.state)")
+    assert states and set(states) == {"skipped"}
+    shot(page, "19-job-noise-target")

@@ -13,11 +13,15 @@ to 8-35 for every method (checked when this test was written). MLT's error
 shared by every pixel (the bootstrap's b) is tested on its own in
 test_renderer_mlt test16.
 
-Radiosity's var channels describe its display pass only: the form-factor
-rays' noise is frozen into the solution, which depends on the seed, and is
-not in them (measured here: the spread is 1.5x the prediction, z about 4).
-Not tested here until the solution's variance is carried (an xfail that
-passes at Z would be a test that cannot fail).
+Radiosity's solution is shared by every pixel; its share of the variance
+comes from the solution's jackknife replicates (film.py, "Shared
+estimates"). Without it the spread was 1.5x the prediction (z about 4);
+with it, and each replicate's form-factor directions stratified on their
+own, the ratio is 0.98 flat, 1.02 smooth, 0.98 with the progressive solver
+(measured when written). With `direct=formfactor` the light arrives through
+rare form-factor hits of the lamp: the per-pixel spread over 8 seeds is
+then skewed (median ratio 0.72) though the prediction is right on average
+(ratio of sums 0.97 over 32 seeds), so that option is not held to this test.
 """
 
 from __future__ import annotations
@@ -39,15 +43,18 @@ def cornell():
 
 def _spread_z(scene, method: str, sampler: str) -> tuple[float, float]:
     """(z of observed minus predicted per-pixel variance, observed / predicted)."""
-    values, predicted = [], []
-    for k in range(SEEDS):
-        spec = RenderSpec(method=method, spp=16, depth=3, width=32, height=32, tile_size=32,
-                          seed=500 + k, sampler=sampler)
-        film = render_serial(scene, spec)
-        values.append(film.mean()[..., 1])
-        predicted.append(film.variance_of_mean()[..., 1])
-    values, predicted = np.array(values), np.array(predicted)
-    assert np.all(np.isfinite(predicted)), method
+    films = [render_serial(scene, RenderSpec(method=method, spp=16, depth=3, width=32,
+                                             height=32, tile_size=32, seed=500 + k,
+                                             sampler=sampler))
+             for k in range(SEEDS)]
+    return _films_spread_z(films)
+
+
+def _films_spread_z(films) -> tuple[float, float]:
+    """`_spread_z` of 32 x 32 films rendered with different seeds."""
+    values = np.array([film.mean()[..., 1] for film in films])
+    predicted = np.array([film.variance_of_mean()[..., 1] for film in films])
+    assert np.all(np.isfinite(predicted))
     observed, expected = values.var(axis=0, ddof=1), predicted.mean(axis=0)
     ratio = np.where(expected > 0, observed / np.maximum(expected, 1e-300), 1.0)
     blocks = ratio.reshape(8, 4, 8, 4).mean(axis=(1, 3)).ravel()
@@ -55,12 +62,7 @@ def _spread_z(scene, method: str, sampler: str) -> tuple[float, float]:
     return float(z), float(blocks.mean())
 
 
-@pytest.mark.parametrize("method", [
-    pytest.param(name, marks=pytest.mark.skip(
-        reason="radiosity's var channels leave out the solution's form-factor noise "
-               "(spread 1.5x the prediction): see the module doc")) if name == "radiosity"
-    else name
-    for name in METHOD_NAMES])
+@pytest.mark.parametrize("method", METHOD_NAMES)
 def test01_var_channels_predict_the_spread_over_seeds(cornell, method):
     """With the independent `random` sampler the spread matches the prediction."""
     z, ratio = _spread_z(cornell, method, "random")
@@ -73,3 +75,24 @@ def test02_var_channels_bound_the_spread_of_a_stratified_sampler(cornell, method
     prediction: the iid formula of the var channels is an upper bound there."""
     z, ratio = _spread_z(cornell, method, RenderSpec().sampler)
     assert z <= Z, (method, z, ratio)
+
+
+def test03_var_channels_predict_the_spread_of_a_render_to_a_noise_target():
+    """An adaptive render (renderer/target.py: a tile stops when its own error
+    statistic, read from the var channels, meets the target) keeps the
+    contract: stopping on the estimate does not make it optimistic. Measured
+    when written: ratio 1.01 (z 0.8) at 8 seeds, 1.003 (z 0.3) at 24."""
+    from renderer import LocalPool
+    from renderer.target import Target, render_to_target
+
+    films = []
+    with LocalPool(2) as pool:
+        for k in range(SEEDS):
+            spec = RenderSpec(method="path-mis", depth=3, width=32, height=32, tile_size=8,
+                              seed=500 + k, sampler="random")
+            film, report = render_to_target("cornell-box", spec, Target(0.25, 4096), pool=pool)
+            assert report.stopped == "target" and report.units_skipped > 0
+            films.append(film)
+    assert len({float(f.weight.mean()) for f in films}) > 1, "the seeds stopped alike"
+    z, ratio = _films_spread_z(films)
+    assert abs(z) <= Z, (z, ratio)

@@ -129,3 +129,39 @@ def test05_marking_a_job_watched_never_makes_its_directory(tmp_path):
     store = Store(tmp_path)
     store.mark_watched(JOB, "noise")
     assert not store.job_dir(JOB).exists() and store.watched_at(JOB, "noise") == float("-inf")
+
+
+def test06_a_job_that_lands_whole_in_one_tick_has_its_preview_before_its_merge(tmp_path,
+                                                                                monkeypatch):
+    """The API shows preview_url from the first landed unit on. A job whose
+    units all land in one tick is complete at once, and its final merge
+    (which may take long: a big frame, a denoise) writes the final images
+    only later: the first preview must be there when the landing commits."""
+    from fake_executor import FakeExecutor
+    from service import jobs, scheduler as scheduler_module
+    from service.access import Principal
+    from service.db import open_ledger
+    from service.models import utcnow
+    from service.scheduler import Scheduler
+    from service.schemas import JobCreate
+    from service.settings import Settings
+
+    settings = Settings(data_dir=tmp_path / "data", broker_url="", database_url="")
+    engine, sessions = open_ledger(settings)
+    store = Store(settings.data_dir)
+    executor = FakeExecutor(slots=8)
+    scheduler = Scheduler(settings, sessions, store, executor)
+    with sessions.begin() as session:
+        job_id = jobs.create_job(session, store, settings, Principal("admin", "admin"), JobCreate(
+            scene="cornell-box", method="path", spp=4, depth=1, width=16, height=16,
+            tile_size=8, progressive=False), utcnow()).id
+    scheduler.tick()  # planned, its 4 units in flight
+    for ticket in executor.submitted:
+        executor.finish(job_id, ticket.index)
+    seen = []
+    write_result = scheduler_module.write_result
+    monkeypatch.setattr(scheduler_module, "write_result", lambda store_, job, *a, **k: (
+        seen.append(store_.preview_path(job).is_file()), write_result(store_, job, *a, **k))[1])
+    scheduler.tick()  # all four land: complete, merged
+    assert seen == [True]
+    engine.dispose()

@@ -31,10 +31,10 @@ def test01_the_tables_are_exactly_these():
         "paused": {"queued", "running", "failed", "canceled"},
         "done": {"queued"}, "failed": {"queued", "running"}, "canceled": {"queued"}}
     assert {k: set(v) for k, v in states.UNIT_TRANSITIONS.items()} == {
-        "pending": {"queued", "canceled"},
+        "pending": {"queued", "canceled", "skipped"},  # skipped: a target job's (targets.py)
         "queued": {"queued", "running", "done", "failed", "canceled"},
         "running": {"queued", "done", "failed", "canceled"},
-        "done": set(), "failed": {"pending"}, "canceled": {"pending"}}
+        "done": set(), "skipped": set(), "failed": {"pending"}, "canceled": {"pending"}}
 
 
 @pytest.mark.parametrize("old,new", list(itertools.product(states.JOB_STATUSES, repeat=2)))

@@ -75,6 +75,22 @@ rays (their noise is frozen into the solution, the same for every pixel):
 radiosity is consistent only as patch_size -> 0 and ff_rays -> inf. The
 measured bias on cornell-box is in docs/radiosity.md.
 
+Variance. The var channels hold both parts of a pixel's error over seeds:
+the display samples' (film position, final gather), from their spread, and
+the solution's, which every pixel shares and no spread of samples can see.
+The solve also solves J = 8 delete-a-group jackknife replicates (each
+without one batch of the form-factor rays and light samples, s % 8 == b,
+the rest reweighted), and a tile sums, per pixel, each sample's change under
+each replicate (the value is linear in B, so the change is the value read
+from the replicate's changes of B); film.py turns those sums into the
+jackknife variance (module doc, "Shared estimates"). Measured when written
+(8 seeds, cornell-box 32 x 32, tests/test_renderer_variance.py): without the
+solution's share the spread was 1.5 times the var channels' prediction. The
+jackknife costs 8 more solves (not more rays) and J x 3 sums per pixel. The
+form-factor directions are stratified, which the jackknife (made for
+independent draws) cannot credit: where the form factors dominate, it may
+overstate the variance.
+
 Farm plan: unit 0 (kind "solve", a 0x0 region, 0 samples) meshes, casts the
 form-factor rays and solves; its film carries the solution as the artefact
 `radiosity` (B(k), k = 0..min(K, depth), shape (k + 1, P, 3) float64).
@@ -170,9 +186,12 @@ def _patch_uv(geo, p, hx, hy, hz):
 def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key, depth,
                  gather, smp, seed, pixel, index, spp, memo):
     """Radiance arriving at o from -d through the patch solution: (r, g, b,
-    rays) and the sample's AOVs as path.li_path gives them (albedo and normal
+    rays), the sample's AOVs as path.li_path gives them (albedo and normal
     of the first diffuse or glossy hit through mirrors and glass, distance to
-    the first hit)."""
+    the first hit), and where it read the solution, for the jackknife
+    (`_jackknife_sample`): the B(k) index, the patch (-1: nowhere), whether
+    at its vertices (smooth), the weights of its value (flat: 1/pi and 0, 0;
+    smooth: its three vertices') and the RGB throughput they were read with."""
     k_last = hist.shape[0] - 1
     br, bg, bb = 1.0, 1.0, 1.0
     lr, lg, lb = 0.0, 0.0, 0.0
@@ -182,6 +201,7 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
     inv_pi = 1.0 / np.pi
     aov_set = False
     alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    look_k, look_p, look_smooth, wa, wb, wc = 0, -1, False, 0.0, 0.0, 0.0
     for bounce in range(depth + 1):
         t, prim = intersect_arrays(nodes, info, prims, tri, sph, stack, ox, oy, oz, dx, dy, dz,
                                    np.inf, False)
@@ -207,6 +227,7 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                 break  # one-sided: the back of a patch is black
             if gather == 0 or left == 0:
                 k = min(left, k_last)
+                look_k, look_p = k, p
                 if vert_b.shape[1] > 0 and patch_vert[p, 0] >= 0:  # smooth: Gouraud
                     u, v = _patch_uv(pt.geo, p, hx, hy, hz)
                     w0 = (1.0 - u - v) * inv_pi
@@ -215,10 +236,12 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                     lr += br * (w0 * vert_b[k, a, 0] + u * vert_b[k, b, 0] + v * vert_b[k, c, 0])
                     lg += bg * (w0 * vert_b[k, a, 1] + u * vert_b[k, b, 1] + v * vert_b[k, c, 1])
                     lb += bb * (w0 * vert_b[k, a, 2] + u * vert_b[k, b, 2] + v * vert_b[k, c, 2])
+                    wa, wb, wc, look_smooth = w0, u, v, True
                 else:
                     lr += br * hist[k, p, 0] * inv_pi
                     lg += bg * hist[k, p, 1] * inv_pi
                     lb += bb * hist[k, p, 2] * inv_pi
+                    wa = inv_pi
                 break
             # final gather at x: emission, light sampling, one ray into the solution
             lr += br * pt.emit[p, 0] * inv_pi
@@ -270,6 +293,7 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
                         lr += br * er * inv_pi
                         lg += bg * eg * inv_pi
                         lb += bb * eb * inv_pi
+                        look_k, look_p, wa = k, q, inv_pi  # flat lookup (E cancels in changes)
                     break
                 if g == depth:
                     break
@@ -310,21 +334,51 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
         else:
             break
-    return lr, lg, lb, rays, alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t
+    return (lr, lg, lb, rays, alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t,
+            look_k, look_p, look_smooth, wa, wb, wc, br, bg, bb)
+
+
+@kernel_inline
+def _jackknife_sample(jk_hist, jk_vert, patch_vert, smooth, k, p, wa, wb, wc, tr, tg, tb, out):
+    """Add to out (J, 3) the sample's change under each jackknife replicate
+    of the solution: the value it read, with the replicate's changes of B in
+    place of B (the value is linear in B; li_radiosity says where it read)."""
+    if p < 0:
+        return
+    for j in range(jk_hist.shape[0]):
+        for c in range(3):
+            t = tr if c == 0 else (tg if c == 1 else tb)
+            if smooth:
+                d = (wa * jk_vert[j, k, patch_vert[p, 0], c] + wb * jk_vert[j, k, patch_vert[p, 1], c]
+                     + wc * jk_vert[j, k, patch_vert[p, 2], c])
+            else:
+                d = wa * jk_hist[j, k, p, c]
+            out[j, c] += t * d
+
+
+@kernel_inline
+def _jackknife_fold(scratch, into):
+    """scratch[into] += scratch[0]; scratch[0] = 0: a block's sums into its
+    pixel's (the block fold of kernels/tile.py)."""
+    for j in range(scratch.shape[1]):
+        for c in range(3):
+            scratch[into, j, c] += scratch[0, j, c]
+            scratch[0, j, c] = 0.0
 
 
 @kernel_parallel
-def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, height, blocks,
-                  seed, depth, smp, spp, gather, out_sum, out_sq, out_w, out_aov, row_rays, stacks,
-                  memos, aov_rows):
+def _display_tile(sc, pt, hist, vert_b, patch_vert, jk_hist, jk_vert, cam, x0, y0, x1, y1,
+                  width, height, blocks, seed, depth, smp, spp, gather, out_sum, out_sq, out_w,
+                  out_aov, out_jk, row_rays, stacks, memos, aov_rows, jk_rows):
     """The tile loop (integrators/tile.py) over `li_radiosity`, with the AOVs'
-    fold beside the radiance's; rows in parallel."""
+    and the jackknife changes' folds beside the radiance's; rows in parallel."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     n = n_samples(blocks)
     for row in prange(y1 - y0):
         stack = stacks[row]
         memo = memos[row]
         scr = aov_rows[row]
+        jk = jk_rows[row]  # [0] the block's sums, [1] the pixel's (module doc of film.py)
         y = y0 + row
         rays = 0
         for x in range(x0, x1):
@@ -336,17 +390,25 @@ def _display_tile(sc, pt, hist, vert_b, patch_vert, cam, x0, y0, x1, y1, width, 
                     key = sample_key(seed, pixel, s)
                     fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-                    r, g, b, nr, alr, alg, alb, anx, any_, anz, dist = li_radiosity(
+                    (r, g, b, nr, alr, alg, alb, anx, any_, anz, dist, lk, lp, lsm, wa, wb,
+                     wc, thr, thg, thb) = li_radiosity(
                         sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key,
                         depth, gather, smp, seed, pixel, s, spp, memo)
                     rays += nr
                     sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
                     add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
+                    _jackknife_sample(jk_hist, jk_vert, patch_vert, lsm, lk, lp, wa, wb, wc,
+                                      thr, thg, thb, jk[0])
                 ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
                                                    sr, sg, sb, tr, tg, tb)
                 add_aov_block(scr)
+                _jackknife_fold(jk, 1)
             store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n)
             store_aov(out_aov, row, x - x0, scr)
+            for j in range(jk.shape[1]):
+                for c in range(3):
+                    out_jk[row, x - x0, j, c] = jk[1, j, c]
+                    jk[1, j, c] = 0.0
         row_rays[row] = rays
 
 
@@ -426,34 +488,44 @@ def resolve_options(options: dict, scene) -> dict:
 def run_radiosity(scene, spec, unit, inputs, options) -> PartialFilm:
     options = resolve_options(options, scene)
     if unit.kind == "solve":
-        history, stats = solution(scene, options, spec.seed)
+        history, deltas, stats = solution(scene, options, spec.seed)
         film = PartialFilm.zeros(0, 0, 0, 0)
         # the tiles read B(k) for k <= depth only: ship no more (the cache keeps all)
-        film.artefact = {"radiosity": np.ascontiguousarray(history[:spec.depth + 1])}
+        film.artefact = {"radiosity": np.ascontiguousarray(history[:spec.depth + 1]),
+                         "jackknife": np.ascontiguousarray(deltas[:, :spec.depth + 1])}
         film.stats.update(stats)
         film.stats["samples"] = 0
         return film
     if unit.needs:
-        history = inputs[unit.needs[0]].artefact["radiosity"]
+        artefact = inputs[unit.needs[0]].artefact
+        history, deltas = artefact["radiosity"], artefact["jackknife"]
     else:  # a tile from the plain tile plan: fetch (or solve) the solution here
-        history = solution(scene, options, spec.seed)[0]
-    history = np.ascontiguousarray(history)
+        history, deltas, _ = solution(scene, options, spec.seed)
+    history, deltas = np.ascontiguousarray(history), np.ascontiguousarray(deltas)
     patches = mesh(scene, options["patch_size"])
     if history.shape[1] != len(patches.kind):
         raise ValueError(f"radiosity solution has {history.shape[1]} patches, the mesh "
                          f"{len(patches.kind)}")
     t = start_tile(scene, spec, unit, aov=True)
+    j = deltas.shape[0]
     if options["display"] == "smooth":
         patch_vert, n_vert = welded_vertices(scene, options["patch_size"])
         vert_b = vertex_radiosity(history, patches.area, patch_vert, n_vert)
+        # linear in B: a replicate's vertex changes are its patch changes' means
+        vert_d = np.stack([vertex_radiosity(d, patches.area, patch_vert, n_vert)
+                           for d in deltas]) if j else np.zeros((0,) + vert_b.shape)
     else:
         patch_vert, vert_b = np.zeros((0, 3), np.int32), np.zeros((history.shape[0], 0, 3))
-    _display_tile(scene.arrays, patches, history, vert_b, patch_vert, t.cam, unit.x0, unit.y0,
-                  unit.x1, unit.y1, spec.width, spec.height, t.blocks, spec.seed, spec.depth,
-                  SAMPLERS[spec.sampler].id, spec.spp,
+        vert_d = np.zeros((j,) + vert_b.shape)
+    h, w = unit.y1 - unit.y0, unit.x1 - unit.x0
+    t.film.jackknife = np.zeros((h, w, j, 3)) if j else None
+    _display_tile(scene.arrays, patches, history, vert_b, patch_vert, deltas, vert_d, t.cam,
+                  unit.x0, unit.y0, unit.x1, unit.y1, spec.width, spec.height, t.blocks,
+                  spec.seed, spec.depth, SAMPLERS[spec.sampler].id, spec.spp,
                   1 if options["final_gather"] == "on" else 0,
-                  t.film.sum, t.film.sum_sq, t.film.weight, t.film.aov, t.row_rays, t.stacks,
-                  t.memos, t.aov_rows)
+                  t.film.sum, t.film.sum_sq, t.film.weight, t.film.aov,
+                  t.film.jackknife if j else np.zeros((h, w, 0, 3)), t.row_rays, t.stacks,
+                  t.memos, t.aov_rows, np.zeros((h, 2, j, 3)))
     return t.finish(unit)
 
 

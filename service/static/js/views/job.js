@@ -6,7 +6,7 @@
 import { ApiError, api, stream } from "../api.js";
 import { may, readOnlyReason } from "../session.js";
 import { FINAL, badge, fmt, h, progressBar, replace, toast } from "../ui.js";
-import { elapsedNow, etaNow, progressLabel } from "./jobs.js";
+import { elapsedNow, errorText, etaNow, progressFraction, progressLabel } from "./jobs.js";
 
 const WORKER_COLORS = ["#4aa3ff", "#ffb547", "#3ecf8e", "#ff7ab6", "#b48cff", "#5ee0e6", "#ff8f5c",
   "#c3e86b", "#ffd966", "#8fa8ff"];
@@ -16,7 +16,8 @@ function tileState(units) {
   const states = units.map((u) => u.state);
   if (states.includes("running")) return "running";
   if (states.includes("failed")) return "failed";
-  if (states.every((s) => s === "done")) return "done";
+  // skipped: a target job's tile met its target before that pass (finished, no samples)
+  if (states.every((s) => s === "done" || s === "skipped")) return "done";
   if (states.includes("done")) return "partial";
   if (states.includes("queued")) return "queued";
   if (states.includes("canceled")) return "canceled";
@@ -265,7 +266,7 @@ export function jobView(root, jobId) {
       const [x0, y0, x1, y1] = key.split(",").map(Number);
       group.sort((a, b) => a.region.pass - b.region.pass);
       const state = tileState(group);
-      const done = group.filter((u) => u.state === "done").length;
+      const done = group.filter((u) => u.state === "done" || u.state === "skipped").length;
       const workers = [...new Set(group.map((u) => u.worker).filter(Boolean))];
       const current = group.find((u) => u.state === "running") || [...group].reverse().find((u) => u.worker);
       const tile = h(`div.tile.t-${state}`, {
@@ -297,11 +298,20 @@ export function jobView(root, jobId) {
   function renderProgress() {
     const p = job.progress;
     replace(progressBox,
-      progressBar(p.fraction, progressLabel(job), job.status, true),
+      progressBar(progressFraction(job), progressLabel(job), job.status, true),
       h("div", { style: { height: "10px" } }),
       kv([
-        ["samples", `${p.samples_done.toLocaleString()} / ${p.samples_total.toLocaleString()}`, "samples"],
-        ["units", `${p.units_done} / ${p.units_total}`, "units"],
+        ...(job.target ? [
+          ["error", `${errorText(p.rel_error)} → ${errorText(p.target_rel_error)}`
+            + ` after ${(job.passes || []).length} passes`, "target-error"],
+          ["stopped", job.target_stop ? { target: "target met", max_spp: "at the most spp",
+            max_seconds: "time budget spent" }[job.target_stop] : "–", "target-stop"],
+          ["samples", `${p.samples_done.toLocaleString()} (at most ${p.samples_total.toLocaleString()})`, "samples"],
+          ["units", `${p.units_done} / ${p.units_total} · ${p.units_skipped} skipped`, "units"],
+        ] : [
+          ["samples", `${p.samples_done.toLocaleString()} / ${p.samples_total.toLocaleString()}`, "samples"],
+          ["units", `${p.units_done} / ${p.units_total}`, "units"],
+        ]),
         ["elapsed", fmt.duration(elapsedNow(job)), "elapsed"],
         ["ETA", job.status === "running" ? fmt.duration(etaNow(job)) : job.status === "done" ? "finished" : "–", "eta"],
         ["submitted", fmt.time(job.created)],
@@ -320,7 +330,7 @@ export function jobView(root, jobId) {
       if (!phases.has(u.kind)) phases.set(u.kind, { done: 0, total: 0, running: 0 });
       const p = phases.get(u.kind);
       p.total += 1;
-      if (u.state === "done") p.done += 1;
+      if (u.state === "done" || u.state === "skipped") p.done += 1;
       if (u.state === "running") p.running += 1;
     }
     if (phases.size < 2) return null;
@@ -352,12 +362,16 @@ export function jobView(root, jobId) {
       ["method", job.method],
       ...options.map(([k, v]) => [`  ${k}`, String(v)]),
       ["sampler", job.sampler],
-      ["spp", job.spp],
+      ["spp", job.target ? `at most ${job.spp}` : job.spp],
+      ...(job.target ? [["noise target", `${errorText(job.target.rel_error)}`
+        + (job.target.max_seconds ? `, at most ${fmt.duration(job.target.max_seconds)}` : ""),
+        "param-target"]] : []),
       ["depth", job.depth],
       ["resolution", `${job.width} × ${job.height}`],
       ["tile size", job.tile_size],
       ["seed", job.seed],
-      ["passes", job.progressive ? "progressive (doubling, up to 64 spp a pass)" : "one"],
+      ["passes", job.target ? "one per sample block (1, 1, 2, 4 … 64 spp), tile by tile until the target"
+        : job.progressive ? "progressive (doubling, up to 64 spp a pass)" : "one"],
       ["denoise", job.denoise ? "after the merge (biased; raw kept)" : "no"],
       ["priority", job.priority],
     ]));
@@ -398,7 +412,7 @@ export function jobView(root, jobId) {
   function renderUnits() {
     const counts = {};
     for (const u of units.values()) counts[u.state] = (counts[u.state] || 0) + 1;
-    replace(unitsHead, h("div.tabs", {}, ["all", "running", "queued", "pending", "done", "failed", "canceled"]
+    replace(unitsHead, h("div.tabs", {}, ["all", "running", "queued", "pending", "done", "skipped", "failed", "canceled"]
       .filter((s) => s === "all" || counts[s]).map((s) => h(`button${s === unitFilter ? ".active" : ""}`,
         { onclick: () => { unitFilter = s; renderUnits(); }, "data-units": s },
         s, h("span.count", {}, s === "all" ? units.size : counts[s])))));
@@ -459,7 +473,8 @@ export function jobView(root, jobId) {
     replace(title, job.id);
     replace(status, badge(job.status));
     replace(owner, h("span.muted", {}, "by "), h("span.owner", {}, job.owner));
-    replace(summary, `${job.scene} · ${job.method} · ${job.sampler} · ${job.spp} spp · depth ${job.depth}`);
+    const goal = job.target ? `to ${errorText(job.target.rel_error)} error (≤ ${job.spp} spp)` : `${job.spp} spp`;
+    replace(summary, `${job.scene} · ${job.method} · ${job.sampler} · ${goal} · depth ${job.depth}`);
     document.title = `${job.id} · ${job.status} · rayfarm`;
     sizeStage();
     renderActions(); renderProgress(); renderStats(); renderParams(); renderDownloads();

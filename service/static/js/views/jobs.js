@@ -22,10 +22,27 @@ export function etaNow(job) {
   return Math.max(eta - (Date.now() - job._received) / 1000, 0);
 }
 
+// A relative error as a percentage: 0.0183 -> "1.83 %"; unknown -> "?".
+export function errorText(e) {
+  return e === null || e === undefined ? "?" : `${+(100 * e).toPrecision(3)} %`;
+}
+
 export function progressLabel(job) {
   const p = job.progress;
   if (!p.units_total) return job.status === "queued" ? "waiting" : "–";
+  if (job.target) return `error ${errorText(p.rel_error)} → ${errorText(p.target_rel_error)}`;
   return `${fmt.percent(p.fraction)} · ${fmt.count(p.samples_done)}/${fmt.count(p.samples_total)}`;
+}
+
+// How far along the bar is: the samples' fraction, or for a job rendering to
+// a noise target the work its error says is done, (target / error)^2 (error
+// falls as 1/sqrt(samples)).
+export function progressFraction(job) {
+  const p = job.progress;
+  if (!job.target) return p.fraction;
+  if (job.status === "done") return 1;
+  if (p.rel_error === null || p.rel_error === undefined) return 0;
+  return Math.min((p.target_rel_error / p.rel_error) ** 2, 1);
 }
 
 export function jobsView(root) {
@@ -68,7 +85,7 @@ export function jobsView(root) {
       h("td.num", {}, job.depth),
       h("td.num", {}, job.priority),
       h("td", {}, badge(job.status)),
-      h("td", {}, progressBar(job.progress.fraction, progressLabel(job), job.status)),
+      h("td", {}, progressBar(progressFraction(job), progressLabel(job), job.status)),
       h("td.num.elapsed", {}, fmt.duration(elapsedNow(job))),
       h("td.num.eta", {}, job.status === "running" ? fmt.duration(etaNow(job)) : "–"),
       h("td", { title: job.created }, fmt.time(job.created)));

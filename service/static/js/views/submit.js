@@ -50,6 +50,9 @@ export function submitView(root) {
     [name, h(`input#f-${name}`, { type: "number", name, value, step: 1 })]));
   const progressive = h("input#f-progressive", { type: "checkbox", checked: true });
   const denoise = h("input#f-denoise", { type: "checkbox" });
+  // A noise target in percent (blank: a fixed spp); spp is then the ceiling.
+  const target = h("input#f-target", { type: "number", name: "target", step: "any", min: 0,
+    placeholder: "blank: render exactly spp" });
   const submit = h("button.primary#submit-button", { type: "submit" }, "Submit job");
 
   replace(form, h("div.submit-layout", {},
@@ -68,7 +71,10 @@ export function submitView(root) {
         field("progressive", "Passes", h("label.check", {}, progressive,
           "progressive: passes that double up to 64 spp each, the preview sharpens while it runs")),
         field("denoise", "Denoise", h("label.check", {}, denoise,
-          "also denoise the finished frame (Open Image Denoise; biased, the raw image is kept)")))),
+          "also denoise the finished frame (Open Image Denoise; biased, the raw image is kept)")),
+        field("target", "Noise target (%)", target,
+          "stop when 95 % of the lit pixels have a relative standard error below this; spp is "
+          + "then the most per pixel (tile methods only)"))),
       h("div.actions", {}, submit, h("span.muted", {}, "The service checks every field.")))));
   if (!may.submit()) {
     for (const control of [submit, uploadButton, upload]) {
@@ -222,6 +228,8 @@ export function submitView(root) {
       if (raw !== "") body[name] = Number(raw);
       else if (numbers[name].validity.badInput) body[name] = numbers[name].value; // let the API say why
     }
+    const percent = target.value.trim();
+    if (percent !== "") body.target = { rel_error: Number(percent) / 100 };
     for (const control of optionsBox.querySelectorAll("[data-option]")) {
       const name = control.dataset.option;
       if (control.type === "checkbox") body.options[name] = control.checked;
