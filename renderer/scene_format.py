@@ -295,7 +295,7 @@ def _read_mesh_file(path: Path, loc: str) -> tuple[list, list]:
         raise SceneError("mesh file too large", loc)
     if path.suffix.lower() != ".obj":
         raise SceneError(f"unsupported mesh file type '{path.suffix}' (allowed: .obj)", loc)
-    vertices, faces = [], []
+    vertices, faces, face_lines = [], [], []
     with path.open("r", errors="replace") as fh:
         for lineno, line in enumerate(fh, 1):
             parts = line.split()
@@ -305,15 +305,24 @@ def _read_mesh_file(path: Path, loc: str) -> tuple[list, list]:
                 if parts[0] == "v":
                     vertices.append([float(x) for x in parts[1:4]])
                 elif parts[0] == "f":
-                    idx = []
+                    idx, raw = [], []
                     for p in parts[1:]:
-                        i = int(p.split("/")[0])
+                        raw.append(p.split("/")[0])
+                        i = int(raw[-1])
                         idx.append(i - 1 if i > 0 else len(vertices) + i)
                     for k in range(1, len(idx) - 1):
                         faces.append([idx[0], idx[k], idx[k + 1]])
+                        face_lines.append((lineno, [raw[0], raw[k], raw[k + 1]]))
             except (ValueError, IndexError):
                 raise SceneError(f"cannot parse line {lineno} of {path.name}: {line.strip()[:60]}",
                                  loc) from None
+    # Checked here, where the file and line are known (a positive index may
+    # name a vertex defined further down, so only once the file is read).
+    for face, (lineno, raw) in zip(faces, face_lines):
+        bad = [r for i, r in zip(face, raw) if not 0 <= i < len(vertices)]
+        if bad:
+            raise SceneError(f"line {lineno} of {path.name}: face vertex index {bad[0]} is out "
+                             f"of range (the file has {len(vertices)} vertices)", loc)
     return vertices, faces
 
 

@@ -365,9 +365,11 @@ class RayfarmClient:
     def job(self, job_id: str) -> dict:
         return self._json("GET", f"/jobs/{job_id}")
 
-    def jobs(self, status: str | None = None, limit: int = 100, offset: int = 0) -> list[dict]:
-        """Jobs, newest first."""
-        params: dict[str, Any] = {"limit": limit, "offset": offset}
+    def jobs(self, status: str | None = None, limit: int = 100, offset: int = 0,
+             **filters: str) -> list[dict]:
+        """Jobs, newest first; `status` and the filters `method`, `scene`,
+        `sampler`, `owner` narrow them (an unknown filter is `Invalid`)."""
+        params: dict[str, Any] = {"limit": limit, "offset": offset, **filters}
         if status is not None:
             params["status"] = status
         return self._json("GET", "/jobs", params=params)

@@ -297,7 +297,9 @@ def _fetch(args: argparse.Namespace, client: RayfarmClient) -> int:
 
 
 def _jobs(args: argparse.Namespace, client: RayfarmClient) -> int:
-    jobs = client.jobs(status=args.status, limit=args.limit)
+    filters = {k: getattr(args, k) for k in ("status", "method", "scene", "sampler", "owner")
+               if getattr(args, k) is not None}
+    jobs = client.jobs(limit=args.limit, **filters)
     if args.json:
         print(json.dumps(jobs, indent=2))
         return 0
@@ -308,7 +310,8 @@ def _jobs(args: argparse.Namespace, client: RayfarmClient) -> int:
     print(_table(["ID", "STATUS", "SCENE", "METHOD", "SAMPLER", "SPP", "PROGRESS", "ELAPSED",
                   "ETA"], rows))
     if not jobs:
-        _say("jobs", "no jobs" + (f" with status {args.status}" if args.status else ""))
+        _say("jobs", "no jobs" + (" with " + ", ".join(f"{k} {v}" for k, v in filters.items())
+                                  if filters else ""))
     return 0
 
 
@@ -476,6 +479,10 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
     jobs = sub.add_parser("jobs", parents=server, help="list jobs, newest first")
     jobs.add_argument("--status", help="only jobs with this status (queued, running, paused, "
                                        "done, failed, canceled)")
+    jobs.add_argument("--method", help="only jobs of this method (an alias counts)")
+    jobs.add_argument("--scene", help="only jobs of this scene (as the jobs list names it)")
+    jobs.add_argument("--sampler", help="only jobs with this pixel sampler")
+    jobs.add_argument("--owner", help="only jobs of this user")
     jobs.add_argument("--limit", type=int, default=20, help="at most this many (default: 20)")
     jobs.add_argument("--json", action="store_true", help="the jobs as JSON instead of a table")
     jobs.set_defaults(run=_run("jobs", _jobs))

@@ -21,7 +21,8 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
-from renderer import RenderSpec, SceneError, builtin_scene_names, resolve_document, scene_text
+from renderer import (METHODS, SAMPLERS, RenderSpec, SceneError, builtin_scene_names,
+                      resolve_document, scene_text)
 from renderer.target import Target, require_target_support
 
 from . import admission, events, scenes, states
@@ -142,11 +143,35 @@ def _job_to_change(session: Session, actor: Principal, job_id: str) -> Job:
     return job
 
 
+def check_query(names, allowed) -> None:
+    """A 422 naming the first query parameter not in `allowed`."""
+    for name in names:
+        if name not in allowed:
+            raise InvalidRequest(name, f"unknown query parameter (allowed: {', '.join(allowed)})",
+                                 source="query")
+
+
 def list_jobs(session: Session, actor: Principal, *, status: str | None = None,
-              limit: int = 100, offset: int = 0) -> list[Job]:
-    """The jobs `actor` may see, newest first."""
+              method: str | None = None, scene: str | None = None, sampler: str | None = None,
+              owner: str | None = None, limit: int = 100, offset: int = 0) -> list[Job]:
+    """The jobs `actor` may see, newest first, with the given status, method
+    (an alias is resolved), scene (as jobs name it), sampler and owner."""
     query = (select(Job).where(visible_jobs(actor, Job.owner))
              .order_by(Job.created.desc(), Job.id).limit(limit).offset(offset))
+    if method is not None:
+        if method not in METHODS:
+            raise InvalidRequest("method", f"unknown method '{method}' (allowed: "
+                                           f"{', '.join(METHODS)})", source="query")
+        query = query.where(Job.spec["method"].as_string() == METHODS[method].name)
+    if sampler is not None:
+        if sampler not in SAMPLERS:
+            raise InvalidRequest("sampler", f"unknown sampler '{sampler}' (allowed: "
+                                            f"{', '.join(SAMPLERS)})", source="query")
+        query = query.where(Job.spec["sampler"].as_string() == sampler)
+    if scene is not None:
+        query = query.where(Job.scene == scene)
+    if owner is not None:
+        query = query.where(Job.owner == owner)
     if status is not None:
         if status not in states.JOB_STATUSES:
             raise InvalidRequest("status", f"unknown status '{status}' "

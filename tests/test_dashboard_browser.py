@@ -691,3 +691,48 @@ def test19_a_job_submitted_to_a_noise_target_speaks_in_error(page):
                                        "els => els.map(e => e.dataset.state)")
     assert states and set(states) == {"skipped"}
     shot(page, "19-job-noise-target")
+
+
+def _luminance(rgb) -> float:
+    """WCAG relative luminance of an sRGB colour (0..255 channels)."""
+    def linear(c: float) -> float:
+        c /= 255.0
+        return c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4
+    r, g, b = (linear(c) for c in rgb)
+    return 0.2126 * r + 0.7152 * g + 0.0722 * b
+
+
+def _contrast(a, b) -> float:
+    hi, lo = sorted((_luminance(a), _luminance(b)), reverse=True)
+    return (hi + 0.05) / (lo + 0.05)
+
+
+def test20_progress_labels_read_at_4_5_to_1_on_every_fill(page):
+    """The progress label is drawn over the bar's fill and over its empty track:
+    for every state's fill (every colour stop of a gradient) and the track,
+    its colour has a WCAG contrast of at least 4.5:1."""
+    page.goto(f"{page.base}/#/jobs")
+    page.wait_for_selector("#view table")
+    colours = page.evaluate("""async () => {
+      const { progressBar } = await import('/static/js/ui.js');
+      // the opaque colours in a computed value (a transparent one is no background)
+      const rgb = (s) => (s.match(/rgba?\\([^)]*\\)/g) || []).map(
+        (c) => c.match(/[\\d.]+/g).map(Number)).filter((c) => c.length === 3 || c[3] > 0)
+        .map((c) => c.slice(0, 3));
+      const out = {};
+      for (const state of ['running', 'queued', 'paused', 'done', 'failed', 'canceled']) {
+        const bar = progressBar(0.5, 'label', state, true);
+        document.body.append(bar);
+        const fill = getComputedStyle(bar.querySelector('.fill'));
+        out[state] = { label: rgb(getComputedStyle(bar.querySelector('.label')).color)[0],
+                       fills: [...rgb(fill.backgroundImage), ...rgb(fill.backgroundColor)],
+                       track: rgb(getComputedStyle(bar).backgroundColor)[0] };
+        bar.remove();
+      }
+      return out;
+    }""")
+    for state, c in colours.items():
+        assert c["fills"], (state, c)
+        for background in [*c["fills"], c["track"]]:
+            ratio = _contrast(c["label"], background)
+            assert ratio >= 4.5, (state, background, round(ratio, 2))

@@ -239,6 +239,13 @@ def test06_jobs_lists_the_job_as_a_table(tiny_job, server, client):
     assert row[8] == "0.0s" and row[7].endswith("s"), row
     listed = json.loads(cli("jobs", "--json", "--limit", "1", server=server).stdout)
     assert len(listed) == 1 and listed[0]["id"] == client.jobs(limit=1)[0]["id"]
+    # filters: the alias finds its method's jobs; none of another method's
+    path = json.loads(cli("jobs", "--json", "--method", "path", "--sampler", "sobol",
+                          "--limit", "500", server=server).stdout)
+    assert job_id in {j["id"] for j in path}
+    none = cli("jobs", "--method", "raster", "--scene", "no-such-scene", server=server)
+    assert none.returncode == 0 and "no jobs with method raster, scene no-such-scene" in none.stderr
+    assert_clean_failure(cli("jobs", "--method", "nope", server=server), 2, "unknown method")
 
 
 def test07_an_invalid_field_exits_2_naming_it(server):

@@ -268,8 +268,9 @@ def _cases():
                        ["body", "scene", f"shapes[{MESH}].file"],
                        ("cannot parse line 3 of cube.obj", "v 1 x -1"), id="mesh-unparsable")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 9\n"),),
-                       ["body", "scene", f"shapes[{MESH}].faces"], ("out of range",),
-                       id="mesh-index")
+                       ["body", "scene", f"shapes[{MESH}].file"],
+                       ("line 3 of cube.obj", "face vertex index 9 is out of range",
+                        "2 vertices"), id="mesh-index")
     yield pytest.param(scene_bytes(room("bad")), ok_files + (("spare.obj", b"v 0 0 0\n"),),
                        ["body", "files", 1], ("'spare.obj' is not named by any mesh shape",),
                        id="unused-file")

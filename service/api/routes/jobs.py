@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Path, Query, Response, status
+from fastapi import APIRouter, Path, Query, Request, Response, status
 from fastapi.responses import FileResponse
 
 from ... import admission, blocklist, jobs
@@ -37,15 +37,26 @@ def create_job(body: JobCreate, session: SessionDep, farm: FarmDep, actor: Actor
 
 
 @router.get("", response_model=list[JobPublic], responses=responses(422))
-def list_jobs(session: SessionDep, actor: ActorDep,
+def list_jobs(request: Request, session: SessionDep, actor: ActorDep,
               status: Annotated[str | None, Query(max_length=32)] = None,
+              method: Annotated[str | None, Query(max_length=64)] = None,
+              scene: Annotated[str | None, Query(max_length=200)] = None,
+              sampler: Annotated[str | None, Query(max_length=64)] = None,
+              owner: Annotated[str | None, Query(max_length=64)] = None,
               limit: Annotated[int, Query(ge=1, le=1000)] = 100,
               offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0) -> list[JobPublic]:
-    """The caller's jobs (all jobs for admins and viewers), newest first
-    (optionally only those with `status`)."""
+    """The caller's jobs (all jobs for admins and viewers), newest first,
+    optionally only those with the given `status`, `method` (an alias counts
+    as its method), `scene`, `sampler` and `owner`. Any other query parameter
+    is a 422: a filter that is silently ignored would list the wrong jobs."""
+    jobs.check_query(request.query_params.keys(), JOB_FILTERS)
     now = utcnow()
-    return [JobPublic.from_job(j, now)
-            for j in jobs.list_jobs(session, actor, status=status, limit=limit, offset=offset)]
+    return [JobPublic.from_job(j, now) for j in jobs.list_jobs(
+        session, actor, status=status, method=method, scene=scene, sampler=sampler, owner=owner,
+        limit=limit, offset=offset)]
+
+
+JOB_FILTERS = ("status", "method", "scene", "sampler", "owner", "limit", "offset")
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=responses(404))
