@@ -21,6 +21,7 @@ as a number where the value is one (`exrheader`, tev, Nuke's metadata view):
 | rel_error | float | the raw image's error statistic (`film.image_error`): the 95th percentile over pixels brighter than 1 % of the image mean of the relative standard error from the var channels |
 | target | string | the noise target as JSON (rel_error, max_spp, max_seconds; renderer/target.py), "" for a fixed spp |
 | denoised | int | 1 if the file also holds denoised.R/G/B (the raw R/G/B stay as rendered), else 0 |
+| partial | int | 1 for the units a canceled or failed job finished (pixels without a sample read 0, `samples.Y` says which), else 0 |
 
 The OpenEXR package writes Python ints as 32-bit `int` attributes (a larger
 value is stored as 0, silently) and Python floats as 32-bit `float`; it has no
@@ -42,12 +43,12 @@ __all__ = ["METADATA_KEYS", "exr_metadata"]
 
 METADATA_KEYS = ("job_id", "scene", "scene_hash", "method", "options", "sampler", "seed", "spp",
                  "depth", "width", "height", "tile_size", "samples", "rays", "render_seconds",
-                 "rel_error", "target", "denoised")
+                 "rel_error", "target", "denoised", "partial")
 
 
 def exr_metadata(spec: RenderSpec, stats: dict[str, Any], *, scene: str, scene_hash: str,
                  job_id: str = "", rel_error: float = float("nan"), target=None,
-                 denoised: bool = False) -> dict[str, str | int | float]:
+                 denoised: bool = False, partial: bool = False) -> dict[str, str | int | float]:
     """The `rayfarm.*` attributes of an image rendered with `spec` (the
     statistics `stats` of its merged film: samples, rays, seconds; its
     `rel_error`, film.image_error)."""
@@ -60,7 +61,7 @@ def exr_metadata(spec: RenderSpec, stats: dict[str, Any], *, scene: str, scene_h
         "samples": str(int(stats.get("samples", 0))), "rays": str(int(stats.get("rays", 0))),
         "render_seconds": float(stats.get("seconds", 0.0)), "rel_error": float(rel_error),
         "target": "" if target is None else json.dumps(target.to_dict(), sort_keys=True),
-        "denoised": int(bool(denoised)),
+        "denoised": int(bool(denoised)), "partial": int(bool(partial)),
     }
     assert tuple(meta) == METADATA_KEYS
     return meta

@@ -280,11 +280,10 @@ def _fetch(args: argparse.Namespace, client: RayfarmClient) -> int:
     default = {"exr": f"{args.job_id}.exr", "png": f"{args.job_id}.png",
                "noise": f"{args.job_id}-noise.png"}[kind]
     out = Path(args.output or default)
-    if args.wait:
-        job = client.wait(args.job_id)
-        if job["status"] != "done" and kind == "exr":
-            _say("fetch", f"job {args.job_id} {job['status']}: {job.get('error') or ''}".rstrip())
-            return EXIT_FAILED
+    job = client.wait(args.job_id) if args.wait else None
+    if job is not None and job["status"] != "done" and kind == "exr" and not job.get("partial"):
+        _say("fetch", f"job {args.job_id} {job['status']}: {job.get('error') or ''}".rstrip())
+        return EXIT_FAILED
     download = {"exr": client.download_result, "png": client.download_preview,
                 "noise": client.download_noise}[kind]
     try:
@@ -292,6 +291,12 @@ def _fetch(args: argparse.Namespace, client: RayfarmClient) -> int:
     except NotFound as exc:
         hint = "" if args.wait else " (rayfarm fetch --wait waits for it)"
         raise NotFound(f"{exc}{hint}", exc.status_code) from None
+    job = job or client.job(args.job_id)
+    if job.get("partial") and kind != "noise":
+        _say("fetch", f"wrote {out} ({_count(out.stat().st_size)}B): partial, the "
+                      f"{job['progress']['units_done']} of {job['progress']['units_total']} "
+                      f"units job {args.job_id} finished before it was {job['status']}")
+        return EXIT_FAILED if args.wait else 0
     _say("fetch", f"wrote {out} ({_count(out.stat().st_size)}B)")
     return 0
 

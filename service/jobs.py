@@ -322,6 +322,17 @@ def cancel_job_retrying(sessions: sessionmaker[Session], actor: Principal, job_i
                     lambda session: cancel_job(session, actor, job_id, clock()), tries)
 
 
+def _partial_result(session: Session, store: Store, job: Job):
+    """The partial EXR and PNG of a canceled or failed job (service.results)."""
+    from .results import partial_result
+    from .targets import job_target
+
+    done = list(session.scalars(select(WorkUnit.index).where(
+        WorkUnit.job_id == job.id, WorkUnit.state == "done").order_by(WorkUnit.index)))
+    return partial_result(store, job.id, RenderSpec.from_dict(job.spec), done, scene=job.scene,
+                          scene_hash=job.scene_hash, target=job_target(job))
+
+
 def result_file(session: Session, store: Store, actor: Principal, job_id: str, kind: str):
     """Path of a done job's `result.exr`, or of a job's `preview.png` or
     `noise.png` (written as its units land, so there before it is done); else
@@ -336,6 +347,11 @@ def result_file(session: Session, store: Store, actor: Principal, job_id: str, k
         if not path.is_file():
             raise NotFound(f"job '{job_id}' has no {kind}")
         return path
+    if job.status in ("canceled", "failed") and kind in ("result.exr", "preview.png") \
+            and job.units_done:
+        # What it finished, merged: the running preview may lag behind it.
+        exr, png = _partial_result(session, store, job)
+        return exr if kind == "result.exr" else png
     if kind in ("preview.png", "noise.png"):
         if job.status in states.SCHEDULED_JOB:  # someone looks: keep it written (service.previews)
             store.mark_watched(job.id, kind.removesuffix(".png"))
@@ -345,7 +361,9 @@ def result_file(session: Session, store: Store, actor: Principal, job_id: str, k
                                  "its first unit is done")
         return path
     if job.status != "done":
-        raise ResultNotReady(f"job '{job_id}' is {job.status}; its {kind} exists once it is done")
+        raise ResultNotReady(f"job '{job_id}' is {job.status}; its {kind} exists once it is done"
+                             + (" (or, partial, once it is canceled or failed with a unit "
+                                "finished)" if kind == "result.exr" else ""))
     path = store.result_path(job.id)
     if not path.is_file():
         raise NotFound(f"job '{job_id}' has no {kind}")

@@ -12,6 +12,9 @@ file from `rayfarm render`.
 
 from __future__ import annotations
 
+import os
+import uuid
+from pathlib import Path
 from typing import Iterable
 
 from renderer import PartialFilm, RenderSpec, merge
@@ -20,7 +23,7 @@ from renderer.target import Target
 
 from .store import Store
 
-__all__ = ["write_result"]
+__all__ = ["partial_result", "write_result"]
 
 
 def write_result(store: Store, job_id: str, spec: RenderSpec, units: Iterable[int], *,
@@ -47,3 +50,28 @@ def write_result(store: Store, job_id: str, spec: RenderSpec, units: Iterable[in
     film.write_png(store.preview_path(job_id))
     film.write_noise_png(store.noise_path(job_id))
     return rel_error
+
+
+def partial_result(store: Store, job_id: str, spec: RenderSpec, units: list[int], *,
+                   scene: str, scene_hash: str, target: Target | None = None
+                   ) -> tuple[Path, Path]:
+    """The EXR and PNG of a canceled or failed job's finished `units` (indices,
+    in unit order), merged as a done job's are and marked partial in the
+    header; written once per count of units, atomically (two requests at
+    once write the same bytes)."""
+    exr, png = store.partial_paths(job_id, len(units))
+    if exr.is_file() and png.is_file():
+        return exr, png
+    film = merge(spec.width, spec.height, (PartialFilm.from_bytes(store.unit_film(job_id, i))
+                                           for i in units))
+    meta = exr_metadata(spec, film.stats, scene=scene, scene_hash=scene_hash, job_id=job_id,
+                        rel_error=film.image_error(), target=target, partial=True)
+    for path, write in ((exr, lambda p: film.write_exr(p, meta)), (png, film.write_png)):
+        tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex}{path.suffix}")
+        try:
+            write(tmp)
+            os.replace(tmp, path)
+        finally:
+            tmp.unlink(missing_ok=True)
+    store.clear_partials(job_id, keep=len(units))
+    return exr, png

@@ -226,7 +226,11 @@ class JobPublic(BaseModel):
     error: str | None
     samples: int
     rays: int
-    result_url: str | None
+    result_url: str | None = Field(description="the EXR: a done job's, or (`partial`) the units "
+                                                "a canceled or failed job finished")
+    partial: bool = Field(False, description="result_url and preview_url hold only the units "
+                                             "that finished before the job was canceled or "
+                                             "failed (the EXR header says rayfarm.partial = 1)")
     preview_url: str | None
     noise_url: str | None = Field(description="per-pixel noise heatmap (relative standard error)")
     denoised_url: str | None = Field(None, description="the denoised frame's preview (jobs "
@@ -240,6 +244,7 @@ class JobPublic(BaseModel):
         elapsed = job.active_seconds(now)
         total = job.samples_total
         done = job.status == "done"
+        partial = job.status in ("canceled", "failed") and bool(job.units_done)
         rate = job.samples / elapsed if elapsed and job.samples else None
         eta = None
         if done:
@@ -275,7 +280,8 @@ class JobPublic(BaseModel):
                            units_retried=job.units_retried or 0),
             created=job.created, started=job.started, finished=job.finished, seconds=elapsed,
             error=job.error, samples=job.samples, rays=job.rays,
-            result_url=f"/jobs/{job.id}/result.exr" if done else None,
+            result_url=f"/jobs/{job.id}/result.exr" if done or partial else None,
+            partial=partial,
             # The preview is written as units land (see Scheduler): there from the first one.
             preview_url=f"/jobs/{job.id}/preview.png" if done or job.units_done else None,
             noise_url=f"/jobs/{job.id}/noise.png" if done or job.units_done else None,

@@ -77,6 +77,19 @@ class Store:
     def denoised_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "denoised.png"
 
+    def partial_paths(self, job_id: str, units: int) -> tuple[Path, Path]:
+        """The EXR and PNG of a canceled or failed job's `units` finished units
+        (service.results.partial_result): named by their count, so a job retried
+        and stopped again gets new ones."""
+        d = self.job_dir(job_id)
+        return d / f"partial-{int(units)}.exr", d / f"partial-{int(units)}.png"
+
+    def clear_partials(self, job_id: str, keep: int | None = None) -> None:
+        """Remove a job's partial results (but those of `keep` units)."""
+        for path in self.job_dir(job_id).glob("partial-*.*"):
+            if keep is None or path.stem != f"partial-{int(keep)}":
+                path.unlink(missing_ok=True)
+
     def watch_path(self, job_id: str, image: str) -> Path:
         """The marker whose mtime says when `image` ("preview" or "noise") was last fetched."""
         if image not in ("preview", "noise"):
@@ -172,6 +185,7 @@ class Store:
         self.preview_path(job_id).unlink(missing_ok=True)
         self.noise_path(job_id).unlink(missing_ok=True)
         self.denoised_path(job_id).unlink(missing_ok=True)
+        self.clear_partials(job_id)
 
     def delete_job(self, job_id: str) -> None:
         """Remove every file of a job (it is deleted)."""

@@ -12,7 +12,7 @@ from PIL import Image
 from renderer import BOUNDS, METHODS, SAMPLERS, builtin_scene_names, resolve_document
 
 from conftest import (TINY, assert_bit_identical, assert_complete_progress, assert_denoised_beside_raw,
-                      channels_of, get_json, poll_job, submit)
+                      channels_of, get_json, poll_job, submit, wait_for)
 
 
 
@@ -109,7 +109,34 @@ def test03_results_are_404_until_done_and_cancel_is_409_after(local_client):
     assert canceled.json()["finished"] is not None
     again = local_client.post(f"/jobs/{job['id']}/cancel")
     assert again.status_code == 409 and "canceled" in again.json()["detail"]
-    assert local_client.get(f"/jobs/{job['id']}/result.exr").status_code == 404
+    # No unit finished (canceled at once): no partial result either (test03b).
+    if canceled.json()["progress"]["units_done"] == 0:
+        assert local_client.get(f"/jobs/{job['id']}/result.exr").status_code == 404
+
+
+def test03b_a_canceled_jobs_finished_units_download_as_a_partial_result(local_client, tmp_path):
+    from renderer import read_exr
+
+    body = dict(TINY, width=64, height=64, spp=512, tile_size=8, progressive=False)  # 64 units
+    job = submit(local_client, body)
+    wait_for(lambda: local_client.get(f"/jobs/{job['id']}").json()["progress"]["units_done"] >= 2,
+             120, "two units finished")
+    canceled = local_client.post(f"/jobs/{job['id']}/cancel").json()
+    done = canceled["progress"]["units_done"]
+    assert canceled["partial"] and canceled["result_url"] == f"/jobs/{job['id']}/result.exr"
+    assert 2 <= done < 64
+    exr = local_client.get(canceled["result_url"])
+    assert exr.status_code == 200
+    (tmp_path / "partial.exr").write_bytes(exr.content)
+    channels, header = read_exr(tmp_path / "partial.exr")
+    assert header["rayfarm.partial"] == 1 and header["rayfarm.job_id"] == job["id"]
+    tiles = channels["samples.Y"].reshape(8, 8, 8, 8).max(axis=(1, 3))  # per 8 x 8 tile
+    assert (tiles == 512).sum() == local_client.get(f"/jobs/{job['id']}").json()[
+        "progress"]["units_done"] == done  # the finished tiles, and only those
+    assert (tiles == 0).sum() == 64 - done
+    png = local_client.get(f"/jobs/{job['id']}/preview.png")
+    assert png.status_code == 200 and png.headers["content-type"] == "image/png"
+    assert local_client.get(canceled["result_url"]).content == exr.content  # written once
 
 
 def test04_unknown_job_is_404(local_client):

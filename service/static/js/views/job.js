@@ -381,14 +381,20 @@ export function jobView(root, jobId) {
     const link = (label, url, id) => url
       ? h("a.button", { href: url, download: "", id }, label)
       : h("button", { disabled: true, id }, label);
+    // A canceled or failed job's EXR and PNG hold the units it finished (partial).
+    const p = job.progress;
     replace(downloads,
-      link("EXR", job.result_url, "download-exr"),
-      link("PNG", job.preview_url && job.status === "done" ? job.preview_url : null, "download-png"),
+      link(job.partial ? "EXR (partial)" : "EXR", job.result_url, "download-exr"),
+      link(job.partial ? "PNG (partial)" : "PNG",
+        job.preview_url && (job.status === "done" || job.partial) ? job.preview_url : null, "download-png"),
       link("Noise PNG", job.status === "done" ? job.noise_url : null, "download-noise"),
       job.denoise ? link("Denoised PNG", job.denoised_url, "download-denoised") : null,
-      h("span.muted", { style: { fontSize: "12px" } },
+      h("span.muted#download-note", { style: { fontSize: "12px" } },
         job.status === "done" ? "float32 R, G, B, var.R/G/B, samples.Y and the AOV layers"
-          + (job.denoise ? ", denoised.R/G/B" : "") : "available when the job is done"));
+          + (job.denoise ? ", denoised.R/G/B" : "")
+          : job.partial ? `partial: the ${p.units_done} of ${p.units_total} units finished before `
+            + `the job was ${job.status} (pixels without a sample read 0)`
+          : "available when the job is done"));
   }
 
   function renderWorkers() {
