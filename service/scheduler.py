@@ -64,6 +64,7 @@ from sqlalchemy.orm.exc import StaleDataError
 
 
 from renderer import PartialFilm, RenderSpec
+from renderer.target import supports_target
 
 from . import blocklist, events, states
 from .admission import job_plan
@@ -410,6 +411,9 @@ class Scheduler:
             if landed:
                 job.note_samples(sum(int(f.stats.get("samples", 0)) for _, f in landed), now)
             in_flight = sum(u.state in states.IN_FLIGHT for u in flying)
+            if landed and job.progressive and job.target is None \
+                    and supports_target(job.spec.get("method", "")):
+                self.targets.note_passes(session, job, now)  # the convergence, pass by pass
             if not in_flight and at_barrier(job.status, job.units_open, job.units_done,
                                             job.units_total):
                 # In the transaction that collected the pass's last unit: a

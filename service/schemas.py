@@ -170,7 +170,8 @@ class Progress(BaseModel):
     rel_error: float | None = Field(None, description="the image's error statistic (95th "
                                                       "percentile of the relative standard "
                                                       "error): after the last complete pass of "
-                                                      "a target job, of the result once done")
+                                                      "a progressive job, of the result once "
+                                                      "done")
     target_rel_error: float | None = Field(None, description="a target job's target")
     units_skipped: int = Field(0, description="a target job's units skipped: their region met "
                                               "the target first (counted in units_done)")
@@ -214,8 +215,10 @@ class JobPublic(BaseModel):
     target_stop: str | None = Field(None, description="why a target job stopped: target, "
                                                       "max_spp or max_seconds")
     passes: list[dict[str, Any]] = Field(default_factory=list, description=(
-        "a target job's complete passes: spp reached, samples, seconds, rel_error after it, "
-        "pixels still refined"))
+        "a progressive tile job's complete passes, in order (its convergence): pass, spp "
+        "reached, samples and active seconds so far, rel_error of the passes so far merged "
+        "(null while a pixel has one sample), pixels still refined (a target's skipped tiles "
+        "are not)"))
     progress: Progress
     stats: JobStats
     created: datetime

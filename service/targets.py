@@ -34,10 +34,10 @@ from collections import OrderedDict
 from datetime import datetime
 
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from renderer import Film, PartialFilm, Unit, merge
+from renderer import Film, PartialFilm, RenderSpec, Unit, merge
 from renderer.target import Target, stop_reason, units_to_run
 
 from . import events, states
@@ -82,6 +82,36 @@ def error_eta(job: Job) -> float | None:
     return max(needed - spp, 0.0) * float(last["active"]) / rate
 
 
+def _log_pass(job: Job, film: Film, pass_index: int, spp: int, seconds: float,
+              active: int) -> None:
+    """Append a complete pass to the job's pass log (and its error to the job):
+    the spp it reached, the samples in the passes so far (`film`, merged) and
+    the job's active seconds when it was seen complete, the image's error
+    statistic then (null while unknown), the pixels still refined after it
+    (all of them but for a target's skipped tiles)."""
+    error = film.image_error()
+    job.rel_error = error if math.isfinite(error) else None  # inf: a pixel of 1 sample
+    job.pass_log = [*(job.pass_log or []), {
+        "pass": pass_index, "spp": spp, "samples": int(film.stats.get("samples", 0)),
+        "seconds": round(seconds, 3), "rel_error": job.rel_error, "active": active}]
+    events.note(job)
+
+
+def _pass_bounds(job: Job) -> list[tuple[int, int, int, int]]:
+    """(end unit index, pass, its sample_end, pixels) of each pass of the job's
+    plan (a pure function of the job: renderer.plan), pass-major."""
+    from .admission import job_plan
+
+    units = job_plan(RenderSpec.from_dict(job.spec), bool(job.progressive), job_target(job))
+    out: list[tuple[int, int, int, int]] = []
+    for u in units:
+        if out and out[-1][1] == u.pass_index:
+            out[-1] = (u.index + 1, u.pass_index, u.sample_end, out[-1][3] + u.pixels)
+        else:
+            out.append((u.index + 1, u.pass_index, u.sample_end, u.pixels))
+    return out
+
+
 def _camera_sums(part: PartialFilm) -> PartialFilm:
     """What a decision reads of a unit film: its camera sums (no AOVs)."""
     return PartialFilm(part.x0, part.y0, part.sum, part.sum_sq, part.weight, part.stats)
@@ -98,32 +128,58 @@ class TargetJobs:
     def __init__(self, store: Store, frame_bytes: int = FRAME_BYTES):
         self.store, self.frame_bytes = store, frame_bytes
         self._frames: OrderedDict[str, _Frame] = OrderedDict()
+        # A progressive job's passes: (end unit index, pass, sample_end, pixels) each
+        self._passes: dict[str, list[tuple[int, int, int, int]]] = {}
 
     def forget(self, job_id: str) -> None:
         self._frames.pop(job_id, None)
+        self._passes.pop(job_id, None)
 
     def keep_only(self, job_ids) -> None:
         for job_id in [j for j in self._frames if j not in job_ids]:
             del self._frames[job_id]
+        for job_id in [j for j in self._passes if j not in job_ids]:
+            del self._passes[job_id]
 
-    def frame(self, session: Session, job: Job) -> Film:
-        """Every complete pass of the job (units [0, units_open)) merged in unit
-        order, from the frame kept here plus the stored films of the units
-        since; skipped units add nothing."""
+    def frame(self, session: Session, job: Job, bound: int | None = None) -> Film:
+        """The job's units [0, bound) (default: units_open, its complete passes)
+        merged in unit order, from the frame kept here plus the stored films of
+        the units since; skipped units add nothing. Call with every unit below
+        `bound` finished."""
+        bound = job.units_open if bound is None else bound
         kept = self._frames.pop(job.id, None)
-        if kept is None or kept.merged > job.units_open:  # replanned meanwhile
+        if kept is None or kept.merged > bound:  # replanned meanwhile
             empty = merge(job.width, job.height, [])
             kept = _Frame(empty, 0)
         done = session.scalars(select(WorkUnit.index).where(
             WorkUnit.job_id == job.id, WorkUnit.state == "done",
-            WorkUnit.index >= kept.merged, WorkUnit.index < job.units_open)
+            WorkUnit.index >= kept.merged, WorkUnit.index < bound)
             .order_by(WorkUnit.index))
         for index in done:
             kept.film.add(_camera_sums(PartialFilm.from_bytes(self.store.unit_film(job.id, index))))
-        kept.merged = job.units_open
+        kept.merged = bound
         self._frames[job.id] = kept
         self._evict()
         return kept.film
+
+    def note_passes(self, session: Session, job: Job, now: datetime) -> None:
+        """A progressive job without a target: for each pass now complete
+        (every unit of it and before it done), its error statistic goes into
+        `Job.pass_log` (the convergence the API and the dashboard show),
+        measured on the passes so far merged in unit order."""
+        passes = self._passes.get(job.id)
+        if passes is None:
+            passes = self._passes[job.id] = _pass_bounds(job)
+        logged = {int(p["pass"]) for p in job.pass_log or []}
+        for end, pass_index, spp, pixels in passes:
+            if pass_index in logged:
+                continue
+            done = session.scalar(select(func.count()).select_from(WorkUnit).where(
+                WorkUnit.job_id == job.id, WorkUnit.state == "done", WorkUnit.index < end))
+            if done < end:
+                return
+            _log_pass(job, self.frame(session, job, end), pass_index, spp,
+                      job.active_seconds(now) or 0.0, pixels)
 
     def _evict(self) -> None:
         pixel = 7 * 8  # sum, sum_sq (3 each) and weight, float64
@@ -138,7 +194,6 @@ class TargetJobs:
         stop (module doc). Call only `at_barrier`."""
         target = job_target(job)
         film = self.frame(session, job)
-        error = film.image_error()
         last = session.scalars(select(WorkUnit).where(
             WorkUnit.job_id == job.id, WorkUnit.index == job.units_open - 1)).one()
         spec = job.spec
@@ -166,14 +221,10 @@ class TargetJobs:
         job.units_done += len(skip)
         job.units_skipped = (job.units_skipped or 0) + len(skip)
         job.units_open = job.units_total if stop else job.units_open + len(next_pass)
-        job.rel_error = error if math.isfinite(error) else None  # inf: a pixel of 1 sample
         job.target_stop = stop
         active = sum((u.unit["x1"] - u.unit["x0"]) * (u.unit["y1"] - u.unit["y0"]) for u in run)
-        job.pass_log = [*(job.pass_log or []), {
-            "pass": int(last.unit["pass_index"]), "spp": int(last.unit["sample_end"]),
-            "samples": int(job.samples), "seconds": round(elapsed, 3),
-            "rel_error": error if math.isfinite(error) else None, "active": active}]
-        events.note(job)
+        _log_pass(job, film, int(last.unit["pass_index"]), int(last.unit["sample_end"]), elapsed,
+                  active)
 
     @staticmethod
     def finished(job: Job, error: float) -> None:

@@ -686,6 +686,11 @@ def test19_a_job_submitted_to_a_noise_target_speaks_in_error(page):
     assert page.text_content("#target-stop") == "target met"
     assert f"{job['progress']['units_skipped']} skipped" in page.text_content("#units")
     assert page.text_content("#param-target") == "25 %"
+    # the convergence plot: a dot per pass with a known error, the target's line
+    page.wait_for_selector("#convergence svg.plot")
+    known = [p for p in job["passes"] if p["rel_error"]]
+    assert page.locator("#convergence svg .dot").count() == len(known) >= 2
+    assert page.locator("#convergence svg line.target").count() == 1
     page.click("[data-units='skipped']")
     states = page.eval_on_selector_all("#units-table tbody tr td .badge",
                                        "els => els.map(e => e.dataset.state)")

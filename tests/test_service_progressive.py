@@ -59,6 +59,32 @@ def test01_progressive_exr_is_bit_identical_to_the_single_pass_one(local_client,
     assert_bit_identical(a, reference_channels(body))
 
 
+def test01b_a_progressive_job_logs_its_convergence_pass_by_pass(local_client, tmp_path):
+    """Each complete pass goes into the job's `passes`: the spp it reached, the
+    samples so far, and the error statistic of the passes so far merged in
+    unit order, which falls as the passes add samples; the last is the
+    result's (its EXR header's rel_error). A one-pass job logs nothing."""
+    from renderer import read_exr
+
+    body = dict(TINY, width=64, height=64, spp=64, tile_size=16)
+    job = poll_job(get_json(local_client), submit(local_client, body)["id"])
+    passes = job["passes"]
+    spps = [u["region"]["sample_end"] for u in local_client.get(f"/jobs/{job['id']}/units").json()]
+    assert [p["spp"] for p in passes] == sorted(set(spps)) and passes[-1]["spp"] == 64
+    assert [p["pass"] for p in passes] == list(range(len(passes))) and len(passes) >= 3
+    assert all(a["samples"] < b["samples"] for a, b in zip(passes, passes[1:]))
+    assert passes[-1]["samples"] == job["samples"] == 64 * 64 * 64
+    errors = [p["rel_error"] for p in passes if p["rel_error"] is not None]
+    assert len(errors) >= 2 and errors[-1] < errors[0]
+    (tmp_path / "job.exr").write_bytes(local_client.get(job["result_url"]).content)
+    header = read_exr(tmp_path / "job.exr")[1]
+    assert header["rayfarm.rel_error"] == pytest.approx(errors[-1], rel=1e-6)
+    assert job["progress"]["rel_error"] == pytest.approx(errors[-1])
+    single = poll_job(get_json(local_client),
+                      submit(local_client, dict(body, progressive=False))["id"])
+    assert single["passes"] == [] and single["progress"]["rel_error"] == pytest.approx(errors[-1])
+
+
 def test02_pause_stops_enqueuing_the_preview_is_there_and_resume_finishes(local_client, tmp_path,
                                                                          reference_channels):
     get = get_json(local_client)

@@ -7,6 +7,7 @@ import { ApiError, api, stream } from "../api.js";
 import { may, readOnlyReason } from "../session.js";
 import { FINAL, badge, fmt, h, progressBar, replace, toast } from "../ui.js";
 import { elapsedNow, errorText, etaNow, progressFraction, progressLabel } from "./jobs.js";
+import { convergencePlot } from "../plot.js";
 
 const WORKER_COLORS = ["#4aa3ff", "#ffb547", "#3ecf8e", "#ff7ab6", "#b48cff", "#5ee0e6", "#ff8f5c",
   "#c3e86b", "#ffd966", "#8fa8ff"];
@@ -53,6 +54,8 @@ export function jobView(root, jobId) {
   const legend = h("div.legend#legend");
   const progressBox = h("div.panel-body");
   const statsBox = h("div.panel-body");
+  const convergenceBox = h("div.panel-body#convergence");
+  const convergencePanel = h("div.panel", { hidden: true }, h("h2", {}, "Convergence"), convergenceBox);
   const paramsBox = h("div.panel-body");
   const downloads = h("div.panel-body.actions");
   const workersBox = h("div.panel-body");
@@ -83,6 +86,7 @@ export function jobView(root, jobId) {
         logPanel),
       h("div.side", {},
         h("div.panel", {}, h("h2", {}, "Progress"), progressBox),
+        convergencePanel,
         h("div.panel", {}, h("h2", {}, "Throughput"), statsBox),
         h("div.panel", {}, h("h2", {}, "Workers"), workersBox),
         h("div.panel", {}, h("h2", {}, "Blocklist"), blocklistBox),
@@ -341,6 +345,19 @@ export function jobView(root, jobId) {
           p.done === p.total ? "done" : p.running ? "running" : "queued", false))));
   }
 
+  // The error after each complete pass against the samples (a progressive tile
+  // job's `passes`), with the 1/sqrt(N) slope and a target job's target.
+  function renderConvergence() {
+    const plot = convergencePlot(job.passes, job.target ? job.target.rel_error : null);
+    convergencePanel.hidden = !plot;
+    if (!plot) return;
+    const last = job.passes[job.passes.length - 1];
+    replace(convergenceBox, plot, h("div.muted", { style: { fontSize: "12px" } },
+      `error ${errorText(last.rel_error)} after ${job.passes.length} passes`
+      + ` (95th percentile of the relative standard error); dashed: 1/√N`
+      + (job.target ? "; line: the target" : "")));
+  }
+
   function renderStats() {
     const s = job.stats;
     replace(statsBox, kv([
@@ -483,7 +500,8 @@ export function jobView(root, jobId) {
     replace(summary, `${job.scene} · ${job.method} · ${job.sampler} · ${goal} · depth ${job.depth}`);
     document.title = `${job.id} · ${job.status} · rayfarm`;
     sizeStage();
-    renderActions(); renderProgress(); renderStats(); renderParams(); renderDownloads();
+    renderActions(); renderProgress(); renderConvergence(); renderStats(); renderParams();
+    renderDownloads();
     renderViewTabs();
     if (!planned && job.progress.units_total) renderTiles();
     if (job.status === "done") loadImage();
