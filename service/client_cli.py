@@ -320,17 +320,51 @@ def _jobs(args: argparse.Namespace, client: RayfarmClient) -> int:
     return 0
 
 
-def _cancel(args: argparse.Namespace, client: RayfarmClient) -> int:
-    code = 0
-    for job_id in args.job_ids:
-        try:
-            job = client.cancel(job_id)
-        except (NotFound, Conflict) as exc:
-            _say("cancel", str(exc))
-            code = EXIT_FAILED
-            continue
-        print(f"{job['id']} {job['status']}")
-    return code
+def _job_action(command: str):
+    """cancel, pause, resume, retry, requeue, delete: the client's method of
+    that name on each job id; prints "ID STATUS" (delete: "ID deleted"). A job
+    that is not there or not in a state for it is said on stderr, exit 1."""
+    def act(args: argparse.Namespace, client: RayfarmClient) -> int:
+        code = 0
+        for job_id in args.job_ids:
+            try:
+                job = getattr(client, command)(job_id)
+            except (NotFound, Conflict) as exc:
+                _say(command, str(exc))
+                code = EXIT_FAILED
+                continue
+            print(f"{job_id} deleted" if job is None else f"{job['id']} {job['status']}")
+        return code
+    return act
+
+
+def _priority(args: argparse.Namespace, client: RayfarmClient) -> int:
+    job = client.set_priority(args.job_id, args.priority)
+    print(f"{job['id']} priority {job['priority']}")
+    return 0
+
+
+def _scenes(args: argparse.Namespace, client: RayfarmClient) -> int:
+    scenes = client.scenes()
+    if args.json:
+        print(json.dumps(scenes, indent=2))
+        return 0
+    print(_table(["ID", "KIND", "NAME", "SIZE", "TRIANGLES"],
+                 [[s["id"] if len(s["id"]) <= 24 else s["id"][:23] + "…", s["kind"], s["name"],
+                   f"{s['width']}x{s['height']}", str(s["triangles"])] for s in scenes]))
+    return 0
+
+
+def _methods(args: argparse.Namespace, client: RayfarmClient) -> int:
+    methods = client.methods()
+    if args.json:
+        print(json.dumps(methods, indent=2))
+        return 0
+    print(_table(["METHOD", "ALIASES", "FAMILY", "AOVS", "NOISE TARGET", "OPTIONS"],
+                 [[m["name"], ",".join(m["aliases"]) or "-", m["family"],
+                   ",".join(m["aovs"]) or "-", "yes" if m.get("noise_target") else "no",
+                   ",".join(o["name"] for o in m["options"]) or "-"] for m in methods]))
+    return 0
 
 
 def _print_unit_log(entry: dict) -> None:
@@ -425,7 +459,8 @@ def _server_options() -> argparse.ArgumentParser:
 
 
 def add_client_commands(sub: argparse._SubParsersAction) -> None:
-    """Add submit, watch, fetch, jobs, cancel, logs and workers to `rayfarm`'s subcommands."""
+    """Add the client commands (submit, watch, fetch, jobs, the job actions, priority,
+    scenes, methods, logs, workers, blocklist) to `rayfarm`'s subcommands."""
     server = [_server_options()]
 
     submit = sub.add_parser("submit", parents=server, help="submit a render job; prints its id",
@@ -492,9 +527,26 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
     jobs.add_argument("--json", action="store_true", help="the jobs as JSON instead of a table")
     jobs.set_defaults(run=_run("jobs", _jobs))
 
-    cancel = sub.add_parser("cancel", parents=server, help="cancel jobs")
-    cancel.add_argument("job_ids", nargs="+", metavar="ID")
-    cancel.set_defaults(run=_run("cancel", _cancel))
+    for command, text in (("cancel", "cancel jobs"),
+                          ("pause", "pause jobs (their units in flight finish)"),
+                          ("resume", "resume paused jobs"),
+                          ("retry", "run a job's failed units again"),
+                          ("requeue", "start jobs again from nothing"),
+                          ("delete", "delete jobs, their units and images")):
+        action = sub.add_parser(command, parents=server, help=text)
+        action.add_argument("job_ids", nargs="+", metavar="ID")
+        action.set_defaults(run=_run(command, _job_action(command)))
+
+    priority = sub.add_parser("priority", parents=server, help="change a job's priority")
+    priority.add_argument("job_id", metavar="ID")
+    priority.add_argument("priority", type=int, help="-100..100, higher runs first")
+    priority.set_defaults(run=_run("priority", _priority))
+
+    for command, body, text in (("scenes", _scenes, "list the scenes jobs may name"),
+                                ("methods", _methods, "list the rendering methods")):
+        listing = sub.add_parser(command, parents=server, help=text)
+        listing.add_argument("--json", action="store_true", help="JSON instead of a table")
+        listing.set_defaults(run=_run(command, body))
 
     logs = sub.add_parser("logs", parents=server, help="print what a job's units logged",
                           description="Print the log lines and tracebacks a job's units left, "

@@ -532,3 +532,36 @@ def test21_submit_to_a_noise_target_watches_the_error_fall(server, client):
     assert "-> 25 %" in frames and "units skipped" in frames, frames
     assert "(target 25 %, stopped by target)" in out.stderr, out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test22_the_job_actions_priority_scenes_and_methods_from_the_cli(server, client):
+    """pause, resume, priority, cancel, retry, requeue and delete act on the
+    job and print its new status; a job not in a state for the action, or
+    gone, is said on stderr with exit 1; scenes and methods list the registries."""
+    job = client.submit(scene="cornell-box", method="path", spp=4096, depth=5, width=64,
+                        height=64, tile_size=16, progressive=False)  # long enough to act on
+    job_id = job["id"]
+
+    def ok(*args: str) -> str:
+        out = cli(*args, server=server)
+        assert out.returncode == 0, (args, out.stderr)
+        return out.stdout.strip()
+
+    assert ok("pause", job_id) == f"{job_id} paused"
+    assert ok("priority", job_id, "7") == f"{job_id} priority 7"
+    assert client.job(job_id)["priority"] == 7
+    assert ok("resume", job_id) in (f"{job_id} running", f"{job_id} queued")
+    assert ok("cancel", job_id) == f"{job_id} canceled"
+    assert_clean_failure(cli("retry", job_id, server=server), 1, "no failed units")
+    assert ok("requeue", job_id) == f"{job_id} queued"
+    assert ok("cancel", job_id) == f"{job_id} canceled"
+    assert ok("delete", job_id) == f"{job_id} deleted"
+    assert_clean_failure(cli("delete", job_id, server=server), 1, f"no job '{job_id}'")
+    assert_clean_failure(cli("priority", job_id, "500", server=server), 2, "priority")
+    scenes = ok("scenes")
+    assert scenes.splitlines()[0].split() == ["ID", "KIND", "NAME", "SIZE", "TRIANGLES"]
+    assert any(line.split()[:2] == ["cornell-box", "builtin"] for line in scenes.splitlines())
+    methods = {line.split()[0]: line.split() for line in ok("methods").splitlines()[1:]}
+    assert methods["path-mis"][1] == "path" and methods["path-mis"][4] == "yes"
+    assert methods["photon"][4] == "no"
+    assert {m["name"] for m in json.loads(ok("methods", "--json"))} == set(methods)
