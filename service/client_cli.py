@@ -344,27 +344,23 @@ def _priority(args: argparse.Namespace, client: RayfarmClient) -> int:
     return 0
 
 
-def _scenes(args: argparse.Namespace, client: RayfarmClient) -> int:
-    scenes = client.scenes()
-    if args.json:
-        print(json.dumps(scenes, indent=2))
+def _listing(fetch: Callable[[RayfarmClient], list[dict]], header: list[str],
+             row: Callable[[dict], list[str]]):
+    """A registry command: the items as a table, or with --json as the API gave them."""
+    def show(args: argparse.Namespace, client: RayfarmClient) -> int:
+        items = fetch(client)
+        print(json.dumps(items, indent=2) if args.json else _table(header, [row(i) for i in items]))
         return 0
-    print(_table(["ID", "KIND", "NAME", "SIZE", "TRIANGLES"],
-                 [[s["id"] if len(s["id"]) <= 24 else s["id"][:23] + "…", s["kind"], s["name"],
-                   f"{s['width']}x{s['height']}", str(s["triangles"])] for s in scenes]))
-    return 0
+    return show
 
 
-def _methods(args: argparse.Namespace, client: RayfarmClient) -> int:
-    methods = client.methods()
-    if args.json:
-        print(json.dumps(methods, indent=2))
-        return 0
-    print(_table(["METHOD", "ALIASES", "FAMILY", "AOVS", "NOISE TARGET", "OPTIONS"],
-                 [[m["name"], ",".join(m["aliases"]) or "-", m["family"],
-                   ",".join(m["aovs"]) or "-", "yes" if m.get("noise_target") else "no",
-                   ",".join(o["name"] for o in m["options"]) or "-"] for m in methods]))
-    return 0
+_scenes = _listing(RayfarmClient.scenes, ["ID", "KIND", "NAME", "SIZE", "TRIANGLES"], lambda s: [
+    s["id"] if len(s["id"]) <= 24 else s["id"][:23] + "…", s["kind"], s["name"],
+    f"{s['width']}x{s['height']}", str(s["triangles"])])
+_methods = _listing(RayfarmClient.methods,
+                    ["METHOD", "ALIASES", "FAMILY", "AOVS", "NOISE TARGET", "OPTIONS"], lambda m: [
+    m["name"], ",".join(m["aliases"]) or "-", m["family"], ",".join(m["aovs"]) or "-",
+    "yes" if m.get("noise_target") else "no", ",".join(o["name"] for o in m["options"]) or "-"])
 
 
 def _print_unit_log(entry: dict) -> None:

@@ -22,6 +22,11 @@ on the local pool, on Celery, after a restart, as `rayfarm render --target`
 (tests/test_service_target.py). `max_seconds` alone reads the clock (the
 job's active seconds, pauses excluded), between passes.
 
+Every other progressive tile job logs its convergence with the same frames
+(`TargetJobs.note_passes`): once a pass and every pass before it are done,
+the passes so far merged in unit order give the error statistic that goes
+into `Job.pass_log` (the API's `passes`, the job page's plot).
+
 The frames are kept in memory (camera sums only: 56 bytes a pixel) up to
 `FRAME_BYTES` in all; one missing after a restart, a leadership change or an
 eviction is merged again from the stored unit films.
@@ -33,7 +38,6 @@ import math
 from collections import OrderedDict
 from datetime import datetime
 
-import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
@@ -41,6 +45,7 @@ from renderer import Film, PartialFilm, RenderSpec, Unit, merge
 from renderer.target import Target, stop_reason, units_to_run
 
 from . import events, states
+from .admission import job_plan
 from .models import Job, WorkUnit
 from .store import Store
 
@@ -100,8 +105,6 @@ def _log_pass(job: Job, film: Film, pass_index: int, spp: int, seconds: float,
 def _pass_bounds(job: Job) -> list[tuple[int, int, int, int]]:
     """(end unit index, pass, its sample_end, pixels) of each pass of the job's
     plan (a pure function of the job: renderer.plan), pass-major."""
-    from .admission import job_plan
-
     units = job_plan(RenderSpec.from_dict(job.spec), bool(job.progressive), job_target(job))
     out: list[tuple[int, int, int, int]] = []
     for u in units:
@@ -123,7 +126,8 @@ class _Frame:
 
 
 class TargetJobs:
-    """The decision frames of the target jobs in flight (module doc)."""
+    """The frames of the progressive jobs in flight: a target job's decisions,
+    every such job's convergence log (module doc)."""
 
     def __init__(self, store: Store, frame_bytes: int = FRAME_BYTES):
         self.store, self.frame_bytes = store, frame_bytes
@@ -167,11 +171,8 @@ class TargetJobs:
         (every unit of it and before it done), its error statistic goes into
         `Job.pass_log` (the convergence the API and the dashboard show),
         measured on the passes so far merged in unit order."""
-        passes = self._passes.get(job.id)
-        if passes is None:
-            passes = self._passes[job.id] = _pass_bounds(job)
         logged = {int(p["pass"]) for p in job.pass_log or []}
-        for end, pass_index, spp, pixels in passes:
+        for end, pass_index, spp, pixels in self._bounds(job):
             if pass_index in logged:
                 continue
             done = session.scalar(select(func.count()).select_from(WorkUnit).where(
@@ -180,6 +181,12 @@ class TargetJobs:
                 return
             _log_pass(job, self.frame(session, job, end), pass_index, spp,
                       job.active_seconds(now) or 0.0, pixels)
+
+    def _bounds(self, job: Job) -> list[tuple[int, int, int, int]]:
+        """`_pass_bounds` of the job, planned once."""
+        if job.id not in self._passes:
+            self._passes[job.id] = _pass_bounds(job)
+        return self._passes[job.id]
 
     def _evict(self) -> None:
         pixel = 7 * 8  # sum, sum_sq (3 each) and weight, float64
@@ -194,13 +201,12 @@ class TargetJobs:
         stop (module doc). Call only `at_barrier`."""
         target = job_target(job)
         film = self.frame(session, job)
-        last = session.scalars(select(WorkUnit).where(
-            WorkUnit.job_id == job.id, WorkUnit.index == job.units_open - 1)).one()
-        spec = job.spec
-        tiles = -(-job.width // spec["tile_size"]) * -(-job.height // spec["tile_size"])
+        bounds = self._bounds(job)
+        p = next(i for i, b in enumerate(bounds) if b[0] == job.units_open)  # the last decided
+        _, pass_index, spp, _ = bounds[p]
         next_pass = list(session.scalars(select(WorkUnit).where(
             WorkUnit.job_id == job.id, WorkUnit.index >= job.units_open,
-            WorkUnit.index < job.units_open + tiles).order_by(WorkUnit.index)))
+            WorkUnit.index < bounds[p + 1][0]).order_by(WorkUnit.index)))
         stop = None
         elapsed = job.active_seconds(now) or 0.0
         if target.max_seconds is not None and elapsed >= target.max_seconds:
@@ -223,8 +229,7 @@ class TargetJobs:
         job.units_open = job.units_total if stop else job.units_open + len(next_pass)
         job.target_stop = stop
         active = sum((u.unit["x1"] - u.unit["x0"]) * (u.unit["y1"] - u.unit["y0"]) for u in run)
-        _log_pass(job, film, int(last.unit["pass_index"]), int(last.unit["sample_end"]), elapsed,
-                  active)
+        _log_pass(job, film, pass_index, spp, elapsed, active)
 
     @staticmethod
     def finished(job: Job, error: float) -> None:
@@ -233,4 +238,4 @@ class TargetJobs:
         job.rel_error = error if math.isfinite(error) else None
         target = job_target(job)
         if target is not None and job.target_stop is None:
-            job.target_stop = stop_reason(error, target) if np.isfinite(error) else "max_spp"
+            job.target_stop = stop_reason(error, target) if math.isfinite(error) else "max_spp"
