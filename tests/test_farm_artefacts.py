@@ -188,3 +188,41 @@ def test04_a_canceled_jobs_films_leave_redis_at_once(redis_url, spawn_worker, tm
             assert broker.keys(f"{INPUT_PREFIX}*") == []
     finally:
         broker.close()
+
+
+def test05_a_film_published_just_before_the_cancel_is_dropped_and_none_after(
+        redis_url, tmp_path):
+    # The window test04 once lost: a worker publishes its film, the cancel
+    # comes before Celery has written the task's SUCCESS, so the service
+    # cannot learn the film's digest from the task. Publishing notes the film
+    # in the job's film set in the same atomic step that checks the cancel
+    # marker, so the cancel finds it; after the marker, nothing is published.
+    from service.executors.celery_farm import CeleryExecutor
+    from worker.keys import cancel_key, job_films_key
+    from worker.tasks import publish_film
+
+    broker = redis.Redis.from_url(redis_url)
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url)
+    executor = CeleryExecutor(settings, lambda scene_hash: "")
+    try:
+        film = b"a film of job-race " + tmp_path.name.encode()
+        digest = publish_film(broker, "job-race", film)
+        assert digest == hashlib.sha256(film).hexdigest()
+        assert broker.get(input_key(digest)) == film
+        assert broker.smembers(job_films_key("job-race")) == {digest.encode()}
+        executor.cancel("job-race", ["no-such-task"])  # no task result says the digest
+        assert broker.exists(input_key(digest)) == 0
+        assert broker.exists(job_films_key("job-race")) == 0
+        assert publish_film(broker, "job-race", film) is None  # canceled: refused
+        assert broker.exists(input_key(digest)) == 0
+        assert broker.exists(job_films_key("job-race")) == 0
+        # A job that runs again (retried) publishes once the service lifts the marker.
+        broker.delete(cancel_key("job-race"))
+        assert publish_film(broker, "job-race", film) == digest
+        assert publish_film(broker, "job-race", film) == digest  # already there: TTL only
+        assert broker.ttl(input_key(digest)) > 0
+    finally:
+        executor.close()
+        broker.delete(input_key(hashlib.sha256(film).hexdigest()), job_films_key("job-race"),
+                      cancel_key("job-race"))
+        broker.close()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 __all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "FILM_TTL", "scene_key", "heartbeat_key",
-           "cancel_key", "worker_key", "worker_running_key", "input_key", "unit_log_key",
+           "cancel_key", "job_films_key", "worker_key", "worker_running_key", "input_key", "unit_log_key",
            "DISABLED_WORKERS"]
 
 TASK_RENDER_UNIT = "rayfarm.render_unit"
@@ -41,6 +41,13 @@ def heartbeat_key(job_id: str, index: int) -> str:
 def cancel_key(job_id: str) -> str:
     """Set when a job is canceled or failed, so workers skip its queued units."""
     return f"rayfarm:cancel:{job_id}"
+
+
+def job_films_key(job_id: str) -> str:
+    """The digests of the films a job's units published (a set, TTL `FILM_TTL`).
+    A worker adds to it in the same atomic step that checks `cancel_key`, so
+    the service, having set the marker, finds here every film it must drop."""
+    return f"rayfarm:films:{job_id}"
 
 
 def worker_key(name: str) -> str:

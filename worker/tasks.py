@@ -17,7 +17,7 @@ kernel) tells the service the unit is alive, and the worker's presence record
 counts it.
 
 A unit whose job was canceled (`cancel_key`) before it started is skipped,
-and one canceled while it rendered takes its published film back; both
+and one canceled while it rendered does not publish its film (`publish_film`); both
 return ``{"canceled": True, "worker": name}``.
 
 A worker declines a unit, returning ``{"declined": reason, "worker": name}``
@@ -43,8 +43,8 @@ from renderer import PartialFilm, execute_unit
 from renderer.unitlog import capture_unit_log
 
 from . import presence
-from .keys import (FILM_TTL, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, scene_key,
-                   unit_log_key)
+from .keys import (FILM_TTL, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, job_films_key,
+                   scene_key, unit_log_key)
 
 __all__ = ["register_tasks", "render_unit", "publish_film", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
 
@@ -133,15 +133,37 @@ def _redis(url: str) -> redis.Redis:
     return _clients[key]
 
 
-def publish_film(client: redis.Redis, film: bytes) -> str:
-    """Put `film` in Redis under its SHA-256 (`input_key`, TTL `FILM_TTL`) and
-    return the digest. Bytes already there (a retried unit renders the same
+# Publishing a film is one atomic step with the cancel check: a film published
+# before the job's cancel marker is set is in the job's film set when the
+# service, having set the marker, reads it (and drops it); one published after
+# is refused. Checking the marker in a separate call left a window in which
+# neither side took the film back (it stayed in Redis for a day). Returns 0
+# (canceled), 1 (published) or 2 (not there yet: call again with the bytes,
+# which are sent only then).
+_PUBLISH_LUA = """
+if redis.call('EXISTS', KEYS[1]) == 1 then return 0 end
+if redis.call('EXPIRE', KEYS[2], ARGV[1]) == 0 then
+  if #ARGV < 3 then return 2 end
+  redis.call('SET', KEYS[2], ARGV[3], 'EX', ARGV[1])
+end
+redis.call('SADD', KEYS[3], ARGV[2])
+redis.call('EXPIRE', KEYS[3], ARGV[1])
+return 1
+"""
+
+
+def publish_film(client: redis.Redis, job_id: str, film: bytes) -> str | None:
+    """Put `film` in Redis under its SHA-256 (`input_key`, TTL `FILM_TTL`),
+    note it in the job's film set and return the digest, unless the job is
+    canceled (None). Bytes already there (a retried unit renders the same
     bytes) only get their TTL refreshed, not sent again."""
     digest = hashlib.sha256(film).hexdigest()
-    key = input_key(digest)
-    if not client.expire(key, FILM_TTL):
-        client.set(key, film, ex=FILM_TTL)
-    return digest
+    script = client.register_script(_PUBLISH_LUA)
+    keys = [cancel_key(job_id), input_key(digest), job_films_key(job_id)]
+    done = script(keys=keys, args=[FILM_TTL, digest])
+    if done == 2:
+        done = script(keys=keys, args=[FILM_TTL, digest, film])
+    return digest if done == 1 else None
 
 
 def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
@@ -183,12 +205,9 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
                       for i, digest in (payload.get("inputs") or {}).items()}
             film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs)
             # Published while the heartbeat still says the unit is alive.
-            digest = publish_film(client, film)
+            digest = publish_film(client, job_id, film)
         stats = PartialFilm.stats_from_bytes(film)
-        if client.exists(cancel_key(job_id)):
-            # Canceled while it rendered: the service will never store this
-            # film, and may have dropped the job's films already; take it back.
-            client.delete(input_key(digest))
+        if digest is None:  # canceled while it rendered: the service will never store it
             return {"canceled": True, "worker": worker}
     except Exception:
         if captured is not None and task_id:

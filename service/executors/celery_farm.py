@@ -66,7 +66,7 @@ import redis
 from renderer import process_death
 from worker.celery_app import create_celery_app
 from worker.keys import (FILM_TTL, QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key,
-                         scene_key, unit_log_key)
+                         job_films_key, scene_key, unit_log_key)
 from worker.presence import forget_worker, read_workers, set_disabled
 from celery.utils.nodenames import worker_direct
 
@@ -410,22 +410,21 @@ class CeleryExecutor(Executor):
 
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
         # The marker makes any worker skip the job's units still queued (also
-        # workers started later, which a revoke broadcast does not reach), and
-        # a worker that finishes one of them after it takes its film back
-        # (worker/tasks.py). Films already published by tasks that succeeded,
-        # which the service will never store, go now, not when they expire.
+        # workers started later, which a revoke broadcast does not reach) and
+        # refuse to publish the film of one that finishes after it. Every film
+        # published before it is in the job's film set (worker/tasks.py
+        # `publish_film` does both in one atomic step), so reading the set after
+        # setting the marker finds them all: they go now, not when they expire.
+        # (The job is over or starts again from its store: its later units, if
+        # any, get their inputs uploaded again, `_refresh_inputs`.)
         self.redis.set(cancel_key(job_id), "1", ex=CANCEL_TTL)
         self._uncanceled.discard(job_id)
         if task_ids:
             self.app.control.revoke(list(task_ids))
-            landed = {(meta.get("result") or {}).get("digest")
-                      for meta in self._metas(list(task_ids)).values()
-                      if meta and meta.get("status") == "SUCCESS"
-                      and isinstance(meta.get("result"), dict)}
-            landed.discard(None)
-            landed -= set(self._digest_of.get(t) for t in task_ids)  # stored: release decides
-            if landed:
-                self.drop_films(sorted(landed))
+        published = sorted(d.decode() for d in self.redis.smembers(job_films_key(job_id)))
+        self.redis.delete(job_films_key(job_id))
+        if published:
+            self.drop_films(published)
         self.release(task_ids)
 
     def limit(self) -> int:
