@@ -378,17 +378,7 @@ class Film(PartialFilm):
         raw beauty, which stays as it is."""
         import OpenEXR
 
-        mean = self.mean().astype(np.float32)
-        var = self.variance_of_mean().astype(np.float32)
-        channels = {"R": mean[..., 0].copy(), "G": mean[..., 1].copy(), "B": mean[..., 2].copy(),
-                    "var.R": var[..., 0].copy(), "var.G": var[..., 1].copy(),
-                    "var.B": var[..., 2].copy()}
-        channels.update({name: np.ascontiguousarray(a, dtype=np.float32)
-                         for name, a in self.aovs().items()})
-        if denoised is not None:
-            channels.update({f"denoised.{c}": np.ascontiguousarray(denoised[..., i],
-                                                                   dtype=np.float32)
-                             for i, c in enumerate("RGB")})
+        channels = self.channels(denoised)
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
                   "software": f"rayfarm {_version()}",
                   "capDate": datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S"),
@@ -400,6 +390,21 @@ class Film(PartialFilm):
         with OpenEXR.File(header, channels) as exr:
             exr.write(str(tmp))
         tmp.replace(path)  # readers never see a half-written file
+
+    def channels(self, denoised: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The float32 (h, w) channels `write_exr` writes, by EXR name."""
+        mean = self.mean().astype(np.float32)
+        var = self.variance_of_mean().astype(np.float32)
+        channels = {"R": mean[..., 0].copy(), "G": mean[..., 1].copy(), "B": mean[..., 2].copy(),
+                    "var.R": var[..., 0].copy(), "var.G": var[..., 1].copy(),
+                    "var.B": var[..., 2].copy()}
+        channels.update({name: np.ascontiguousarray(a, dtype=np.float32)
+                         for name, a in self.aovs().items()})
+        if denoised is not None:
+            channels.update({f"denoised.{c}": np.ascontiguousarray(denoised[..., i],
+                                                                   dtype=np.float32)
+                             for i, c in enumerate("RGB")})
+        return channels
 
     def write_png(self, path: str | Path, rgb: np.ndarray | None = None) -> None:
         """Write a tonemapped sRGB preview (exposure 1, clamped) of the film,
@@ -535,6 +540,21 @@ def _version() -> str:
         return importlib.metadata.version("rayfarm")
     except importlib.metadata.PackageNotFoundError:  # a source tree that was never installed
         return "unknown"
+
+
+def channel_layers(names: Iterable[str]) -> dict[str, list[str]]:
+    """EXR channel names grouped into layers, as tev and Nuke show them: a
+    bare name (R, G, B) is the `beauty` layer, `layer.channel` belongs to
+    `layer` (var, albedo, normal, depth, samples, denoised). Channels keep
+    their order within a layer (R, G, B; X, Y, Z), layers the order given."""
+    order = {c: i for i, c in enumerate("RGBAXYZ")}
+    layers: dict[str, list[str]] = {}
+    for name in names:
+        layer, _, channel = name.rpartition(".")
+        layers.setdefault(layer or "beauty", []).append(name)
+    for layer, members in layers.items():
+        members.sort(key=lambda n: (order.get(n.rpartition(".")[2], 99), n))
+    return layers
 
 
 def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:

@@ -322,7 +322,7 @@ def cancel_job_retrying(sessions: sessionmaker[Session], actor: Principal, job_i
                     lambda session: cancel_job(session, actor, job_id, clock()), tries)
 
 
-def _partial_result(session: Session, store: Store, job: Job):
+def partial_result_files(session: Session, store: Store, job: Job):
     """The partial EXR and PNG of a canceled or failed job (service.results)."""
     from .results import partial_result
     from .targets import job_target
@@ -350,7 +350,7 @@ def result_file(session: Session, store: Store, actor: Principal, job_id: str, k
     if job.status in ("canceled", "failed") and kind in ("result.exr", "preview.png") \
             and job.units_done:
         # What it finished, merged: the running preview may lag behind it.
-        exr, png = _partial_result(session, store, job)
+        exr, png = partial_result_files(session, store, job)
         return exr if kind == "result.exr" else png
     if kind in ("preview.png", "noise.png"):
         if job.status in states.SCHEDULED_JOB:  # someone looks: keep it written (service.previews)

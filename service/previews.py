@@ -14,7 +14,9 @@ previews (tonemap, noise map, two PNG encodes: 32 ms per write at
 256 x 256) were 40 % of the service's CPU for a 10-s one-pass job on the
 2-core machine (0.49 s, 0.29 s without them). A frame nobody looks at stays
 dirty; the first GET after a while returns the last image written, and the
-next tick (at most a second later) writes the current one. The final images
+next tick (at most a second later) writes the current one. The frame's float
+channels go with the preview (`Store.frame_path`, for the HDR viewer:
+service.pixels); the final images
 come from the merge (`service.results`) whatever happened here.
 
     previews = RunningPreviews(store, hub, done_units=lambda job_id: [...])
@@ -41,6 +43,7 @@ import numpy as np
 from renderer import Film, PartialFilm
 
 from .events import EventHub
+from .pixels import write_frame
 from .store import Store
 
 __all__ = ["RunningPreviews", "PREVIEW_INTERVAL", "PREVIEW_PACE", "PREVIEW_BYTES", "WATCH_SECONDS",
@@ -166,6 +169,7 @@ class RunningPreviews:
         self.store.preview_path(job_id).parent.mkdir(parents=True, exist_ok=True)
         if preview:
             frame.film.write_png(self.store.preview_path(job_id))
+            write_frame(self.store, job_id, frame.film)  # the HDR viewer's floats (service.pixels)
         if noise:
             frame.film.write_noise_png(self.store.noise_path(job_id))
         frame.interval = max(PREVIEW_INTERVAL, PREVIEW_PACE * (time.thread_time() - cpu))

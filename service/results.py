@@ -49,6 +49,7 @@ def write_result(store: Store, job_id: str, spec: RenderSpec, units: Iterable[in
                    denoised=clean)
     film.write_png(store.preview_path(job_id))
     film.write_noise_png(store.noise_path(job_id))
+    store.frame_path(job_id).unlink(missing_ok=True)  # the running frame: the EXR serves now
     return rel_error
 
 

@@ -77,6 +77,11 @@ class Store:
     def denoised_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "denoised.png"
 
+    def frame_path(self, job_id: str) -> Path:
+        """A running job's merged frame as float32 channels (an uncompressed
+        .npz, written beside its preview: service.previews), for the HDR viewer."""
+        return self.job_dir(job_id) / "frame.npz"
+
     def partial_paths(self, job_id: str, units: int) -> tuple[Path, Path]:
         """The EXR and PNG of a canceled or failed job's `units` finished units
         (service.results.partial_result): named by their count, so a job retried
@@ -185,6 +190,7 @@ class Store:
         self.preview_path(job_id).unlink(missing_ok=True)
         self.noise_path(job_id).unlink(missing_ok=True)
         self.denoised_path(job_id).unlink(missing_ok=True)
+        self.frame_path(job_id).unlink(missing_ok=True)
         self.clear_partials(job_id)
 
     def delete_job(self, job_id: str) -> None:

@@ -1,5 +1,5 @@
 """/jobs: submit, list, inspect (units and their logs), reprioritize, pause, resume, retry, requeue,
-cancel, delete, download (EXR, preview, noise map)."""
+cancel, delete, download (EXR, preview, noise map, float pixels)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from fastapi import APIRouter, Path, Query, Request, Response, status
 from fastapi.responses import FileResponse
 
 from ... import admission, blocklist, jobs
+from ... import pixels as pixel_data
 from ...models import utcnow
 from ...schemas import JobCreate, JobPublic, JobUpdate, UnitLogPublic, UnitPublic, WorkerBlockPublic
 from ..auth import ActorDep
@@ -201,6 +202,25 @@ def denoised_png(job_id: str, session: SessionDep, farm: FarmDep,
     the raw R/G/B and their variance beside denoised.R/G/B."""
     path = jobs.result_file(session, farm.store, actor, job_id, "denoised.png")
     return FileResponse(path, media_type="image/png", headers=_NO_STORE)
+
+
+@router.get("/{job_id}/pixels", response_class=Response,
+            responses={200: {"content": {"application/octet-stream": {}}}, **responses(404, 422)})
+def job_pixels(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep,
+               layer: Annotated[str, Query(max_length=64)] = "beauty") -> Response:
+    """One layer of the image as float data, for an HDR viewer: little-endian
+    float32, row-major, channels interleaved (height x width x channels).
+    Headers: `X-Image-Width`, `X-Image-Height`, `X-Image-Channels` (this
+    layer's EXR channel names, in order), `X-Image-Layers` (every layer:
+    beauty, var, samples and the job's AOVs and denoised), `X-Image-Source`
+    (final, partial or running). A running job's is the frame merged so far
+    (404 until its first unit is done); a canceled or failed one's, that of
+    its finished units. 422 for a layer the image does not have."""
+    pixels = pixel_data.job_pixels(session, farm.store, actor, job_id, layer)
+    return Response(pixels.data, media_type="application/octet-stream", headers={
+        **_NO_STORE, "X-Image-Width": str(pixels.width), "X-Image-Height": str(pixels.height),
+        "X-Image-Channels": ",".join(pixels.channels), "X-Image-Layers": ",".join(pixels.layers),
+        "X-Image-Source": pixels.source})
 
 
 @router.get("/{job_id}/noise.png", response_class=FileResponse,
