@@ -741,3 +741,82 @@ def test20_progress_labels_read_at_4_5_to_1_on_every_fill(page):
         for background in [*c["fills"], c["track"]]:
             ratio = _contrast(c["label"], background)
             assert ratio >= 4.5, (state, background, round(ratio, 2))
+
+
+def _exr_of(client, job_id: str, tmp_path) -> dict:
+    from renderer import read_exr
+
+    path = tmp_path / f"{job_id}.exr"
+    path.write_bytes(client.get(f"/jobs/{job_id}/result.exr").content)
+    return read_exr(path)[0]
+
+
+def test21_the_hdr_viewer_zooms_to_a_pixel_reads_its_value_and_compares_two_jobs(page, tmp_path):
+    """The job page's HDR view draws the float data: zoomed in to single
+    pixels, the inspector reads the EXR's own value of the pixel under the
+    cursor with its standard error (sqrt of var); exposure, display and the
+    layers work; compared with another job, the RMSE and relMSE it shows are
+    those of the two EXRs."""
+    import numpy as np
+
+    body = {"scene": "cornell-box", "method": "path", "spp": 16, "depth": 3, "width": 48,
+            "height": 32, "tile_size": 16}
+    with api(page.base) as client:
+        a, b = (client.post("/jobs", json=dict(body, seed=seed)).json() for seed in (1, 2))
+        for job in (a, b):
+            assert poll_job(lambda path: client.get(path).json(), job["id"])["status"] == "done"
+        exr_a, exr_b = _exr_of(client, a["id"], tmp_path), _exr_of(client, b["id"], tmp_path)
+    page.goto(f"{page.base}/#/jobs/{a['id']}")
+    page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=180_000)
+    page.click("[data-view='hdr']")
+    page.wait_for_selector("#hdr-viewer[data-source='final']")
+    assert page.is_hidden("#stage")
+    fitted = float(page.get_attribute("#hdr-canvas", "data-scale"))
+    box = page.locator("#hdr-canvas").bounding_box()
+    cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(cx, cy)
+    for _ in range(12):  # wheel zoom at the cursor: the pixel under it stays under it
+        page.mouse.wheel(0, -100)
+    scale = float(page.get_attribute("#hdr-canvas", "data-scale"))
+    assert scale >= 32 and scale > fitted  # a pixel now spans dozens of screen pixels
+    page.mouse.move(cx + 1, cy + 1)
+    x = int(page.get_attribute("#hdr-inspector", "data-x"))
+    y = int(page.get_attribute("#hdr-inspector", "data-y"))
+    assert abs(x - 24) <= 1 and abs(y - 16) <= 1  # the middle of the 48 x 32 image
+    for name in "RGB":
+        cell = page.locator(f"#hdr-inspector [data-channel='{name}']")
+        assert float(cell.get_attribute("data-value")) == float(exr_a[name][y, x])
+        assert float(cell.get_attribute("data-stderr")) == pytest.approx(
+            float(np.sqrt(exr_a[f"var.{name}"][y, x])), rel=1e-6)
+    shot(page, "21-hdr-zoomed")
+    # keys: fit, exposure; the other layers and displays
+    page.focus("#hdr-canvas")
+    page.keyboard.press("f")
+    assert float(page.get_attribute("#hdr-canvas", "data-scale")) == pytest.approx(fitted)
+    page.keyboard.press("e")
+    assert page.text_content("#hdr-exposure-value") == "+0.5 EV"
+    page.select_option("#hdr-display", "false")
+    page.select_option("#hdr-layer", "normal")  # fetched on demand
+    page.wait_for_selector("#hdr-channel option[value='lum']", state="attached")
+    page.mouse.move(cx, cy)
+    page.wait_for_selector("#hdr-inspector [data-channel='normal.X']")
+    page.select_option("#hdr-layer", "rel. error")
+    page.select_option("#hdr-layer", "beauty")
+    page.select_option("#hdr-display", "srgb")
+    # A/B with the other seed: split, then the difference; the figures are the EXRs'
+    page.wait_for_selector(f"#hdr-compare option[value='{b['id']}']", state="attached")
+    page.select_option("#hdr-compare", b["id"])
+    page.wait_for_selector("#hdr-compare-stats[data-rmse]")
+    rgb_a = np.stack([exr_a[c] for c in "RGB"], -1).astype(np.float64)
+    rgb_b = np.stack([exr_b[c] for c in "RGB"], -1).astype(np.float64)
+    d2 = (rgb_a - rgb_b) ** 2
+    assert float(page.get_attribute("#hdr-compare-stats", "data-rmse")) == pytest.approx(
+        np.sqrt(d2.mean()), rel=1e-5)
+    assert float(page.get_attribute("#hdr-compare-stats", "data-relmse")) == pytest.approx(
+        (d2 / (rgb_b ** 2 + 0.01)).mean(), rel=1e-5)
+    assert page.is_visible("#hdr-split")
+    page.fill("#hdr-split", "0.3")
+    shot(page, "21-hdr-split")
+    page.select_option("#hdr-compare-mode", "diff")
+    assert page.is_hidden("#hdr-split")
+    shot(page, "21-hdr-difference")

@@ -1,4 +1,5 @@
 // One job: its image sharpening as passes land, the tile map, the noise map,
+// the HDR viewer over its float data (viewer.js),
 // progress and throughput, its units (a row opens the unit's log), and what
 // can be done to it.
 // Live from GET /jobs/{id}/events: job, units (snapshot), unit, preview, end.
@@ -8,6 +9,7 @@ import { may, readOnlyReason } from "../session.js";
 import { FINAL, badge, fmt, h, progressBar, replace, toast } from "../ui.js";
 import { elapsedNow, errorText, etaNow, progressFraction, progressLabel } from "./jobs.js";
 import { convergencePlot } from "../plot.js";
+import { hdrViewer } from "../viewer.js";
 
 const WORKER_COLORS = ["#4aa3ff", "#ffb547", "#3ecf8e", "#ff7ab6", "#b48cff", "#5ee0e6", "#ff8f5c",
   "#c3e86b", "#ffd966", "#8fa8ff"];
@@ -174,6 +176,7 @@ export function jobView(root, jobId) {
   function renderViewTabs() {
     const views = [["image", "Image"], ["noise", "Noise"]];
     if (job && job.denoised_url) views.push(["denoised", "Denoised"]);
+    views.push(["hdr", "HDR"]);
     replace(viewTabs, views.map(([key, label]) =>
       h(`button${view === key ? ".active" : ""}`, { "data-view": key, role: "tab",
         onclick: () => { view = key; renderViewTabs(); loadImage(); renderLegend(); } }, label)));
@@ -187,7 +190,16 @@ export function jobView(root, jobId) {
   }
 
   let loading = null;
+  let viewer = null; // the HDR viewer (viewer.js), made when its tab is first opened
   function loadImage() {
+    const hdr = view === "hdr";
+    stage.hidden = hdr;
+    if (viewer) viewer.el.hidden = !hdr;
+    if (hdr) {
+      if (!viewer) { viewer = hdrViewer(jobId); stage.after(viewer.el); }
+      if (job && job.preview_url) viewer.reload();
+      return;
+    }
     const url = imageUrl();
     if (!url) return;
     const img = new Image();
@@ -206,6 +218,10 @@ export function jobView(root, jobId) {
   }
 
   function renderLegend() {
+    if (view === "hdr") {
+      replace(legend, h("span.muted", {}, "float data: wheel or pinch to zoom, drag to pan, tap to pin a pixel"));
+      return;
+    }
     if (view === "denoised") {
       replace(legend, h("span.denoised-note", {}, "Denoised: a biased post-process (Intel Open Image "
         + "Denoise over the merged frame). The EXR keeps the raw R, G, B and their variance; "
@@ -587,5 +603,9 @@ export function jobView(root, jobId) {
     if (elapsed) elapsed.textContent = fmt.duration(elapsedNow(job));
     if (eta) eta.textContent = fmt.duration(etaNow(job));
   }, 1000);
-  return () => { if (closeStream) closeStream(); clearInterval(ticker); clearInterval(blocklistTimer); };
+  return () => {
+    if (closeStream) closeStream();
+    if (viewer) viewer.destroy();
+    clearInterval(ticker); clearInterval(blocklistTimer);
+  };
 }
