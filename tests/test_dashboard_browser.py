@@ -820,3 +820,47 @@ def test21_the_hdr_viewer_zooms_to_a_pixel_reads_its_value_and_compares_two_jobs
     page.select_option("#hdr-compare-mode", "diff")
     assert page.is_hidden("#hdr-split")
     shot(page, "21-hdr-difference")
+
+
+def test22_no_page_scrolls_sideways_on_a_390_px_phone(browser, server):
+    """At 390 x 844 (a phone), every page fits its width: the jobs list (its
+    table as cards), a job page (with the HDR viewer open), the submit form and
+    the workers page; the job image fits and pinch-zooms (touch-action none)."""
+    context = browser.new_context(viewport={"width": 390, "height": 844}, has_touch=True,
+                                  is_mobile=True, device_scale_factor=2)
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.set_default_timeout(60_000)
+    try:
+        with api(server) as client:
+            job = client.post("/jobs", json={"scene": "cornell-box", "method": "path", "spp": 8,
+                                             "depth": 3, "width": 64, "height": 64,
+                                             "tile_size": 32}).json()
+            assert poll_job(lambda path: client.get(path).json(), job["id"])["status"] == "done"
+        page.goto(f"{server}/?token={TEST_ADMIN_TOKEN}")
+        page.wait_for_url(f"{server}/")
+        widths = {}
+        pages = [("jobs", "#/jobs", "#view table"), ("job", f"#/jobs/{job['id']}",
+                                                     "#view .page-head .badge[data-state='done']"),
+                 ("submit", "#/submit", "#f-method option[value='path-mis']"),
+                 ("workers", "#/workers", "#view .panel")]
+        for name, hash_, ready in pages:
+            page.goto(f"{server}/{hash_}")
+            page.wait_for_selector(ready, state="attached")
+            if name == "job":
+                page.click("[data-view='hdr']")
+                page.wait_for_selector("#hdr-viewer[data-source='final']")
+                stage = page.locator("#hdr-stage").bounding_box()
+                assert stage["x"] >= 0 and stage["x"] + stage["width"] <= 390
+                assert page.eval_on_selector("#hdr-stage", "e => getComputedStyle(e).touchAction") \
+                    == "none"
+            page.wait_for_timeout(200)
+            # innerWidth too: a mobile browser zooms out to show a page wider than the screen
+            widths[name] = page.evaluate("[document.documentElement.scrollWidth, innerWidth]")
+            SHOTS.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(SHOTS / f"22-phone-{name}.png"), full_page=True)
+        assert all(scroll <= 390 and inner == 390 for scroll, inner in widths.values()), widths
+        assert not errors, errors
+    finally:
+        context.close()

@@ -114,6 +114,26 @@ async function health() {
   el.title = JSON.stringify(report, null, 1);
 }
 
+// -- tables on a phone ----------------------------------------------------------------
+// Below 640 px a table row is a card (app.css): each cell shows its column's
+// heading before its value, from a data-label set here for every table.grid
+// the views render (once per frame, whatever changed).
+let labelling = false;
+function labelCells() {
+  labelling = false;
+  for (const table of document.querySelectorAll("#view table.grid")) {
+    const heads = [...table.querySelectorAll("thead th")].map((th) => th.textContent.trim());
+    for (const row of table.querySelectorAll("tbody tr")) {
+      [...row.children].forEach((cell, i) => {
+        if (heads[i] && cell.dataset.label !== heads[i]) cell.dataset.label = heads[i];
+      });
+    }
+  }
+}
+new MutationObserver(() => {
+  if (!labelling) { labelling = true; requestAnimationFrame(labelCells); }
+}).observe(document.getElementById("view"), { childList: true, subtree: true });
+
 async function start() {
   onSessionChange(renderAccount);
   try {
