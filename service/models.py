@@ -125,8 +125,16 @@ class Job(Base):
         """Fold `samples` that landed at `now` into `recent_rate`: an exponential
         moving average of samples/s with time constant `window` seconds, bias
         corrected (divided by its total weight, as Adam does) so that its first
-        values are plain averages over the time since the job (re)started, not
-        pulled towards zero."""
+        values are plain averages, not pulled towards zero.
+
+        The first landing since the job (re)started only starts the
+        measurement: its wait held the queue, and for the first job after a
+        start the render processes loading their kernels, so counting it made
+        a 50-s job's first ETA 45 minutes. `recent_rate` stays None (and the
+        job shows no ETA) until a second landing measures a real rate."""
+        if self.recent_weight is None:
+            self.recent_weight, self.recent_rate, self.recent_rate_at = 0.0, None, now
+            return
         since = self.recent_rate_at or self.started or now
         dt = max((now - since).total_seconds(), 1e-3)
         alpha = 1.0 - math.exp(-dt / window)

@@ -165,7 +165,8 @@ class Progress(BaseModel):
                                               "start, pauses excluded (null before the start)")
     eta: float | None = Field(description="seconds left at the job's recent samples/s, at "
                                           "least a mean unit's render time while units are "
-                                          "left (null unless running with samples done); a "
+                                          "left (null unless running with a rate measured "
+                                          "between two landings of units); a "
                                           "target job's: until its error meets the target")
     rel_error: float | None = Field(None, description="the image's error statistic (95th "
                                                       "percentile of the relative standard "
@@ -254,8 +255,10 @@ class JobPublic(BaseModel):
             eta = 0.0
         elif job.target and job.status == "running":
             eta = error_eta(job)
-        elif job.status == "running" and (job.recent_rate or rate):
-            eta = max(total - job.samples, 0) / (job.recent_rate or rate)
+        elif job.status == "running" and job.recent_rate:
+            # Only a rate measured between landings (Job.note_samples): the
+            # mean since the start counts the wait for the first unit.
+            eta = max(total - job.samples, 0) / job.recent_rate
             if job.units_done < job.units_total and job.unit_seconds and job.units_done:
                 # Units left (say one lost and enqueued again) take at least a
                 # mean unit's render time, whatever few samples they hold.

@@ -864,3 +864,22 @@ def test22_no_page_scrolls_sideways_on_a_390_px_phone(browser, server):
         assert not errors, errors
     finally:
         context.close()
+
+
+def test23_a_dropped_connection_shows_a_banner_until_it_is_back(page):
+    """With the network gone, the jobs list and a job page say "connection lost
+    — data as of HH:MM:SS" and reconnect by themselves when it is back."""
+    page.allow_console_error("ERR_INTERNET_DISCONNECTED")
+    page.allow_console_error("Failed to load resource")
+    page.goto(f"{page.base}/#/jobs")
+    page.wait_for_selector("#view table")
+    page.wait_for_timeout(500)  # the stream open
+    assert page.query_selector("#connection-lost:not([hidden])") is None
+    page.context.set_offline(True)
+    banner = page.wait_for_selector("#connection-lost:not([hidden])", timeout=20_000)
+    text = banner.text_content()
+    assert re.fullmatch(r"Connection lost — data as of \d\d:\d\d:\d\d\. Reconnecting…", text), text
+    shot(page, "23-connection-lost")
+    page.context.set_offline(False)
+    page.wait_for_selector("#connection-lost", state="hidden", timeout=30_000)
+    assert "offline" not in (page.get_attribute("body", "class") or "")

@@ -132,6 +132,34 @@ def test04_the_eta_counts_a_unit_left_to_render_however_few_its_samples(tmp_path
     assert JobPublic.from_job(job, now).progress.eta == pytest.approx(5.0)
 
 
+def test04b_no_eta_until_a_rate_is_measured_between_two_landings(tmp_path):
+    # The first job after a start: its first unit lands after the render
+    # processes loaded their kernels (40 s here), then units land every 0.5 s.
+    # Counting the first wait said 45 minutes for a job of under a minute.
+    start = utcnow()
+    job = Job(id="j", version=1, created=start, started=start, status="queued", owner="admin",
+              scene="s", scene_hash="h", spec={"method": "path", "spp": 64, "depth": 1,
+                                               "tile_size": 8, "seed": 0, "sampler": "random"},
+              width=64, height=64, units_total=64, units_done=0, samples=0, rays=0,
+              unit_seconds=0.0, paused_seconds=0.0, units_retried=0)
+    from service import states
+
+    states.change_job(job, "running", start)
+    per_unit = 64 * 64  # samples in a unit
+    now = start + timedelta(seconds=40)
+    job.units_done, job.samples = 1, per_unit
+    job.note_samples(per_unit, now)
+    assert job.recent_rate is None and JobPublic.from_job(job, now).progress.eta is None
+    for _ in range(3):
+        now += timedelta(seconds=0.5)
+        job.units_done += 1
+        job.samples += per_unit
+        job.note_samples(per_unit, now)
+    assert job.recent_rate == pytest.approx(per_unit / 0.5)
+    eta = JobPublic.from_job(job, now).progress.eta
+    assert eta == pytest.approx((64 - 4) * 0.5, rel=1e-6)  # 30 s, not 60 units x 10 s
+
+
 # -- the HTTP API (embedded service: one local worker) ----------------------------------------
 
 def test05_worker_control_is_for_admins_and_names_a_known_worker(local_client, make_user):

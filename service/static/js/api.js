@@ -90,18 +90,82 @@ function checkLogin() {
   checkingLogin ??= request("GET", "/auth/me").catch(() => null).finally(() => { checkingLogin = null; });
 }
 
-// A server-sent event stream with named events; `handlers` maps an event name
-// to a function of its parsed data. EventSource reconnects by itself; the
-// service then sends a fresh snapshot. Returns a function that closes it.
-export function stream(path, handlers, onState) {
-  const source = new EventSource(path);
-  for (const [name, handler] of Object.entries(handlers)) {
-    source.addEventListener(name, (event) => handler(JSON.parse(event.data)));
+// -- the connection ----------------------------------------------------------------
+// The pages live on event streams (and the top bar on /healthz). While any of
+// them is broken, a banner under the top bar says so, with the time the data
+// on the page was last known to be current, until they are all back.
+const broken = new Set(); // the links (streams, the health poll) down now
+let goodUntil = null; // when the first of them broke
+
+export function connectionState(link, ok) {
+  const before = broken.size;
+  if (ok) broken.delete(link);
+  else if (!broken.has(link)) {
+    if (!before) goodUntil = new Date();
+    broken.add(link);
   }
-  source.onopen = () => onState && onState("open");
-  source.onerror = () => {
-    if (onState) onState(source.readyState === EventSource.CLOSED ? "closed" : "reconnecting");
-    checkLogin();
+  if (before === broken.size) return;
+  document.body.classList.toggle("offline", broken.size > 0);
+  let banner = document.getElementById("connection-lost");
+  if (!broken.size) {
+    if (banner) banner.hidden = true;
+    return;
+  }
+  if (!banner) {
+    banner = document.createElement("div");
+    banner.id = "connection-lost";
+    banner.className = "conn-banner";
+    banner.setAttribute("role", "alert");
+    document.body.insertBefore(banner, document.getElementById("view"));
+  }
+  const at = goodUntil.toLocaleTimeString("en-GB", { hour12: false });
+  banner.textContent = `Connection lost — data as of ${at}. Reconnecting…`;
+  banner.dataset.asOf = goodUntil.toISOString();
+  banner.hidden = false;
+}
+
+export function offline() {
+  return broken.size > 0;
+}
+
+// A server-sent event stream with named events; `handlers` maps an event name
+// to a function of its parsed data. EventSource reconnects by itself after a
+// dropped connection, and the service then sends a fresh snapshot; after an
+// HTTP error it gives up (CLOSED), so this opens a new one a few seconds
+// later. Either way the connection banner shows meanwhile. Returns a function
+// that closes it.
+const REOPEN_MS = 3000;
+export function stream(path, handlers, onState) {
+  const link = {};
+  let source = null;
+  let timer = null;
+  let closed = false;
+  function open() {
+    source = new EventSource(path);
+    for (const [name, handler] of Object.entries(handlers)) {
+      source.addEventListener(name, (event) => handler(JSON.parse(event.data)));
+    }
+    source.onopen = () => {
+      connectionState(link, true);
+      if (onState) onState("open");
+    };
+    source.onerror = () => {
+      if (closed) return;
+      connectionState(link, false);
+      const gone = source.readyState === EventSource.CLOSED;
+      if (onState) onState(gone ? "closed" : "reconnecting");
+      checkLogin();
+      if (gone) {
+        source.close();
+        timer = setTimeout(() => { if (!closed) open(); }, REOPEN_MS);
+      }
+    };
+  }
+  open();
+  return () => {
+    closed = true;
+    clearTimeout(timer);
+    source.close();
+    connectionState(link, true);
   };
-  return () => source.close();
 }

@@ -4,7 +4,7 @@
 // Every view but the login page needs a login; an API answer 401 anywhere
 // (api.js raises UNAUTHORIZED) brings the login page, which comes back here.
 
-import { UNAUTHORIZED, api } from "./api.js";
+import { UNAUTHORIZED, api, connectionState } from "./api.js";
 import { may, onSessionChange, readOnlyReason, refresh, session, setMe } from "./session.js";
 import { h, replace, toast } from "./ui.js";
 import { jobsView } from "./views/jobs.js";
@@ -91,6 +91,7 @@ window.addEventListener(UNAUTHORIZED, () => {
 });
 
 // -- health -------------------------------------------------------------------------
+const HEALTH = {}; // the health poll, as a link of the connection banner (api.js)
 async function health() {
   const el = document.getElementById("health");
   let report;
@@ -100,8 +101,10 @@ async function health() {
   } catch {
     el.className = "health down";
     el.textContent = "service unreachable";
+    connectionState(HEALTH, false);
     return;
   }
+  connectionState(HEALTH, true);
   el.className = `health ${report.status}`;
   const parts = [report.executor === "local" ? `local pool · ${report.workers} processes` : "celery"];
   if (report.broker && report.broker !== "ok") parts.push("broker unreachable");

@@ -4,10 +4,10 @@
 // can be done to it.
 // Live from GET /jobs/{id}/events: job, units (snapshot), unit, preview, end.
 
-import { ApiError, api, stream } from "../api.js";
+import { ApiError, api, offline, stream } from "../api.js";
 import { may, readOnlyReason } from "../session.js";
 import { FINAL, badge, fmt, h, progressBar, replace, toast } from "../ui.js";
-import { elapsedNow, errorText, etaNow, progressFraction, progressLabel } from "./jobs.js";
+import { elapsedNow, errorText, etaText, progressFraction, progressLabel } from "./jobs.js";
 import { convergencePlot } from "../plot.js";
 import { hdrViewer } from "../viewer.js";
 
@@ -333,7 +333,7 @@ export function jobView(root, jobId) {
           ["units", `${p.units_done} / ${p.units_total}`, "units"],
         ]),
         ["elapsed", fmt.duration(elapsedNow(job)), "elapsed"],
-        ["ETA", job.status === "running" ? fmt.duration(etaNow(job)) : job.status === "done" ? "finished" : "–", "eta"],
+        ["ETA", etaText(job), "eta"],
         ["submitted", fmt.time(job.created)],
         ["started", fmt.time(job.started)],
         ["finished", fmt.time(job.finished)],
@@ -597,11 +597,11 @@ export function jobView(root, jobId) {
         ? `There is no job ${jobId}.` : `Could not load job ${jobId}: ${err.message}`));
   });
   const ticker = setInterval(() => {
-    if (!job || job.status !== "running") return;
+    if (!job || job.status !== "running" || offline()) return; // frozen: the banner says as of when
     const elapsed = document.getElementById("elapsed");
     const eta = document.getElementById("eta");
     if (elapsed) elapsed.textContent = fmt.duration(elapsedNow(job));
-    if (eta) eta.textContent = fmt.duration(etaNow(job));
+    if (eta) eta.textContent = etaText(job);
   }, 1000);
   return () => {
     if (closeStream) closeStream();

@@ -22,6 +22,14 @@ export function etaNow(job) {
   return Math.max(eta - (Date.now() - job._received) / 1000, 0);
 }
 
+// The ETA as shown: "estimating…" while a running job has none yet (the
+// service gives one once a rate is measured between two landings of units).
+export function etaText(job) {
+  if (job.status !== "running") return job.status === "done" ? "finished" : "–";
+  const eta = etaNow(job);
+  return eta === null || eta === undefined ? "estimating…" : fmt.duration(eta);
+}
+
 // A relative error as a percentage: 0.0183 -> "1.83 %"; unknown -> "?".
 export function errorText(e) {
   return e === null || e === undefined ? "?" : `${+(100 * e).toPrecision(3)} %`;
@@ -87,7 +95,7 @@ export function jobsView(root) {
       h("td", {}, badge(job.status)),
       h("td", {}, progressBar(progressFraction(job), progressLabel(job), job.status)),
       h("td.num.elapsed", {}, fmt.duration(elapsedNow(job))),
-      h("td.num.eta", {}, job.status === "running" ? fmt.duration(etaNow(job)) : "–"),
+      h("td.num.eta", {}, job.status === "done" ? "–" : etaText(job)),
       h("td", { title: job.created }, fmt.time(job.created)));
   }
 
@@ -136,7 +144,7 @@ export function jobsView(root) {
       const job = jobs.get(tr.dataset.job);
       if (job && job.status === "running") {
         tr.querySelector(".elapsed").textContent = fmt.duration(elapsedNow(job));
-        tr.querySelector(".eta").textContent = fmt.duration(etaNow(job));
+        tr.querySelector(".eta").textContent = etaText(job);
       }
     }
   }, 1000);
