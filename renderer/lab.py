@@ -1,0 +1,165 @@
+"""The estimator lab's measurement: how biased, how noisy and how consistent
+an estimator is, from R independent renders (different seeds) at several spp
+levels and a reference image. The one implementation behind the service's
+experiments (service/experiments.py, `POST /experiments`) and
+bench/methods.py.
+
+Per spp level (`level_report`), over the pixels (RGB):
+
+- **bias**: the average of the R renders against the reference, per block of
+  `block` x `block` pixels and channel (block means are near-normal where
+  single pixels at low spp are far too skewed for a t statistic):
+  t = (average - reference) / sqrt(spread^2 / R + reference variance), with
+  the spread the blocks' sample variance over the repeats, so a method whose
+  pixels are correlated (a shared photon map) is judged by its real spread.
+  Under "no bias" each t follows Student's t with nu = R - 1 degrees of
+  freedom (`t_two_sided_p`, exact for integer nu); Fisher's method combines
+  the blocks' two-sided p-values, -2 sum ln p ~ chi^2(2n), reported as the
+  normal score `bias_z` = (X - 2n) / sqrt(4n). A systematic error (blur,
+  missing light, meshing) makes the p-values small and `bias_z` large:
+  "unbiased?" is `bias_z` < `Z_CRITICAL` at every level. This works from
+  R = 2, where the mean of t^2 that bench/methods.py used before needed
+  R >= 6 (its variance is infinite below nu = 5).
+- **variance**: the per-pixel sample variance over the repeats, averaged over
+  the pixels: what one render's error would be without bias.
+- **MSE**: each render's mean squared error against the reference, averaged
+  over the repeats, less the reference's own variance (which adds to it).
+- **time**: the renders' mean seconds; **efficiency** 1 / (MSE x seconds).
+
+Per configuration (`config_report`): the log-log slope of RMSE against spp
+(over all levels, and over the last step), and "consistent?": the error
+still falls at the last step (slope below `CONSISTENT_SLOPE`). Plain Monte
+Carlo falls as spp^-1/2; a biased, inconsistent estimator levels off at its
+bias (slope near 0).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Z_CRITICAL", "CONSISTENT_SLOPE", "block_means", "t_two_sided_p", "bias_test",
+           "level_report", "config_report", "Render"]
+
+Z_CRITICAL = 4.0  # Fisher's normal score above this: biased (p ~ 3e-5 for one test)
+CONSISTENT_SLOPE = -0.25  # d log RMSE / d log spp at the last step, below this: still falling
+P_FLOOR = 1e-300  # a block whose t is infinite (zero spread, a difference) counts as this
+
+
+@dataclass
+class Render:
+    """One render of an experiment: its mean image (h, w, 3) and its seconds."""
+    mean: np.ndarray
+    seconds: float
+
+
+def block_means(image: np.ndarray, block: int) -> np.ndarray:
+    """Means over `block` x `block` pixels (the image cropped to whole blocks),
+    per channel: (h // block, w // block, channels)."""
+    h, w = (image.shape[0] // block) * block, (image.shape[1] // block) * block
+    if h == 0 or w == 0:
+        raise ValueError(f"the image ({image.shape[1]}x{image.shape[0]}) is smaller than one "
+                         f"{block}x{block} block")
+    channels = image.shape[2] if image.ndim == 3 else 1
+    return image[:h, :w].reshape(h // block, block, w // block, block, channels).mean(axis=(1, 3))
+
+
+def t_two_sided_p(t: np.ndarray, nu: int) -> np.ndarray:
+    """P(|T| >= |t|) for Student's t with integer `nu` >= 1 degrees of freedom:
+    the closed forms of Abramowitz & Stegun 26.7.3 (odd nu) and 26.7.4 (even
+    nu), in theta = atan(|t| / sqrt(nu)). Infinite t gives 0, NaN gives 1."""
+    if nu < 1:
+        raise ValueError("a t statistic needs nu >= 1 degrees of freedom")
+    t = np.abs(np.asarray(t, dtype=np.float64))
+    theta = np.arctan(np.where(np.isfinite(t), t, np.inf) / math.sqrt(nu))
+    s, c = np.sin(theta), np.cos(theta)
+    c2 = c * c
+    if nu % 2 == 1:
+        total = np.zeros_like(theta)
+        if nu > 1:
+            term = np.ones_like(theta)
+            total = term.copy()
+            for k in range(2, nu - 1, 2):  # 1 + 2/3 c^2 + 2*4/(3*5) c^4 + ...
+                term = term * c2 * k / (k + 1)
+                total = total + term
+            total = s * c * total
+        a = 2.0 / math.pi * (theta + total)  # A(t|nu) = P(|T| < t)
+    else:
+        term = np.ones_like(theta)
+        total = term.copy()
+        for k in range(1, nu - 2, 2):  # 1 + 1/2 c^2 + 1*3/(2*4) c^4 + ...
+            term = term * c2 * k / (k + 1)
+            total = total + term
+        a = s * total
+    p = np.clip(1.0 - a, 0.0, 1.0)
+    return np.where(np.isnan(t), 1.0, p)
+
+
+def bias_test(renders: list[np.ndarray], reference: np.ndarray, reference_var: np.ndarray,
+              block: int) -> dict:
+    """The bias statistics of `renders` (R mean images) against `reference`
+    and its per-pixel variance of the mean (module doc). Returns bias_z (Fisher's
+    normal score), blocks (the number of block-channel values tested), the
+    per-block t map (h // block, w // block, 3), the relative bias of the image
+    mean and `unbiased` (bias_z < Z_CRITICAL)."""
+    runs = len(renders)
+    if runs < 2:
+        raise ValueError("a bias test needs at least 2 renders (the spread over them)")
+    stack = np.stack([block_means(r, block) for r in renders])
+    average = stack.mean(axis=0)
+    spread = stack.var(axis=0, ddof=1) / runs
+    ref_blocks = block_means(reference, block)
+    ref_var = np.where(np.isfinite(reference_var), reference_var, 0.0)
+    ref_blocks_var = block_means(ref_var, block) / (block * block)  # independent pixels
+    denom = spread + ref_blocks_var
+    diff = average - ref_blocks
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(denom > 0, diff / np.sqrt(denom), np.where(diff == 0, 0.0, np.inf))
+    p = np.maximum(t_two_sided_p(t, runs - 1), P_FLOOR)
+    n = p.size
+    fisher = float(-2.0 * np.log(p).sum())
+    z = (fisher - 2.0 * n) / math.sqrt(4.0 * n)
+    ref_mean = float(reference.mean())
+    return {"bias_z": z, "blocks": n, "t": t,
+            "relative_bias": float(average.mean() / ref_mean - 1.0) if ref_mean else 0.0,
+            "unbiased": bool(z < Z_CRITICAL)}
+
+
+def level_report(renders: list[Render], reference: np.ndarray, reference_var: np.ndarray,
+                 block: int) -> dict:
+    """Bias, variance, MSE, time and efficiency of one spp level (module doc),
+    and the per-pixel maps: `bias_map` (average - reference) and
+    `variance_map` (sample variance over the repeats), luminance-free RGB."""
+    images = [r.mean for r in renders]
+    stack = np.stack(images)
+    ref_var = np.where(np.isfinite(reference_var), reference_var, 0.0)
+    bias = bias_test(images, reference, reference_var, block)
+    variance_map = stack.var(axis=0, ddof=1)
+    raw_mse = float(np.mean((stack - reference) ** 2))
+    mse = raw_mse - float(ref_var.mean())
+    seconds = float(np.mean([r.seconds for r in renders]))
+    reliable = mse > 0.5 * raw_mse  # the reference's own noise is a small part of it
+    mse = max(mse, 1e-30)
+    return {"bias_z": bias["bias_z"], "unbiased": bias["unbiased"],
+            "relative_bias": bias["relative_bias"], "blocks": bias["blocks"],
+            "variance": float(variance_map.mean()), "mse": mse, "rmse": math.sqrt(mse),
+            "mse_reliable": bool(reliable), "seconds": seconds,
+            "efficiency": 1.0 / (mse * seconds) if seconds > 0 else None,
+            "bias_map": stack.mean(axis=0) - reference, "variance_map": variance_map}
+
+
+def config_report(spps: list[int], levels: list[dict]) -> dict:
+    """The convergence of one configuration over its spp levels (ascending):
+    the log-log slope of RMSE against spp over all levels and over the last
+    step, and the verdicts."""
+    rmse = np.array([max(level["rmse"], 1e-30) for level in levels])
+    logs = np.log(np.asarray(spps, dtype=np.float64))
+    slope = last = None
+    if len(spps) >= 2:
+        slope = float(np.polyfit(logs, np.log(rmse), 1)[0])
+        last = float(math.log(rmse[-1] / rmse[-2]) / (logs[-1] - logs[-2]))
+    return {"slope": slope, "last_slope": last,
+            "unbiased": all(level["unbiased"] for level in levels),
+            "consistent": None if last is None else bool(last < CONSISTENT_SLOPE)}
