@@ -403,6 +403,27 @@ class RayfarmClient:
     def delete(self, job_id: str) -> None:
         self._request("DELETE", f"/jobs/{job_id}")
 
+    # -- the estimator lab --------------------------------------------------------------
+    def create_experiment(self, **fields) -> dict:
+        """POST /experiments: `scene`, `configs` ([{method, sampler, options,
+        label}]), `spp` (levels), and optionally `repeats`, `depth`, `width`,
+        `height`, `block`, `seed`, `reference` ({job} or {method, spp}),
+        `priority`. Returns the experiment (its jobs queued)."""
+        return self._json("POST", "/experiments",
+                          json={k: v for k, v in fields.items() if v is not None})
+
+    def experiment(self, experiment_id: str) -> dict:
+        return self._json("GET", f"/experiments/{experiment_id}")
+
+    def experiments(self, limit: int = 100) -> list[dict]:
+        return self._json("GET", "/experiments", params={"limit": limit})
+
+    def experiment_csv(self, experiment_id: str) -> str:
+        return self._request("GET", f"/experiments/{experiment_id}/report.csv").text
+
+    def cancel_experiment(self, experiment_id: str) -> dict:
+        return self._json("POST", f"/experiments/{experiment_id}/cancel")
+
     # -- images ------------------------------------------------------------------------
     def download_result(self, job_id: str, path: str | os.PathLike) -> Path:
         """Stream a done job's EXR to `path` (written whole or not at all)."""

@@ -26,6 +26,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 from typing import Any, Callable
 
@@ -438,6 +439,82 @@ def _blocklist(args: argparse.Namespace, client: RayfarmClient) -> int:
     return 0
 
 
+def _experiment_table(experiment: dict) -> str:
+    rows = []
+    for config in experiment["report"]:
+        for i, level in enumerate(config["levels"]):
+            rows.append([config["label"] if i == 0 else "", str(level["spp"]),
+                         f"{level['biased_blocks']}/{level['blocks']}",
+                         f"{level['bias_p']:.2g}", "yes" if level["unbiased"] else "no",
+                         f"{100 * level['relative_bias']:+.2f}%", f"{level['variance']:.3g}",
+                         f"{level['mse']:.3g}", _duration(level["seconds"]),
+                         f"{level['efficiency']:.3g}" if level["efficiency"] else "-",
+                         f"{config['slope']:.2f}" if i == 0 and config["slope"] is not None else "",
+                         ("yes" if config["unbiased"] else "no") if i == 0 else "",
+                         ("?" if config["consistent"] is None else
+                          "yes" if config["consistent"] else "no") if i == 0 else ""])
+    return _table(["CONFIG", "SPP", "SIG. BLOCKS", "BIAS P", "UNBIASED", "MEAN BIAS", "VARIANCE", "MSE", "TIME",
+                   "EFFICIENCY", "SLOPE", "UNBIASED?", "CONSISTENT?"], rows)
+
+
+def _show_experiment(args: argparse.Namespace, client: RayfarmClient, experiment: dict) -> int:
+    if args.json:
+        print(json.dumps(experiment, indent=2))
+    elif experiment["status"] != "done":
+        print(f"{experiment['id']} {experiment['status']} "
+              f"({experiment['jobs_done']}/{experiment['jobs_total']} jobs)"
+              + (f": {experiment['error']}" if experiment["error"] else ""))
+    elif args.csv:
+        sys.stdout.write(client.experiment_csv(experiment["id"]))
+    else:
+        print(_experiment_table(experiment))
+    return 0 if experiment["status"] in ("done", "running") else EXIT_FAILED
+
+
+def _wait_experiment(client: RayfarmClient, experiment_id: str, quiet: bool) -> dict:
+    bar = None
+    while True:
+        experiment = client.experiment(experiment_id)
+        if not quiet:
+            if bar is None:
+                bar = _make_bar(experiment["jobs_total"], 0, f"experiment {experiment_id}", "")
+            bar.n = experiment["jobs_done"]
+            bar.refresh()
+        if experiment["status"] != "running":
+            if bar is not None:
+                bar.close()
+            return experiment
+        time.sleep(1.0)
+
+
+def _experiment(args: argparse.Namespace, client: RayfarmClient) -> int:
+    if args.show:
+        experiment = client.experiment(args.show)
+    elif args.list:
+        rows = [[e["id"], e["status"], e["request"]["scene"], ",".join(e["request"]["labels"]),
+                 ",".join(map(str, e["request"]["spp"])), str(e["request"]["repeats"]),
+                 f"{e['jobs_done']}/{e['jobs_total']}"] for e in client.experiments()]
+        print(_table(["ID", "STATUS", "SCENE", "CONFIGS", "SPP", "REPEATS", "JOBS"], rows))
+        return 0
+    else:
+        if not args.scene or not args.methods:
+            _say("experiment", "give a scene and --methods (or --show ID, or --list)")
+            return EXIT_INVALID
+        configs = [{"method": m, "sampler": args.sampler} for m in args.methods]
+        experiment = client.create_experiment(
+            scene=args.scene, configs=configs, spp=args.spp, repeats=args.repeats,
+            depth=args.depth, width=args.width, height=args.height or args.width,
+            block=args.block, seed=args.seed,
+            reference={"job": args.reference} if args.reference else None)
+        _say("experiment", f"{experiment['id']}: {experiment['jobs_total']} jobs submitted")
+        if not args.wait:
+            print(experiment["id"])
+            return 0
+    if args.wait and experiment["status"] == "running":
+        experiment = _wait_experiment(client, experiment["id"], args.quiet)
+    return _show_experiment(args, client, experiment)
+
+
 # -- the parsers ------------------------------------------------------------------------------
 
 def _server_options() -> argparse.ArgumentParser:
@@ -456,7 +533,7 @@ def _server_options() -> argparse.ArgumentParser:
 
 def add_client_commands(sub: argparse._SubParsersAction) -> None:
     """Add the client commands (submit, watch, fetch, jobs, the job actions, priority,
-    scenes, methods, logs, workers, blocklist) to `rayfarm`'s subcommands."""
+    scenes, methods, logs, workers, experiment, blocklist) to `rayfarm`'s subcommands."""
     server = [_server_options()]
 
     submit = sub.add_parser("submit", parents=server, help="submit a render job; prints its id",
@@ -562,6 +639,35 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
     workers.add_argument("name", nargs="?", metavar="NAME", help="the worker (as listed)")
     workers.add_argument("--json", action="store_true", help="as JSON instead of a table")
     workers.set_defaults(run=_run("workers", _workers))
+
+    lab = sub.add_parser("experiment", parents=server,
+                         help="run an estimator-lab experiment, or show one (table, CSV, JSON)",
+                         description="The estimator lab: every method at every spp level, "
+                                     "--repeats times, measured against a reference (bias and "
+                                     "its test, variance, MSE, time, efficiency, slope, "
+                                     "unbiased? consistent?). Without --wait, prints the "
+                                     "experiment's id.")
+    lab.add_argument("scene", nargs="?", help="a built-in scene name or an uploaded scene's id")
+    lab.add_argument("--methods", nargs="+", metavar="METHOD", help="the methods to compare")
+    lab.add_argument("--sampler", default="random", help="their pixel sampler (default: random)")
+    lab.add_argument("--spp", nargs="+", type=int, default=[1, 4, 16, 64],
+                     help="spp levels (default: 1 4 16 64)")
+    lab.add_argument("--repeats", type=int, default=4, help="renders per level (default: 4)")
+    lab.add_argument("--depth", type=int, default=5)
+    lab.add_argument("--width", type=int, default=32, help="image width (default: 32)")
+    lab.add_argument("--height", type=int, default=None, help="(default: the width)")
+    lab.add_argument("--block", type=int, default=8, help="bias test block side (default: 8)")
+    lab.add_argument("--seed", type=int, default=0)
+    lab.add_argument("--reference", metavar="JOB", help="a done job to measure against "
+                                                        "(default: one is rendered)")
+    lab.add_argument("--show", metavar="ID", help="show an experiment instead")
+    lab.add_argument("--list", action="store_true", help="list the experiments")
+    lab.add_argument("--wait", action="store_true", help="wait for it, then print its report")
+    lab.add_argument("--quiet", action="store_true", help="no progress bar while waiting")
+    form = lab.add_mutually_exclusive_group()
+    form.add_argument("--csv", action="store_true", help="the report as CSV")
+    form.add_argument("--json", action="store_true", help="the experiment as JSON")
+    lab.set_defaults(run=_run("experiment", _experiment))
 
     blocked = sub.add_parser("blocklist", parents=server,
                              help="the workers blocklisted for a job; --clear one",

@@ -18,7 +18,7 @@ from sqlalchemy import (JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, 
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
-__all__ = ["ApiToken", "Base", "Job", "SceneClaim", "SceneRecord", "SchedulerLease", "User",
+__all__ = ["ApiToken", "Base", "Experiment", "Job", "SceneClaim", "SceneRecord", "SchedulerLease", "User",
            "WorkUnit", "WorkerBlock", "utcnow"]
 
 
@@ -178,6 +178,29 @@ class WorkUnit(Base):
     # SHA-256 of the stored film (set when the unit is done): later units of a
     # DAG job receive their inputs by it (service.artefacts).
     film_digest: Mapped[str | None] = mapped_column(String(64))
+
+    __mapper_args__ = {"version_id_col": version}
+
+
+class Experiment(Base):
+    """An estimator-lab experiment (service.experiments): configurations x spp
+    levels x repeats rendered as ordinary jobs (`runs`: one entry per job,
+    {"config", "spp", "repeat", "job"}), a reference job, and once every job
+    is done the measured report (renderer.lab)."""
+
+    __tablename__ = "experiments"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    version: Mapped[int] = mapped_column(Integer, nullable=False)
+    owner: Mapped[str] = mapped_column(String(64), index=True)
+    created: Mapped[datetime] = mapped_column(UTCDateTime)
+    finished: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    status: Mapped[str] = mapped_column(String(16), index=True)  # running, done, failed, canceled
+    request: Mapped[dict] = mapped_column(JSON)
+    runs: Mapped[list] = mapped_column(JSON)
+    reference_job: Mapped[str] = mapped_column(String(32))
+    report: Mapped[dict | None] = mapped_column(JSON)
+    error: Mapped[str | None] = mapped_column(Text)
 
     __mapper_args__ = {"version_id_col": version}
 

@@ -512,3 +512,113 @@ class TokenPublic(BaseModel):
 
 class TokenCreated(TokenPublic):
     token: str = Field(description="the secret: shown this once, stored only as a hash")
+
+
+# -- the estimator lab (service.experiments) ----------------------------------------------
+
+class LabConfig(RequestModel):
+    """One estimator of an experiment: a method with its sampler and options."""
+
+    method: str = Field(description="rendering method (GET /methods)",
+                        json_schema_extra={"enum": list(METHODS)})
+    sampler: str = Field("random", description="pixel sampler; `random` (independent samples) "
+                                               "by default, so that error falls as 1/sqrt(spp) "
+                                               "for plain Monte Carlo",
+                         json_schema_extra={"enum": list(SAMPLERS)})
+    options: Annotated[dict[str, Any], PlainJson] = Field(
+        default_factory=dict, description="method options (GET /methods lists them)")
+    label: StrictStr | None = Field(None, max_length=64, description="its name in the report "
+                                                                     "(default: method, sampler "
+                                                                     "and options)")
+
+
+class LabReference(RequestModel):
+    """The experiment's reference: an existing done job of the same scene,
+    size and depth, or a render the experiment makes."""
+
+    job: StrictStr | None = Field(None, max_length=32, description="a done job's id")
+    method: str = Field("path-mis", description="the reference render's method (unless `job`)")
+    spp: StrictInt | None = Field(None, ge=1, description="its spp (default: 16 x repeats x the "
+                                                          "largest spp level, at least 1024)")
+
+
+class ExperimentCreate(RequestModel):
+    """`POST /experiments`: every configuration rendered at every spp level,
+    `repeats` times with derived seeds, as ordinary jobs; measured against the
+    reference when they are done (renderer.lab)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [
+        {"scene": "cornell-box", "width": 32, "height": 32, "depth": 5, "repeats": 4,
+         "spp": [1, 4, 16, 64], "configs": [{"method": "path-bsdf"}, {"method": "path-mis"},
+                                            {"method": "bdpt"}, {"method": "photon"},
+                                            {"method": "raster"}]}]})
+
+    scene: StrictStr = Field(max_length=200, description="a built-in scene's name or an uploaded "
+                                                         "scene's id (GET /scenes)")
+    configs: list[LabConfig] = Field(min_length=1, max_length=16)
+    spp: list[StrictInt] = Field(min_length=1, max_length=8,
+                                 description="spp levels, ascending (each within the job bounds)")
+    repeats: StrictInt = Field(4, ge=2, le=64, description="independent renders per "
+                                                           "configuration and level")
+    depth: _bounded("depth", "maximum path depth") = 5
+    width: _bounded("width", "image width; default: the scene camera's") | None = None
+    height: _bounded("height", "image height; default: the scene camera's") | None = None
+    block: StrictInt = Field(8, ge=1, le=256, description="side of the pixel blocks whose means "
+                                                          "the bias test compares")
+    seed: _bounded("seed", "base seed: each job's seed is derived from it, its configuration, "
+                           "level and repeat") = 0
+    reference: LabReference = Field(default_factory=LabReference)
+    priority: Priority = 0
+
+
+class LabLevel(BaseModel):
+    spp: int
+    bias_p: float = Field(description="the chance, without bias, of as many pixel blocks whose "
+                                      "t test is significant at 5 % (renderer.lab); < 0.001: "
+                                      "biased")
+    biased_blocks: int = Field(description="the blocks significant at 5 %")
+    blocks: int = Field(description="the blocks tested (luminance)")
+    unbiased: bool
+    relative_bias: float = Field(description="image mean over the repeats / reference's - 1")
+    bias2: float = Field(description="squared error of the repeats' average less its noise and "
+                                     "the reference's: the systematic error's energy")
+    variance: float = Field(description="per-pixel variance over the repeats, mean over pixels")
+    mse: float = Field(description="mean squared error against the reference, less its variance")
+    rmse: float
+    mse_reliable: bool = Field(description="false when the reference's own variance is over "
+                                           "half the raw MSE: render a better reference")
+    seconds: float = Field(description="render seconds of one render (mean over the repeats)")
+    efficiency: float | None = Field(description="1 / (mse x seconds)")
+
+
+class LabConfigReport(BaseModel):
+    label: str
+    method: str
+    sampler: str
+    options: dict[str, Any]
+    levels: list[LabLevel]
+    slope: float | None = Field(description="log-log slope of RMSE against spp, all levels")
+    last_slope: float | None = Field(description="the same over the last step")
+    unbiased: bool = Field(description="unbiased at every level")
+    consistent: bool | None = Field(description="unbiased, or its bias^2 still falls at the "
+                                                "last step (renderer.lab)")
+
+
+class ExperimentPublic(BaseModel):
+    """An experiment as the API shows it."""
+
+    id: str
+    owner: str
+    status: str = Field(description="running, done, failed or canceled")
+    created: datetime
+    finished: datetime | None
+    request: dict[str, Any]
+    jobs_total: int
+    jobs_done: int
+    reference_job: str
+    runs: list[dict[str, Any]] = Field(description="one per job: config, spp, repeat, job, status")
+    report: list[LabConfigReport] | None = Field(description="per configuration, once done")
+    error: str | None
+    plot_url: str | None = Field(description="RMSE and bias against spp (PNG, matplotlib)")
+    maps_url: str | None = Field(description="bias and variance maps at the largest spp (PNG)")
+    csv_url: str | None

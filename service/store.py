@@ -77,6 +77,10 @@ class Store:
     def denoised_path(self, job_id: str) -> Path:
         return self.job_dir(job_id) / "denoised.png"
 
+    def experiment_dir(self, experiment_id: str) -> Path:
+        """An estimator-lab experiment's figures (service.experiments)."""
+        return self.root / "experiments" / _check(_JOB_ID, experiment_id, "experiment id")
+
     def frame_path(self, job_id: str) -> Path:
         """A running job's merged frame as float32 channels (an uncompressed
         .npz, written beside its preview: service.previews), for the HDR viewer."""

@@ -1,6 +1,6 @@
 // The dashboard's entry point: a hash router over its views, the logged-in
 // user in the top bar, and a health light.
-//   #/login  #/jobs  #/jobs/<id>  #/submit  #/workers
+//   #/login  #/jobs  #/jobs/<id>  #/submit  #/workers  #/experiments  #/experiments/<id>
 // Every view but the login page needs a login; an API answer 401 anywhere
 // (api.js raises UNAUTHORIZED) brings the login page, which comes back here.
 
@@ -12,6 +12,7 @@ import { jobView } from "./views/job.js";
 import { loginView } from "./views/login.js";
 import { submitView } from "./views/submit.js";
 import { workersView } from "./views/workers.js";
+import { experimentView, experimentsView } from "./views/experiments.js";
 
 const LOGIN = /^#\/login(?:\?(.*))?$/;
 const routes = [
@@ -20,6 +21,8 @@ const routes = [
   [/^#\/jobs\/([0-9a-f]{6,32})$/, "jobs", (m) => (root) => jobView(root, m[1])],
   [/^#\/submit$/, "submit", () => submitView],
   [/^#\/workers$/, "workers", () => workersView],
+  [/^#\/experiments$/, "experiments", () => experimentsView],
+  [/^#\/experiments\/([0-9a-f]{6,32})$/, "experiments", (m) => (root) => experimentView(root, m[1])],
 ];
 
 let cleanup = null;

@@ -1,0 +1,100 @@
+"""The estimator lab through the API (service.experiments): an experiment's
+jobs run on the farm as ordinary jobs; when they are done its report says,
+from the renders themselves, that path tracing is unbiased and consistent
+and rasterization (no indirect light) is neither; CSV and figures follow;
+bad experiments are 422s naming the field."""
+
+from __future__ import annotations
+
+import csv
+import io
+
+import numpy as np
+import pytest
+
+from conftest import wait_for
+
+SMALL = {"scene": "cornell-box", "width": 16, "height": 16, "depth": 3, "repeats": 3,
+         "spp": [2, 8], "block": 8, "configs": [{"method": "path-mis"}, {"method": "raster"}]}
+
+
+def finished(client, experiment_id: str, timeout: float = 300) -> dict:
+    def done():
+        body = client.get(f"/experiments/{experiment_id}").json()
+        return body if body["status"] != "running" else None
+    return wait_for(done, timeout, "the experiment to finish", interval=0.2)
+
+
+@pytest.fixture(scope="module")
+def small(local_client):
+    response = local_client.post("/experiments", json=SMALL)
+    assert response.status_code == 201, response.text
+    created = response.json()
+    assert response.headers["location"] == f"/experiments/{created['id']}"
+    return created, finished(local_client, created["id"])
+
+
+def test01_an_experiment_runs_as_jobs_and_measures_bias_and_consistency(local_client, small):
+    created, body = small
+    assert created["status"] == "running" and created["jobs_total"] == 2 * 2 * 3 + 1
+    assert body["status"] == "done", body["error"]
+    assert body["jobs_done"] == body["jobs_total"] == 13
+    seeds = set()
+    for run in body["runs"]:  # ordinary jobs, each with its own derived seed
+        job = local_client.get(f"/jobs/{run['job']}").json()
+        assert job["status"] == "done" and job["spp"] == run["spp"] and job["width"] == 16
+        seeds.add(job["seed"])
+    assert len(seeds) == 12
+    path, raster = body["report"]
+    assert path["label"] == "path-mis" and raster["label"] == "raster"
+    assert path["unbiased"] and path["consistent"]
+    assert -0.8 < path["slope"] < -0.25  # 1/sqrt(spp), within what 3 repeats can show
+    assert not raster["unbiased"] and raster["levels"][-1]["relative_bias"] < -0.1
+    assert not raster["consistent"]
+    for level in path["levels"]:
+        assert level["efficiency"] == pytest.approx(1 / (level["mse"] * level["seconds"]))
+        assert level["rmse"] == pytest.approx(np.sqrt(level["mse"]))
+
+
+def test02_csv_and_figures(local_client, small):
+    _, body = small
+    text = local_client.get(body["csv_url"])
+    assert text.status_code == 200 and text.headers["content-type"].startswith("text/csv")
+    rows = list(csv.DictReader(io.StringIO(text.text)))
+    assert [(r["label"], int(r["spp"])) for r in rows] == [
+        ("path-mis", 2), ("path-mis", 8), ("raster", 2), ("raster", 8)]
+    assert float(rows[1]["rmse"]) == pytest.approx(body["report"][0]["levels"][1]["rmse"])
+    for url in (body["plot_url"], body["maps_url"]):
+        png = local_client.get(url)
+        assert png.status_code == 200 and png.content[:8] == b"\x89PNG\r\n\x1a\n"
+    assert local_client.get(f"/experiments/{body['id']}/other.png").status_code == 404
+    listed = local_client.get("/experiments").json()
+    assert body["id"] in [e["id"] for e in listed]
+
+
+def test03_bad_experiments_are_422s_naming_the_field(local_client):
+    cases = [
+        ({"spp": [8, 2]}, "spp"),
+        ({"configs": [{"method": "nope"}]}, "configs"),
+        ({"configs": [{"method": "path-mis"}, {"method": "path"}]}, "configs"),  # one label twice
+        ({"repeats": 1}, "repeats"),
+        ({"repeats": 64, "spp": [1, 2, 4, 8, 16, 32, 64, 128]}, "repeats"),  # above the job limit
+        ({"block": 32}, "block"),
+        ({"reference": {"job": "0123456789ab"}}, "reference"),
+        ({"configs": [{"method": "path-mis", "options": {"bogus": 1}}]}, "configs"),
+    ]
+    for change, field in cases:
+        response = local_client.post("/experiments", json={**SMALL, **change})
+        assert response.status_code == 422, (change, response.text)
+        assert field in str(response.json()["detail"]), (change, response.text)
+
+
+def test04_a_canceled_experiment_cancels_its_jobs(local_client):
+    response = local_client.post("/experiments", json={**SMALL, "spp": [4096], "repeats": 2,
+                                                       "configs": [{"method": "path-mis"}]})
+    body = response.json()
+    canceled = local_client.post(f"/experiments/{body['id']}/cancel")
+    assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
+    for run in canceled.json()["runs"]:
+        assert local_client.get(f"/jobs/{run['job']}").json()["status"] in ("canceled", "done")
+    assert local_client.post(f"/experiments/{body['id']}/cancel").status_code == 409
