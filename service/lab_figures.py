@@ -7,7 +7,7 @@ live SVG:
   line at P_CRITICAL separates "unbiased" from "biased");
 - `maps.png`: per configuration, at the largest spp, the bias map (the
   repeats' average minus the reference, luminance, on a diverging scale
-  symmetric about 0) and the variance map (per-pixel variance over the
+  symmetric about 0 that covers 99 % of the pixels) and the variance map (per-pixel variance over the
   repeats, luminance, log scale), beside the reference.
 """
 
@@ -78,8 +78,11 @@ def write_figures(directory: Path, report: list[dict], maps: list[tuple[np.ndarr
         ax_ref.set_title("reference" if row == 0 else "", fontsize=9)
         ax_ref.set_ylabel(config["label"], fontsize=9)
         bias = bias_map @ LUMINANCE
-        limit = float(np.max(np.abs(bias))) or 1.0
-        image = ax_bias.imshow(bias, cmap="RdBu_r", norm=TwoSlopeNorm(0.0, -limit, limit))
+        # The scale covers 99 % of the pixels: the few that see a light would
+        # otherwise wash every other pixel out (they are clipped, not hidden).
+        limit = float(np.percentile(np.abs(bias), 99)) or float(np.max(np.abs(bias))) or 1.0
+        image = ax_bias.imshow(np.clip(bias, -limit, limit), cmap="RdBu_r",
+                               norm=TwoSlopeNorm(0.0, -limit, limit))
         ax_bias.set_title(f"bias at {config['levels'][-1]['spp']} spp", fontsize=9)
         fig.colorbar(image, ax=ax_bias, fraction=0.046, pad=0.04)
         variance = variance_map @ LUMINANCE

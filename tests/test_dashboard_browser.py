@@ -825,7 +825,7 @@ def test21_the_hdr_viewer_zooms_to_a_pixel_reads_its_value_and_compares_two_jobs
 def test22_no_page_scrolls_sideways_on_a_390_px_phone(browser, server):
     """At 390 x 844 (a phone), every page fits its width: the jobs list (its
     table as cards), a job page (with the HDR viewer open), the submit form and
-    the workers page; the job image fits and pinch-zooms (touch-action none)."""
+    the workers page, the lab; the job image fits and pinch-zooms (touch-action none)."""
     context = browser.new_context(viewport={"width": 390, "height": 844}, has_touch=True,
                                   is_mobile=True, device_scale_factor=2)
     page = context.new_page()
@@ -844,7 +844,8 @@ def test22_no_page_scrolls_sideways_on_a_390_px_phone(browser, server):
         pages = [("jobs", "#/jobs", "#view table"), ("job", f"#/jobs/{job['id']}",
                                                      "#view .page-head .badge[data-state='done']"),
                  ("submit", "#/submit", "#f-method option[value='path-mis']"),
-                 ("workers", "#/workers", "#view .panel")]
+                 ("workers", "#/workers", "#view .panel"),
+                 ("experiments", "#/experiments", "#x-methods input[data-method='raster']")]
         for name, hash_, ready in pages:
             page.goto(f"{server}/{hash_}")
             page.wait_for_selector(ready, state="attached")
@@ -883,3 +884,41 @@ def test23_a_dropped_connection_shows_a_banner_until_it_is_back(page):
     page.context.set_offline(False)
     page.wait_for_selector("#connection-lost", state="hidden", timeout=30_000)
     assert "offline" not in (page.get_attribute("body", "class") or "")
+
+
+def test24_run_a_small_experiment_from_the_lab_to_its_table(page):
+    """The Lab page's form runs an experiment (path-mis and raster at 2 and 8
+    spp, 3 repeats, 32 px); its page follows the jobs, then shows the table
+    with the verdicts (raster: biased, inconsistent), the matplotlib figures
+    and the CSV link; the list shows it."""
+    page.goto(f"{page.base}/#/experiments")
+    page.wait_for_selector("#x-methods input[data-method='raster']", state="attached")
+    for box in page.query_selector_all("#x-methods input:checked"):
+        box.uncheck()
+    page.check("#x-methods input[data-method='path-mis']")
+    page.check("#x-methods input[data-method='raster']")
+    page.fill("#x-spp", "2, 8")
+    page.fill("#x-repeats", "3")
+    page.fill("#x-size", "32")
+    page.fill("#x-depth", "3")
+    page.click("#x-submit")
+    page.wait_for_url("**/#/experiments/*")
+    experiment_id = page.url.rsplit("/", 1)[1]
+    page.wait_for_selector("#lab-table", timeout=180_000)
+    rows = page.query_selector_all("#lab-table tbody tr")
+    assert [(r.get_attribute("data-config"), r.get_attribute("data-spp")) for r in rows] == [
+        ("path-mis", "2"), ("path-mis", "8"), ("raster", "2"), ("raster", "8")]
+    verdicts = "els => els.map(e => e.dataset.verdict)"
+    first = page.locator("#lab-table tr[data-config='raster'][data-spp='2'] [data-verdict]")
+    assert first.evaluate_all(verdicts)[1:] == ["no", "no"]  # biased, inconsistent
+    last = page.locator("#lab-table tr[data-config='raster'][data-spp='8'] [data-verdict]")
+    assert last.evaluate_all(verdicts) == ["no"]  # its bias test at 8 spp
+    path = page.locator("#lab-table tr[data-config='path-mis'][data-spp='2'] [data-verdict]")
+    assert path.evaluate_all(verdicts)[1:] == ["yes", "yes"]
+    for image in ("#lab-plot", "#lab-maps"):
+        page.wait_for_function(f"document.querySelector('{image}').naturalWidth > 0")
+    assert page.get_attribute("#x-csv", "href") == f"/experiments/{experiment_id}/report.csv"
+    shot(page, "24-lab-experiment")
+    page.goto(f"{page.base}/#/experiments")
+    page.wait_for_selector(f"#experiments-table tr[data-experiment='{experiment_id}']")
+    shot(page, "24-lab-list")

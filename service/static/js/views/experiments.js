@@ -174,7 +174,8 @@ export function experimentView(root, id) {
         h("td", {}, verdict(l.unbiased, "no bias found", "biased")),
         h("td.num", {}, `${(100 * l.relative_bias).toFixed(2)} %`),
         h("td.num", {}, num(l.variance)), h("td.num", {}, num(l.mse)),
-        h("td.num", {}, fmt.duration(l.seconds)), h("td.num", {}, num(l.efficiency)),
+        h("td.num", {}, l.seconds < 1 ? `${num(1000 * l.seconds)} ms` : fmt.duration(l.seconds)),
+        h("td.num", {}, num(l.efficiency)),
         h("td.num", {}, i === 0 ? num(c.slope, 2) : ""),
         h("td", {}, i === 0 ? verdict(c.unbiased, "no bias found", "biased") : ""),
         h("td", {}, i === 0 ? verdict(c.consistent, "yes", "no") : ""))));
