@@ -13,21 +13,16 @@ The table gives spp, seconds, samples/s and the RMSE against the reference.
 tile methods and BDPT, light paths per pixel for `light`, mutations per
 pixel for `mlt`, iterations for `photon`, display samples for `radiosity`.
 
-Part 2, the lecture's chart measured (on `cornell-box`, small):
-- bias: R independent renders (different seeds) at low spp are averaged;
-  per block of pixels (block means are near-normal where single pixels at
-  low spp are far too skewed for a t statistic) and channel,
-  z = (average - reference) / sqrt(spread^2 / R + reference variance).
-  For an unbiased method z^2 averages nu/(nu - 2) over the blocks (a t statistic with nu = R - 1 degrees of freedom); a systematic error of
-  the method (blur, missing light, meshing) makes it grow. The verdict
-  "unbiased" is mean z^2 within 4 standard errors of that value.
-- consistency: RMSE against the reference at spp = 1, 4, 16, 64 (x the
-  method's base spp): the log-log slope. A consistent method's error keeps
-  falling (slope near -1/2 for plain Monte Carlo); an inconsistent one
-  levels off at its bias (slope near 0 at the end). The verdict
-  "consistent" asks for the last step's slope below -0.25.
-The reference for part 2 is `path-mis` at `--chart-reference-spp`, whose own
-variance is in the z denominator.
+Part 2, the lecture's chart measured (on `cornell-box`, small), by the
+estimator lab (`POST /experiments` on an embedded farm started here, so
+this script and the dashboard's Lab page measure with one implementation,
+renderer.lab): every method (and the CHART_VARIANTS) at the spp levels
+`--chart-spp` x 1, 4, 16, 64, `--chart-runs` independent renders each,
+against a `path-mis` reference of `--chart-reference-spp`. Per level: the
+pixel blocks whose t test of the repeats' average against the reference is
+significant, and the binomial p of that many ("biased" below 0.001); the
+RMSE at each level and its log-log slope; "consistent": no bias found, or a
+bias^2 that still falls at the last step. See renderer/lab.py.
 
 Writes `docs/methods.md` (every table) and `docs/methods.png` (one row per
 scene: the reference and every method's equal-time render).
@@ -36,7 +31,6 @@ scene: the reference and every method's equal-time render).
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time
@@ -152,72 +146,67 @@ def compare(pool, args, methods, lines, grid_rows) -> None:
         grid_rows.append(row)
 
 
-def chart(pool, args, methods, lines) -> None:
-    """Part 2: bias (z-test of the average of R renders) and consistency (slope)."""
+def chart(args, methods, lines) -> None:
+    """Part 2: the estimator lab's experiment (module doc), through the API of
+    an embedded farm in a temporary data directory."""
+    import tempfile
+
+    from fastapi.testclient import TestClient
+
+    from service.main import create_app
+    from service.settings import Settings
+
     scene = "cornell-box"
-    ref_film, ref_seconds = run(pool, scene, spec_for(scene, "path-mis", args.chart_reference_spp,
-                                                      args.depth, 999, args.chart_size))
-    reference, ref_var = ref_film.mean(), ref_film.variance_of_mean()
-    print(f"\nchart: reference path-mis {args.chart_reference_spp} spp in {ref_seconds:.1f} s")
-    runs = args.chart_runs
-    nu = runs - 1
-    expected = nu / (nu - 2)  # E[t^2] with nu degrees of freedom
-    # Var[t^2] = 2 nu^2 (nu - 1) / ((nu - 2)^2 (nu - 4)); the pixels' mean of n of them:
-    block = args.chart_block
-
-    def block_means(image: np.ndarray) -> np.ndarray:
-        """Means over block x block pixels: near-normal even at low spp, where a
-        pixel's samples are too skewed for a t statistic."""
-        h, w = (image.shape[0] // block) * block, (image.shape[1] // block) * block
-        return image[:h, :w].reshape(h // block, block, w // block, block, -1).mean(axis=(1, 3))
-
-    n_values = (reference.shape[0] // block) * (reference.shape[1] // block) * 3
-    se = math.sqrt(2 * nu * nu * (nu - 1) / ((nu - 2) ** 2 * (nu - 4)) / n_values)
+    token = "bench-" + "0" * 40
+    configs = [{"method": m} for m in methods]
+    configs += [{"method": m, "options": opts, "label": label}
+                for label, (m, opts) in CHART_VARIANTS.items() if m in methods]
+    cam_spec = spec_for(scene, "path-mis", 1, args.depth, 0, args.chart_size)
+    body = {"scene": scene, "width": cam_spec.width, "height": cam_spec.height,
+            "depth": args.depth, "repeats": args.chart_runs, "block": args.chart_block,
+            "spp": [args.chart_spp * k for k in CHART_SPPS], "configs": configs,
+            "reference": {"method": "path-mis", "spp": args.chart_reference_spp}}
+    with tempfile.TemporaryDirectory() as data:
+        settings = Settings(data_dir=Path(data), broker_url="", database_url="",
+                            local_workers=args.workers, admin_token=token)
+        with TestClient(create_app(settings), headers={"Authorization": f"Bearer {token}"}) as api:
+            response = api.post("/experiments", json=body)
+            if response.status_code != 201:
+                raise SystemExit(f"the experiment was refused: {response.text}")
+            experiment = response.json()
+            t0 = time.perf_counter()
+            while experiment["status"] == "running":
+                time.sleep(1.0)
+                experiment = api.get(f"/experiments/{experiment['id']}").json()
+            if experiment["status"] != "done":
+                raise SystemExit(f"the experiment {experiment['status']}: {experiment['error']}")
+            for name in ("plot", "maps"):
+                (args.out / f"methods-lab-{name}.png").write_bytes(
+                    api.get(experiment[f"{name}_url"]).content)
+    print(f"\nchart: {len(configs)} configurations x {len(CHART_SPPS)} levels x "
+          f"{args.chart_runs} repeats in {time.perf_counter() - t0:.0f} s")
     lines += ["## Bias and consistency, measured (the lecture's chart)", "",
-              f"`cornell-box` at {args.chart_size} px wide, depth {args.depth}; reference "
-              f"`path-mis` {args.chart_reference_spp} spp. Bias: {runs} independent renders at "
-              f"{args.chart_spp} spp averaged, z per {args.chart_block}x{args.chart_block}-pixel "
-              f"block mean and channel against the reference; an unbiased "
-              f"method gives mean z^2 = {expected:.3f} +- {se:.3f}. Consistency: RMSE at "
-              f"spp x {', '.join(map(str, CHART_SPPS))} and its log-log slope.", "",
-              "| method | mean z^2 | image mean / reference | unbiased? | RMSE at "
-              + " / ".join(f"{s}x" for s in CHART_SPPS) + " | slope (all) | slope (last step) "
-              "| consistent? |", "|---|---|---|---|---|---|---|---|"]
-    print(f"{'method':<26}{'mean z^2':>10}{'ratio':>8}{'unbiased':>10}{'slope':>8}{'last':>8}"
-          f"{'consistent':>12}")
-    ref_blocks = block_means(reference)
-    ref_blocks_var = block_means(np.where(np.isfinite(ref_var), ref_var, 0.0)) / args.chart_block ** 2
-    rows = [(m, m, {}) for m in methods]
-    rows += [(label, m, opts) for label, (m, opts) in CHART_VARIANTS.items() if m in methods]
-    for label, method, options in rows:
-        films = [run(pool, scene, spec_for(scene, method, args.chart_spp, args.depth, 100 + r,
-                                           args.chart_size, options))[0].mean()
-                 for r in range(runs)]
-        stack = np.stack([block_means(f) for f in films])
-        average = stack.mean(axis=0)
-        spread = stack.var(axis=0, ddof=1) / runs
-        denom = spread + ref_blocks_var
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z2 = np.where(denom > 0, (average - ref_blocks) ** 2 / denom,
-                          np.where(average == ref_blocks, 0.0, np.inf))
-        mean_z2 = float(np.mean(np.minimum(z2, 1e6)))
-        ratio = float(average.mean() / reference.mean())
-        unbiased = abs(mean_z2 - expected) < 4 * se
-        errors = []
-        for k in CHART_SPPS:
-            film, _ = run(pool, scene, spec_for(scene, method, args.chart_spp * k, args.depth, 500 + k,
-                                                args.chart_size, options))
-            errors.append(rmse(film.mean(), reference))
-        logs = np.log(np.asarray(CHART_SPPS, float))
-        slope = float(np.polyfit(logs, np.log(np.maximum(errors, 1e-12)), 1)[0])
-        last = float(math.log(max(errors[-1], 1e-12) / max(errors[-2], 1e-12))
-                     / math.log(CHART_SPPS[-1] / CHART_SPPS[-2]))
-        consistent = last < -0.25
-        print(f"{label:<26}{mean_z2:>10.3f}{ratio:>8.4f}{'yes' if unbiased else 'no':>10}"
-              f"{slope:>8.2f}{last:>8.2f}{'yes' if consistent else 'no':>12}")
-        lines.append(f"| {label} | {mean_z2:.3f} | {ratio:.4f} | {'yes' if unbiased else 'no'} | "
-                     + " / ".join(f"{e:.4f}" for e in errors)
-                     + f" | {slope:.2f} | {last:.2f} | {'yes' if consistent else 'no'} |")
+              f"The estimator lab (`POST /experiments`, renderer/lab.py) on `{scene}` at "
+              f"{body['width']}x{body['height']}, depth {args.depth}; reference `path-mis` "
+              f"{args.chart_reference_spp} spp; {args.chart_runs} repeats per level. Bias: "
+              f"{args.chart_block}x{args.chart_block}-pixel blocks (luminance) whose t test is "
+              "significant at 5 %, and the binomial p of that many (biased below 0.001). "
+              "Figures: `methods-lab-plot.png`, `methods-lab-maps.png`.", "",
+              "| method | significant blocks at " + " / ".join(f"{s}x" for s in CHART_SPPS)
+              + " | mean bias (last) | no bias found? | RMSE at "
+              + " / ".join(f"{s}x" for s in CHART_SPPS) + " | slope | consistent? |",
+              "|---|---|---|---|---|---|---|"]
+    print(f"{'method':<26}{'blocks':>20}{'bias':>9}{'unbiased':>10}{'slope':>8}{'consistent':>12}")
+    for config in experiment["report"]:
+        levels = config["levels"]
+        blocks = " / ".join(f"{lv['biased_blocks']}/{lv['blocks']}" for lv in levels)
+        rmse = " / ".join(f"{lv['rmse']:.4f}" for lv in levels)
+        verdict = "yes" if config["unbiased"] else "no"
+        consistent = {True: "yes", False: "no", None: "?"}[config["consistent"]]
+        print(f"{config['label']:<26}{blocks:>20}{100 * levels[-1]['relative_bias']:>8.2f}%"
+              f"{verdict:>10}{config['slope']:>8.2f}{consistent:>12}")
+        lines.append(f"| {config['label']} | {blocks} | {100 * levels[-1]['relative_bias']:.2f} % | "
+                     f"{verdict} | {rmse} | {config['slope']:.2f} | {consistent} |")
     lines.append("")
 
 
@@ -233,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-chart", action="store_true")
     parser.add_argument("--chart-size", type=int, default=32)
     parser.add_argument("--chart-spp", type=int, default=8)
-    parser.add_argument("--chart-runs", type=int, default=16)
+    parser.add_argument("--chart-runs", type=int, default=8)
     parser.add_argument("--chart-block", type=int, default=8, help="pixels per block side")
     parser.add_argument("--chart-reference-spp", type=int, default=16384)
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
@@ -243,8 +232,8 @@ def main(argv: list[str] | None = None) -> int:
     from renderer import METHODS, LocalPool
 
     methods = args.methods or list(dict.fromkeys(m.name for m in METHODS.values()))
-    if args.chart_runs < 6:
-        parser.error("--chart-runs must be at least 6 (the z^2 statistic's variance needs nu > 4)")
+    if args.chart_runs < 2:
+        parser.error("--chart-runs must be at least 2 (the bias test needs the spread over them)")
     shown = sys.argv[1:] if argv is None else argv
     command = " ".join(["python bench/methods.py", *shown])
     lines = [f"# Methods compared (`{command}`, {time.strftime('%Y-%m-%d')}, "
@@ -252,11 +241,11 @@ def main(argv: list[str] | None = None) -> int:
              "Equal spp and equal time per scene, then the bias and consistency of every "
              "method measured; see `bench/methods.py` for how.", ""]
     grid_rows: list = []
+    args.out.mkdir(parents=True, exist_ok=True)
     with LocalPool(args.workers) as pool:
         compare(pool, args, methods, lines, grid_rows)
-        if not args.skip_chart:
-            chart(pool, args, methods, lines)
-    args.out.mkdir(parents=True, exist_ok=True)
+    if not args.skip_chart:
+        chart(args, methods, lines)
     (args.out / "methods.md").write_text("\n".join(lines) + "\n")
     if grid_rows:
         labelled_grid(grid_rows, args.out / "methods.png")
