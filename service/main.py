@@ -15,8 +15,8 @@ from starlette.concurrency import run_in_threadpool
 from .api.auth import PROTECTED
 from .api.errors import install_error_handlers, responses
 from .api.limits import install_body_limits
-from .api.routes import (auth, dashboard, events, experiments, health, jobs, methods, metrics, scenes,
-                         workers)
+from .api.routes import (auth, compare, dashboard, events, experiments, health, jobs, methods,
+                         metrics, scenes, workers)
 from .api.security import SecurityHeaders
 from .farm import Farm
 from .metrics import HTTPMetrics, PrometheusMetrics
@@ -67,7 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(HTTPMetrics, metrics=farm_metrics)
     # Every resource router needs a caller: a route added to one is protected
     # whether or not its handler asks who the caller is.
-    for module in (jobs, experiments, events, scenes, workers, methods):
+    for module in (jobs, compare, experiments, events, scenes, workers, methods):
         app.include_router(module.router, dependencies=PROTECTED, responses=_UNAUTHORIZED)
     app.include_router(auth.admin)
     for module in (auth, health, metrics, dashboard):

@@ -922,3 +922,37 @@ def test24_run_a_small_experiment_from_the_lab_to_its_table(page):
     page.goto(f"{page.base}/#/experiments")
     page.wait_for_selector(f"#experiments-table tr[data-experiment='{experiment_id}']")
     shot(page, "24-lab-list")
+
+
+def test25_jobs_ticked_on_the_list_plot_together_and_against_a_reference(page):
+    """Done jobs ticked on the jobs list open a comparison: their convergence
+    curves on one plot (against samples and against time); marking one as the
+    reference plots the others' true RMSE against it, the figures the API's."""
+    body = {"scene": "cornell-box", "method": "path", "spp": 32, "depth": 3, "width": 32,
+            "height": 32, "tile_size": 16}
+    with api(page.base) as client:
+        ids = [client.post("/jobs", json=dict(body, seed=seed, sampler=sampler)).json()["id"]
+               for seed, sampler in ((1, "sobol"), (2, "random"))]
+        ref = client.post("/jobs", json=dict(body, spp=1024, seed=3, progressive=False)).json()["id"]
+        for job_id in ids + [ref]:
+            assert poll_job(lambda path: client.get(path).json(), job_id)["status"] == "done"
+        expected = client.get("/compare", params={"jobs": ",".join(ids + [ref]),
+                                                  "reference": ref}).json()
+    page.goto(f"{page.base}/#/jobs")
+    for job_id in ids + [ref]:
+        page.check(f"#jobs-table input[data-select='{job_id}']")
+    assert page.text_content("#compare-jobs") == "Compare (3)"
+    page.click("#compare-jobs")
+    page.wait_for_selector("#compare-table")
+    assert page.locator("#plot-samples svg .series").count() == 3  # error statistics
+    assert page.locator("#plot-seconds svg .series").count() == 3
+    page.check(f"input[data-reference='{ref}']")
+    page.wait_for_url(f"**reference={ref}")
+    page.wait_for_selector(f"#compare-table tr[data-job='{ids[0]}'] td[data-rmse]:not([data-rmse=''])")
+    for job in expected["jobs"][:2]:
+        shown = page.get_attribute(f"#compare-table tr[data-job='{job['id']}'] td[data-rmse]", "data-rmse")
+        assert float(shown) == pytest.approx(job["points"][-1]["rmse"], rel=1e-9)
+    # RMSE curves: the two jobs (the reference against itself is 0, not drawn)
+    assert page.locator("#plot-samples svg .series").count() == 2
+    shot(page, "25-compare-jobs")
+    assert page.get_attribute("#compare-png", "href").startswith("/compare.png?jobs=")

@@ -1,6 +1,7 @@
 // The dashboard's entry point: a hash router over its views, the logged-in
 // user in the top bar, and a health light.
 //   #/login  #/jobs  #/jobs/<id>  #/submit  #/workers  #/experiments  #/experiments/<id>
+//   #/compare?jobs=<id>,<id>[&reference=<id>]
 // Every view but the login page needs a login; an API answer 401 anywhere
 // (api.js raises UNAUTHORIZED) brings the login page, which comes back here.
 
@@ -13,6 +14,7 @@ import { loginView } from "./views/login.js";
 import { submitView } from "./views/submit.js";
 import { workersView } from "./views/workers.js";
 import { experimentView, experimentsView } from "./views/experiments.js";
+import { compareView } from "./views/compare.js";
 
 const LOGIN = /^#\/login(?:\?(.*))?$/;
 const routes = [
@@ -22,6 +24,7 @@ const routes = [
   [/^#\/submit$/, "submit", () => submitView],
   [/^#\/workers$/, "workers", () => workersView],
   [/^#\/experiments$/, "experiments", () => experimentsView],
+  [/^#\/compare\?(.*)$/, "jobs", (m) => (root) => compareView(root, new URLSearchParams(m[1]))],
   [/^#\/experiments\/([0-9a-f]{6,32})$/, "experiments", (m) => (root) => experimentView(root, m[1])],
 ];
 

@@ -58,10 +58,14 @@ export function jobsView(root) {
   let filter = new URLSearchParams(location.hash.split("?")[1] || "").get("status") || "all";
   const tabs = h("div.tabs", { role: "tablist", "aria-label": "filter by status" });
   const body = h("tbody");
+  const selected = new Set(); // done jobs ticked for #/compare
+  const compareButton = h("button#compare-jobs", { type: "button", disabled: true,
+    title: "tick done jobs to plot their convergence together",
+    onclick: () => { location.hash = `#/compare?jobs=${[...selected].join(",")}`; } }, "Compare");
   const table = h("table.grid#jobs-table", {},
-    h("thead", {}, h("tr", {}, ["Job", "Owner", "Scene", "Method", "Sampler", "spp", "Depth", "Priority",
+    h("thead", {}, h("tr", {}, ["", "Job", "Owner", "Scene", "Method", "Sampler", "spp", "Depth", "Priority",
       "Status", "Progress", "Elapsed", "ETA", "Submitted"].map((t, i) =>
-      h(i >= 5 && i <= 7 || i >= 10 && i <= 11 ? "th.num" : "th", {}, t)))),
+      h(i >= 6 && i <= 8 || i >= 11 && i <= 12 ? "th.num" : "th", {}, t)))),
     body);
   const error = h("div");
   // A viewer cannot submit: the button stays, off, with the reason beside it.
@@ -69,7 +73,8 @@ export function jobsView(root) {
     : [h("span.muted.read-only#read-only-note", {}, readOnlyReason()),
       h("button#new-job", { type: "button", disabled: true, title: readOnlyReason() }, "+ New job")];
   replace(root,
-    h("div.page-head", {}, h("h1", {}, session.me.role === "artist" ? "Your jobs" : "Jobs"), tabs, h("div.spacer"), newJob),
+    h("div.page-head", {}, h("h1", {}, session.me.role === "artist" ? "Your jobs" : "Jobs"), tabs, h("div.spacer"),
+      compareButton, newJob),
     error,
     h("div.panel", {}, table));
 
@@ -82,8 +87,22 @@ export function jobsView(root) {
     }, s, h("span.count", {}, counts[s] || 0))));
   }
 
+  function renderCompare() {
+    for (const id of [...selected]) if (!jobs.has(id) || jobs.get(id).status !== "done") selected.delete(id);
+    compareButton.disabled = selected.size === 0 || selected.size > 8;
+    compareButton.textContent = selected.size ? `Compare (${selected.size})` : "Compare";
+  }
+
   function row(job) {
+    const tick = job.status === "done" ? h("input.select", { type: "checkbox", "data-select": job.id,
+      "aria-label": `compare ${job.id}`, checked: selected.has(job.id),
+      onclick: (event) => event.stopPropagation(),
+      onchange: (event) => {
+        if (event.target.checked) selected.add(job.id); else selected.delete(job.id);
+        renderCompare();
+      } }) : null;
     return h("tr.clickable", { "data-job": job.id, onclick: () => { location.hash = `#/jobs/${job.id}`; } },
+      h("td.select", {}, tick),
       h("td", {}, h("a.mono", { href: `#/jobs/${job.id}` }, job.id)),
       h("td.owner", {}, job.owner),
       h("td", { title: job.scene_hash }, job.scene),
@@ -101,11 +120,12 @@ export function jobsView(root) {
 
   function render() {
     renderTabs();
+    renderCompare();
     const shown = [...jobs.values()]
       .filter((job) => filter === "all" || job.status === filter)
       .sort((a, b) => (a.created < b.created ? 1 : a.created > b.created ? -1 : 0));
     replace(body, shown.length ? shown.map(row)
-      : h("tr", {}, h("td.empty", { colspan: 13 }, filter === "all"
+      : h("tr", {}, h("td.empty", { colspan: 14 }, filter === "all"
         ? h("span", {}, "No jobs yet. ", may.submit() ? h("a", { href: "#/submit" }, "Submit one.") : null)
         : `No ${filter} jobs.`)));
   }
