@@ -956,3 +956,36 @@ def test25_jobs_ticked_on_the_list_plot_together_and_against_a_reference(page):
     assert page.locator("#plot-samples svg .series").count() == 2
     shot(page, "25-compare-jobs")
     assert page.get_attribute("#compare-png", "href").startswith("/compare.png?jobs=")
+
+
+def test26_the_lab_and_compare_pages_fit_a_phone(browser, server):
+    """At 390 x 844, an experiment's page (its report table as cards, its
+    figures scaled down) and a comparison of jobs fit the screen's width."""
+    with api(server) as client:
+        experiment = client.post("/experiments", json={
+            "scene": "cornell-box", "width": 16, "height": 16, "depth": 3, "repeats": 2,
+            "spp": [2, 4], "configs": [{"method": "path-mis"}, {"method": "raster"}]}).json()
+        wait_for(lambda: client.get(f"/experiments/{experiment['id']}").json()["status"] == "done",
+                 180, "the experiment to finish", interval=0.5)
+        jobs = [run["job"] for run in experiment["runs"][:2]] + [experiment["reference_job"]]
+    context = browser.new_context(viewport={"width": 390, "height": 844}, has_touch=True,
+                                  is_mobile=True, device_scale_factor=2)
+    page = context.new_page()
+    page.set_default_timeout(60_000)
+    try:
+        page.goto(f"{server}/?token={TEST_ADMIN_TOKEN}")
+        page.wait_for_url(f"{server}/")
+        widths = {}
+        for name, hash_, ready in (
+                ("experiment", f"#/experiments/{experiment['id']}", "#lab-maps"),
+                ("compare", f"#/compare?jobs={','.join(jobs)}&reference={jobs[-1]}",
+                 "#plot-samples svg")):
+            page.goto(f"{server}/{hash_}")
+            page.wait_for_selector(ready)
+            page.wait_for_timeout(200)
+            widths[name] = page.evaluate("[document.documentElement.scrollWidth, innerWidth]")
+            SHOTS.mkdir(parents=True, exist_ok=True)
+            page.screenshot(path=str(SHOTS / f"26-phone-{name}.png"), full_page=True)
+        assert all(scroll <= 390 and inner == 390 for scroll, inner in widths.values()), widths
+    finally:
+        context.close()

@@ -154,17 +154,21 @@ def test13_elapsed_time_excludes_pauses_and_time_spent_failed():
     assert make_job("queued").active_seconds(at(1)) is None  # not started: no elapsed time
 
 
-def test14_the_recent_rate_is_an_average_from_the_restart_tracking_changes():
+def test14_the_recent_rate_is_measured_between_landings_from_the_restart_tracking_changes():
     at = lambda s: T0 + timedelta(seconds=s)  # noqa: E731
     job = make_job("queued")
     states.change_job(job, "running", at(0))
-    job.note_samples(1000, at(2))  # a plain average at first: 500/s, not pulled towards 0
+    job.note_samples(1000, at(40))  # the first landing only starts the measurement:
+    assert job.recent_rate is None  # its 40 s held the kernels' warm-up, not rendering
+    job.note_samples(1000, at(42))  # a plain average at first: 500/s, not pulled towards 0
     assert job.recent_rate == pytest.approx(500)
-    for t in range(3, 60):  # then 2000/s for a minute: the rate follows within a few windows
+    for t in range(43, 100):  # then 2000/s for a minute: the rate follows within a few windows
         job.note_samples(2000, at(t))
     assert job.recent_rate == pytest.approx(2000, rel=1e-3)
-    states.change_job(job, "paused", at(60))
+    states.change_job(job, "paused", at(100))
     assert job.recent_rate is None
-    states.change_job(job, "running", at(100))  # measured again from the resume
-    job.note_samples(300, at(101))
+    states.change_job(job, "running", at(140))  # measured again from the resume
+    job.note_samples(300, at(141))
+    assert job.recent_rate is None
+    job.note_samples(300, at(142))
     assert job.recent_rate == pytest.approx(300)
