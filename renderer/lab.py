@@ -165,6 +165,8 @@ def level_report(renders: list[Render], reference: np.ndarray, reference_var: np
         - float(variance_map.mean()) / runs - float(ref_var.mean())
     mse = max(mse, 1e-30)
     return {"bias_p": bias["bias_p"], "biased_blocks": bias["biased_blocks"],
+            "block_t": [[round(float(t), 3) if np.isfinite(t) else None for t in row]
+                        for row in bias["t"]],
             "unbiased": bias["unbiased"],
             "relative_bias": bias["relative_bias"], "blocks": bias["blocks"],
             "bias2": max(bias2, 0.0),

@@ -577,6 +577,9 @@ class LabLevel(BaseModel):
                                       "t test is significant at 5 % (renderer.lab); < 0.001: "
                                       "biased")
     biased_blocks: int = Field(description="the blocks significant at 5 %")
+    block_t: list[list[float | None]] = Field(description="each pixel block's t statistic of "
+                                                          "the bias (rows of blocks; null: "
+                                                          "infinite)")
     blocks: int = Field(description="the blocks tested (luminance)")
     unbiased: bool
     relative_bias: float = Field(description="image mean over the repeats / reference's - 1")

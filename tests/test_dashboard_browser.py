@@ -691,6 +691,9 @@ def test19_a_job_submitted_to_a_noise_target_speaks_in_error(page):
     known = [p for p in job["passes"] if p["rel_error"]]
     assert page.locator("#convergence svg .dot").count() == len(known) >= 2
     assert page.locator("#convergence svg line.target").count() == 1
+    # and the same passes against render seconds
+    timed = [p for p in known if p["seconds"] > 0]
+    assert page.locator("#convergence-time .series-dot").count() == len(timed) >= 2
     page.click("[data-units='skipped']")
     states = page.eval_on_selector_all("#units-table tbody tr td .badge",
                                        "els => els.map(e => e.dataset.state)")

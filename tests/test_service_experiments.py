@@ -51,6 +51,9 @@ def test01_an_experiment_runs_as_jobs_and_measures_bias_and_consistency(local_cl
     assert -0.8 < path["slope"] < -0.25  # 1/sqrt(spp), within what 3 repeats can show
     assert not raster["unbiased"] and raster["levels"][-1]["relative_bias"] < -0.1
     assert not raster["consistent"]
+    blocks = raster["levels"][-1]["block_t"]  # 16 x 16 pixels: 2 x 2 blocks of 8
+    assert len(blocks) == 2 and all(len(row) == 2 for row in blocks)
+    assert sum(t is None or abs(t) > 4 for row in blocks for t in row) >= 3
     for level in path["levels"]:
         assert level["efficiency"] == pytest.approx(1 / (level["mse"] * level["seconds"]))
         assert level["rmse"] == pytest.approx(np.sqrt(level["mse"]))

@@ -8,7 +8,7 @@ import { ApiError, api, offline, stream } from "../api.js";
 import { may, readOnlyReason } from "../session.js";
 import { FINAL, badge, fmt, h, progressBar, replace, toast } from "../ui.js";
 import { elapsedNow, errorText, etaText, progressFraction, progressLabel } from "./jobs.js";
-import { convergencePlot } from "../plot.js";
+import { convergencePlot, curvesPlot } from "../plot.js";
 import { hdrViewer } from "../viewer.js";
 
 const WORKER_COLORS = ["#4aa3ff", "#ffb547", "#3ecf8e", "#ff7ab6", "#b48cff", "#5ee0e6", "#ff8f5c",
@@ -368,7 +368,12 @@ export function jobView(root, jobId) {
     convergencePanel.hidden = !plot;
     if (!plot) return;
     const last = job.passes[job.passes.length - 1];
-    replace(convergenceBox, plot, h("div.muted", { style: { fontSize: "12px" } },
+    // and against render seconds: what a user pays (efficiency is error against time)
+    const byTime = curvesPlot([{ label: "by render time", color: "#4aa3ff",
+      points: job.passes.map((p) => [p.seconds, p.rel_error]) }],
+    { xLabel: "seconds", percent: true, width: 320, height: 200, label: "error against render seconds, log-log" });
+    if (byTime) byTime.id = "convergence-time";
+    replace(convergenceBox, plot, byTime, h("div.muted", { style: { fontSize: "12px" } },
       `error ${errorText(last.rel_error)} after ${job.passes.length} passes`
       + ` (95th percentile of the relative standard error); dashed: 1/√N`
       + (job.target ? "; line: the target" : "")));
