@@ -158,3 +158,4 @@ async function start() {
 start();
 health();
 setInterval(health, 5000);
+window.addEventListener("online", health); // the banner goes as soon as the network is back
