@@ -447,7 +447,8 @@ def _experiment_table(experiment: dict) -> str:
                          f"{level['biased_blocks']}/{level['blocks']}",
                          f"{level['bias_p']:.2g}", "yes" if level["unbiased"] else "no",
                          f"{100 * level['relative_bias']:+.2f}%", f"{level['variance']:.3g}",
-                         f"{level['mse']:.3g}", _duration(level["seconds"]),
+                         f"{level['mse']:.3g}", f"{1000 * level['seconds']:.3g}ms"
+                         if level["seconds"] < 1 else _duration(level["seconds"]),
                          f"{level['efficiency']:.3g}" if level["efficiency"] else "-",
                          f"{config['slope']:.2f}" if i == 0 and config["slope"] is not None else "",
                          ("yes" if config["unbiased"] else "no") if i == 0 else "",

@@ -565,3 +565,29 @@ def test22_the_job_actions_priority_scenes_and_methods_from_the_cli(server, clie
     assert methods["path-mis"][1] == "path" and methods["path-mis"][4] == "yes"
     assert methods["photon"][4] == "no"
     assert {m["name"] for m in json.loads(ok("methods", "--json"))} == set(methods)
+
+
+def test23_an_experiment_from_the_cli_waits_and_prints_its_table_csv_and_json(server, client):
+    """rayfarm experiment submits an estimator-lab experiment (prints its id),
+    --wait prints the report's table; --show ID with --csv or --json prints
+    the same as the API; a bad experiment is exit 2 naming the field."""
+    out = cli("experiment", "cornell-box", "--methods", "path-mis", "raster", "--spp", "2", "8",
+              "--repeats", "3", "--width", "16", "--depth", "3", "--wait", "--quiet",
+              server=server, timeout=300)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert lines[0].split()[:5] == ["CONFIG", "SPP", "SIG.", "BLOCKS", "BIAS"]
+    rows = {line.split()[0]: line.split() for line in lines[1:] if line[0] != " "}
+    assert set(rows) == {"path-mis", "raster"}
+    assert rows["raster"][-2:] == ["no", "no"] and rows["path-mis"][-2:] == ["yes", "yes"]
+    experiment_id = out.stderr.split(":")[1].strip().split()[0]
+    experiment = client.experiment(experiment_id)
+    assert experiment["status"] == "done"
+    csv_out = cli("experiment", "--show", experiment_id, "--csv", server=server)
+    assert csv_out.returncode == 0 and csv_out.stdout == client.experiment_csv(experiment_id)
+    shown = json.loads(cli("experiment", "--show", experiment_id, "--json", server=server).stdout)
+    assert shown["report"] == experiment["report"]
+    listed = cli("experiment", "--list", server=server).stdout
+    assert experiment_id in listed
+    assert_clean_failure(cli("experiment", "cornell-box", "--methods", "path-mis", "--spp", "8", "2",
+                             server=server), 2, "spp")
