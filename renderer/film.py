@@ -557,6 +557,13 @@ def channel_layers(names: Iterable[str]) -> dict[str, list[str]]:
     return layers
 
 
+def rgb_of(channels: dict[str, np.ndarray], layer: str = "") -> np.ndarray:
+    """A layer's R, G, B channels of an EXR read back (`read_exr`) as one float64
+    (h, w, 3) array: the beauty, or with `layer` "var" its variance."""
+    prefix = f"{layer}." if layer else ""
+    return np.stack([channels[f"{prefix}{c}"] for c in "RGB"], -1).astype(np.float64)
+
+
 def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     """Read an EXR back: (channels by name as float32 (h, w) arrays, header)."""
     import OpenEXR

@@ -50,8 +50,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ALPHA", "P_CRITICAL", "CONSISTENT_BIAS_DROP", "LUMINANCE", "binomial_tail", "block_means", "t_two_sided_p", "bias_test",
-           "level_report", "config_report", "Render"]
+__all__ = ["ALPHA", "P_CRITICAL", "CONSISTENT_BIAS_DROP", "LUMINANCE", "binomial_tail",
+           "corrected_mse", "block_means", "t_two_sided_p", "bias_test", "level_report",
+           "config_report", "Render"]
 
 ALPHA = 0.05  # a block is significant when its two-sided p-value is below this
 P_CRITICAL = 1e-3  # fewer significant blocks than this probability allows: biased
@@ -146,6 +147,17 @@ def bias_test(renders: list[np.ndarray], reference: np.ndarray, reference_var: n
             "unbiased": bool(p >= P_CRITICAL)}
 
 
+def corrected_mse(images: np.ndarray, reference: np.ndarray,
+                  reference_var: np.ndarray) -> tuple[float, float]:
+    """(MSE, raw MSE) of `images` (one or a stack) against `reference`: the raw
+    mean squared error less the reference's mean variance, which its own noise
+    adds to every comparison (infinite variances, of pixels with one sample,
+    count as 0)."""
+    raw = float(np.mean((images - reference) ** 2))
+    ref_var = np.where(np.isfinite(reference_var), reference_var, 0.0)
+    return raw - float(ref_var.mean()), raw
+
+
 def level_report(renders: list[Render], reference: np.ndarray, reference_var: np.ndarray,
                  block: int) -> dict:
     """Bias, variance, MSE, time and efficiency of one spp level (module doc),
@@ -153,16 +165,15 @@ def level_report(renders: list[Render], reference: np.ndarray, reference_var: np
     `variance_map` (sample variance over the repeats), luminance-free RGB."""
     images = [r.mean for r in renders]
     stack = np.stack(images)
-    runs = len(images)
-    ref_var = np.where(np.isfinite(reference_var), reference_var, 0.0)
+    average = stack.mean(axis=0)
     bias = bias_test(images, reference, reference_var, block)
     variance_map = stack.var(axis=0, ddof=1)
-    raw_mse = float(np.mean((stack - reference) ** 2))
-    mse = raw_mse - float(ref_var.mean())
+    mse, raw_mse = corrected_mse(stack, reference, reference_var)
     seconds = float(np.mean([r.seconds for r in renders]))
     reliable = mse > 0.5 * raw_mse  # the reference's own noise is a small part of it
-    bias2 = float(np.mean((stack.mean(axis=0) - reference) ** 2)) \
-        - float(variance_map.mean()) / runs - float(ref_var.mean())
+    # the average's error less what its own noise (variance / R) explains
+    bias2 = (corrected_mse(average, reference, reference_var)[0]
+             - float(variance_map.mean()) / len(images))
     mse = max(mse, 1e-30)
     return {"bias_p": bias["bias_p"], "biased_blocks": bias["biased_blocks"],
             "block_t": [[round(float(t), 3) if np.isfinite(t) else None for t in row]
@@ -173,7 +184,7 @@ def level_report(renders: list[Render], reference: np.ndarray, reference_var: np
             "variance": float(variance_map.mean()), "mse": mse, "rmse": math.sqrt(mse),
             "mse_reliable": bool(reliable), "seconds": seconds,
             "efficiency": 1.0 / (mse * seconds) if seconds > 0 else None,
-            "bias_map": stack.mean(axis=0) - reference, "variance_map": variance_map}
+            "bias_map": average - reference, "variance_map": variance_map}
 
 
 def config_report(spps: list[int], levels: list[dict]) -> dict:

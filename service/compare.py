@@ -26,7 +26,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from renderer import Film, PartialFilm
-from renderer.film import image_error, read_exr
+from renderer.film import image_error, read_exr, rgb_of
+from renderer.lab import corrected_mse
 
 from .access import Principal
 from .errors import InvalidRequest, NotFound
@@ -44,17 +45,12 @@ def _film(width: int, height: int) -> Film:
                 np.zeros((height, width)))
 
 
-def _mse(mean: np.ndarray, reference: np.ndarray, reference_var: np.ndarray) -> float:
-    raw = float(np.mean((mean - reference) ** 2))
-    return max(raw - float(np.mean(reference_var)), 0.0)
-
-
 def _point(spp: int, samples: int, seconds: float, mean: np.ndarray, var: np.ndarray,
            reference) -> dict:
     point = {"spp": spp, "samples": samples, "seconds": seconds,
              "rel_error": _finite(image_error(mean, var))}
     if reference is not None:
-        point["rmse"] = math.sqrt(_mse(mean, *reference))
+        point["rmse"] = math.sqrt(max(corrected_mse(mean, *reference)[0], 0.0))
     return point
 
 
@@ -78,10 +74,9 @@ def _curve(session: Session, store: Store, job: Job, reference) -> list[dict]:
                                  film.variance_of_mean(), reference))
         return points
     channels = read_exr(store.result_path(job.id))[0]
-    mean = np.stack([channels[c] for c in "RGB"], -1).astype(np.float64)
-    var = np.stack([channels[f"var.{c}"] for c in "RGB"], -1).astype(np.float64)
     return [_point(int(job.spec["spp"]), int(channels["samples.Y"].sum()),
-                   float(job.unit_seconds or 0.0), mean, var, reference)]
+                   float(job.unit_seconds or 0.0), rgb_of(channels), rgb_of(channels, "var"),
+                   reference)]
 
 
 def _finite(value: float) -> float | None:
@@ -123,9 +118,7 @@ def compare_jobs(session: Session, store: Store, actor: Principal, ids: list[str
                                                   f"the reference {ref_job.width}x"
                                                   f"{ref_job.height}", source="query")
         channels = read_exr(store.result_path(ref_job.id))[0]
-        ref = (np.stack([channels[c] for c in "RGB"], -1).astype(np.float64),
-               np.nan_to_num(np.stack([channels[f"var.{c}"] for c in "RGB"], -1)
-                             .astype(np.float64), posinf=0.0))
+        ref = (rgb_of(channels), rgb_of(channels, "var"))
     return {"reference": reference or None,
             "jobs": [{"id": job.id, "label": f"{job.spec['method']} · {job.spec['sampler']}",
                       "method": job.spec["method"], "sampler": job.spec["sampler"],

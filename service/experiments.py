@@ -27,13 +27,12 @@ import json
 import uuid
 from datetime import datetime
 
-import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.orm.exc import StaleDataError
 
 from renderer import METHODS, SceneError, SpecError, lab
-from renderer.film import read_exr
+from renderer.film import read_exr, rgb_of
 
 from . import admission, states
 from .access import Principal, require_change, require_submit, visible_jobs
@@ -61,7 +60,7 @@ def _seed(base: int, *parts: int) -> int:
 def _label(config) -> str:
     if config.label:
         return config.label
-    parts = [METHODS[config.method].name if config.method in METHODS else config.method]
+    parts = [METHODS[config.method].name]  # validated before
     if config.sampler != "random":
         parts.append(config.sampler)
     parts += [f"{k}={v}" for k, v in sorted(config.options.items())]
@@ -180,8 +179,7 @@ def _measure(store: Store, experiment: Experiment, jobs: dict[str, Job]) -> list
     """The report (renderer.lab) and the figures, from the jobs' EXRs."""
     request = experiment.request
     ref_channels = read_exr(store.result_path(experiment.reference_job))[0]
-    reference = np.stack([ref_channels[c] for c in "RGB"], -1).astype(np.float64)
-    reference_var = np.stack([ref_channels[f"var.{c}"] for c in "RGB"], -1).astype(np.float64)
+    reference, reference_var = rgb_of(ref_channels), rgb_of(ref_channels, "var")
     report, maps = [], []
     for c, config in enumerate(request["configs"]):
         levels = []
@@ -189,9 +187,8 @@ def _measure(store: Store, experiment: Experiment, jobs: dict[str, Job]) -> list
             renders = []
             for run in experiment.runs:
                 if run["config"] == c and run["spp"] == spp:
-                    channels = read_exr(store.result_path(run["job"]))[0]
-                    renders.append(lab.Render(np.stack([channels[k] for k in "RGB"], -1)
-                                              .astype(np.float64), jobs[run["job"]].unit_seconds))
+                    renders.append(lab.Render(rgb_of(read_exr(store.result_path(run["job"]))[0]),
+                                              jobs[run["job"]].unit_seconds))
             levels.append(lab.level_report(renders, reference, reference_var, request["block"]))
         summary = lab.config_report(request["spp"], levels)
         maps.append((levels[-1]["bias_map"], levels[-1]["variance_map"]))

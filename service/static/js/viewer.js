@@ -53,12 +53,18 @@ function srgb(v) {
   return Math.round(255 * s);
 }
 
-function ramp(v) {
-  const t = Math.min(Math.max((Math.log10(Math.max(v, 1e-30)) - RAMP_LO) / (RAMP_HI - RAMP_LO), 0), 1);
-  const x = t * (RAMP.length - 1);
+// The false-colour ramp sampled at RAMP_STEPS points, so a pixel looks its colour up.
+const RAMP_STEPS = 1024;
+const RAMP_LUT = Array.from({ length: RAMP_STEPS }, (_, k) => {
+  const x = (k / (RAMP_STEPS - 1)) * (RAMP.length - 1);
   const i = Math.min(Math.floor(x), RAMP.length - 2);
   const f = x - i;
-  return RAMP[i].map((c, k) => Math.round(c + f * (RAMP[i + 1][k] - c)));
+  return RAMP[i].map((c, j) => Math.round(c + f * (RAMP[i + 1][j] - c)));
+});
+
+function ramp(v) {
+  const t = Math.min(Math.max((Math.log10(Math.max(v, 1e-30)) - RAMP_LO) / (RAMP_HI - RAMP_LO), 0), 1);
+  return RAMP_LUT[Math.round(t * (RAMP_STEPS - 1))];
 }
 
 export function fmtValue(v) {
@@ -165,11 +171,16 @@ export function hdrViewer(jobId) {
     for (let i = 0, n = width * height; i < n; i++) {
       pick(layer, i, v);
       if (other) { pick(other, i, w); v[0] = Math.abs(v[0] - w[0]); v[1] = Math.abs(v[1] - w[1]); v[2] = Math.abs(v[2] - w[2]); }
-      let rgb;
-      if (display === "false") rgb = ramp(gain * (0.2126 * v[0] + 0.7152 * v[1] + 0.0722 * v[2]));
-      else if (display === "linear") rgb = v.map((x) => Math.round(255 * Math.min(Math.max(gain * x, 0), 1)));
-      else rgb = [srgb(gain * v[0]), srgb(gain * v[1]), srgb(gain * v[2])];
-      px[4 * i] = rgb[0]; px[4 * i + 1] = rgb[1]; px[4 * i + 2] = rgb[2]; px[4 * i + 3] = 255;
+      const o = 4 * i;
+      if (display === "false") {
+        const c = ramp(gain * (0.2126 * v[0] + 0.7152 * v[1] + 0.0722 * v[2]));
+        px[o] = c[0]; px[o + 1] = c[1]; px[o + 2] = c[2];
+      } else if (display === "linear") {
+        px[o] = 255 * gain * v[0]; px[o + 1] = 255 * gain * v[1]; px[o + 2] = 255 * gain * v[2]; // clamped by the array
+      } else {
+        px[o] = srgb(gain * v[0]); px[o + 1] = srgb(gain * v[1]); px[o + 2] = srgb(gain * v[2]);
+      }
+      px[o + 3] = 255;
     }
     ctx.putImageData(image, 0, 0);
   }
