@@ -21,8 +21,9 @@ hits, bit for bit). Against this 4-wide scalar traversal: cornell-box
 camera / bounce / shadow rays 0.97x / 1.19x / 1.32x, veach-mis 0.81x /
 1.11x / 0.91x, the 100 k-triangle mesh 0.89x / 0.96x / 1.03x. A single ray
 keeps too little work per node for the vector units to pay for the spills
-and the per-node selection that follows; packets or wavefronts of rays are
-what vectorize (Mitsuba's LLVM backend traces 16 rays per instruction).
+and the per-node selection that follows; packets of rays are what vectorize
+(Mitsuba's LLVM backend traces 16 rays per instruction): the path tracer
+traces packets of 16 (kernels/packet.py), the other methods single rays.
 
 TRAVERSAL_COST is 2, not pbrt's 1/8: in these scalar Numba kernels a node's
 slab test costs about as much as a triangle test, and on cornell-box the

@@ -106,3 +106,78 @@ def test02_a_scene_that_drives_sah_deep_stays_within_the_traversal_stack():
         t, prim = intersect(arrays, stack, *o, *d, np.inf)
         assert (t, prim) == brute_force(arrays, o, d)
     assert np.all(stack[STACK_SIZE:] == -7)  # nothing written past the stack
+
+
+def trace_packets(arrays, origins, dirs, tmax, any_hit, active, stack):
+    """kernels.packet over the rays in packets of PACKET: (t, prim, act) per ray."""
+    from renderer.kernels.packet import PACKET, packet_intersect
+
+    n = len(origins)
+    t_out, p_out, a_out = np.empty(n), np.empty(n, np.int64), np.empty(n, np.int64)
+    lanes = np.zeros((10, PACKET))
+    for base in range(0, n, PACKET):
+        m = min(PACKET, n - base)
+        lanes[:] = 1.0
+        lanes[0:3, :m], lanes[3:6, :m] = origins[base:base + m].T, dirs[base:base + m].T
+        lanes[9, :m] = tmax[base:base + m]
+        act = np.zeros(PACKET, np.int64)
+        act[:m] = active[base:base + m]
+        bp = np.full(PACKET, 99, np.int64)
+        packet_intersect(arrays.bvh_nodes, arrays.bvh_info, arrays.bvh_prims, arrays.tri_isect,
+                         arrays.sph, stack, *lanes, bp, act, any_hit)
+        t_out[base:base + m], p_out[base:base + m] = lanes[9, :m], bp[:m]
+        a_out[base:base + m] = act[:m]
+    return t_out, p_out, a_out
+
+
+@pytest.mark.parametrize("scene", ["cornell-box", "soup", "big-soup"])
+def test03_packets_find_what_single_rays_find(scene):
+    """Every lane of a packet gets the single-ray traversal's answer: the
+    same distance to the bit, the same primitive (or one it ties with),
+    and for shadow rays the same verdict; idle lanes are left alone. Packets
+    of rays from one point (coherent) and of scattered rays; the big soup
+    has more wide nodes than packet.SMALL_BVH, so its scattered packets take
+    the one-ray-at-a-time branch and its coherent ones the packet branch."""
+    from renderer.kernels.packet import SMALL_BVH
+
+    rng = np.random.default_rng(11)
+    if scene == "cornell-box":
+        arrays = load_scene(scene).arrays
+    else:
+        arrays = random_soup(rng, n_tri=120 if scene == "soup" else 3000)
+    assert (arrays.bvh_info.shape[0] > SMALL_BVH) == (scene == "big-soup")
+    n = 16 * 120
+    span = 0.99 if scene == "cornell-box" else 6.0
+    origins = rng.uniform(-span, span, (n, 3))
+    origins[: n // 2] = np.repeat(origins[: n // 2: 16], 16, axis=0)  # coherent packets
+    dirs = rng.normal(size=(n, 3))
+    dirs[: n // 2] = np.abs(dirs[: n // 2]) * np.sign(dirs[: n // 2: 16]).repeat(16, axis=0)
+    axis = rng.random(n) < 0.05  # axis-aligned rays: zero direction components
+    dirs[axis] = 0.0
+    dirs[axis, rng.integers(3, size=axis.sum())] = rng.choice([-1.0, 1.0], axis.sum())
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    active = (rng.random(n) < 0.85).astype(np.int64)
+    stack = np.full(STACK_SIZE + 8, -7, np.int64)
+    tmax = np.full(n, np.inf)
+    t, prim, _ = trace_packets(arrays, origins, dirs, tmax, False, active, stack)
+    hits = 0
+    for i in range(n):
+        if not active[i]:
+            assert (t[i], prim[i]) == (np.inf, -1)
+            continue
+        st, sprim = intersect(arrays, stack, *origins[i], *dirs[i], np.inf)
+        assert t[i] == st
+        assert prim[i] == sprim or _prim_hit(arrays.tri_isect, arrays.sph, prim[i], *origins[i],
+                                             *dirs[i], np.inf) == st
+        hits += sprim >= 0
+    assert hits > n // 10
+    # shadow rays just short of and just past each hit
+    for scale, expect in ((0.9999, False), (1.0001, True)):
+        tmax = np.where(prim >= 0, t * scale, 1.0)
+        live = active * (prim >= 0)
+        _, sprim, left = trace_packets(arrays, origins, dirs, tmax, True, live, stack)
+        assert np.all(left == 0) if expect else np.all(left == live)
+        for i in np.flatnonzero(live):
+            assert (sprim[i] >= 0) == occluded(arrays, stack, *origins[i], *dirs[i], tmax[i])
+            assert (sprim[i] >= 0) == expect
+    assert np.all(stack[STACK_SIZE:] == -7)  # nothing written past the stack

@@ -51,7 +51,7 @@ from .tile import start_tile
 
 @kernel
 def _camera_aovs(sc, V, nc):
-    """A camera subpath's AOVs (film.py), as path.li_path takes them: albedo
+    """A camera subpath's AOVs (film.py), as path tracing takes them: albedo
     and normal of its first diffuse or glossy vertex (through mirrors and
     glass; 0 if it reaches none), the distance to its first hit (0 for a miss)."""
     if nc < 2:

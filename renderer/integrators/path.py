@@ -58,6 +58,7 @@ from ..kernels.geometry import (
 )
 from ..kernels.ggx import glossy_eval, glossy_sample
 from ..kernels.lights import light_pdf, sample_light
+from ..kernels.packet import PACKET, packet_intersect
 from ..kernels.rng import sample_key
 from ..kernels.sampling import (
     BALANCE,
@@ -74,7 +75,7 @@ from ..samplers import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIM_RR, 
                         DIMS_PER_BOUNCE, u1d, u2d)
 from .tile import start_tile, tile_plan
 
-# The AOVs every method of the family writes (li_path, film.py).
+# The AOVs every method of the family writes (_shade_lane, film.py).
 PATH_AOVS = ("albedo", "normal", "depth")
 
 # Strategies of the path family (one kernel, switched at run time).
@@ -82,10 +83,55 @@ BSDF_ONLY, NEE, ONE_SAMPLE, MIS, DIRECT = 0, 1, 2, 3, 4
 COSINE, UNIFORM = 0, 1
 
 
+# A lane's state (rows of the per-row scratch `lane_floats` / `lane_ints`,
+# one column per lane): the ray being traced, the shadow ray, and what one
+# path carries from vertex to vertex. Floats:
+OX, OY, OZ, DX, DY, DZ, IX, IY, IZ, T = range(10)  # the path's ray (IX..IZ scratch)
+SOX, SOY, SOZ, SDX, SDY, SDZ, SIX, SIY, SIZ, ST = range(10, 20)  # the shadow ray
+LR, LG, LB = range(20, 23)  # the radiance so far
+ALB_R, ALB_G, ALB_B, AN_X, AN_Y, AN_Z, FIRST_T = range(23, 30)  # the AOVs
+BR, BG, BB, ETA, PREV_PDF, VX, VY, VZ = range(30, 38)
+CR, CG, CB = range(38, 41)  # the light sample's contribution, if the shadow ray is clear
+N_LANE_FLOATS = 41
+# what a finished item leaves in the ring: rows LR..FIRST_T
+RING_VALUES = 10
+# ints: the hit primitive, tracing, the shadow ray's hit and tracing, the
+# specular flag, one-sample MIS's choice, AOVs taken, rays traced, sample index
+PRIM, ACT, SPRIM, SACT, SPEC, CHOSE, AOV_SET, RAYS, ITEM, BOUNCE = range(10)
+N_LANE_INTS = 10
+# items a row's lanes may run ahead of the oldest one not yet folded
+RING = 256
+
+
 @kernel_inline
-def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, hemisphere,
-            smp, seed, pixel, index, spp, memo):
-    """Radiance arriving at o from direction -d: (r, g, b, rays traced).
+def _start_lane(fl, il, r, item, ox, oy, oz, dx, dy, dz):
+    """Lane r starts the row's item `item`: the camera ray, unit throughput, nothing yet."""
+    fl[OX, r], fl[OY, r], fl[OZ, r] = ox, oy, oz
+    fl[DX, r], fl[DY, r], fl[DZ, r] = dx, dy, dz
+    fl[VX, r], fl[VY, r], fl[VZ, r] = ox, oy, oz
+    fl[T, r] = np.inf
+    for k in (LR, LG, LB, PREV_PDF, ALB_R, ALB_G, ALB_B, AN_X, AN_Y, AN_Z, FIRST_T):
+        fl[k, r] = 0.0
+    fl[BR, r], fl[BG, r], fl[BB, r], fl[ETA, r] = 1.0, 1.0, 1.0, 1.0
+    il[ACT, r] = 1
+    il[SACT, r] = 0
+    il[SPEC, r] = 1  # the camera is a delta "lobe" too: count emission in full
+    il[CHOSE, r] = 1
+    il[AOV_SET, r] = 0
+    il[RAYS, r] = 0
+    il[ITEM, r] = item
+    il[BOUNCE, r] = 0
+
+
+@kernel_inline
+def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphere,
+                smp, seed, pixel, index, spp, memo):
+    """Vertex `bounce` of lane r's path, once its ray found (T, PRIM):
+    emission met there, the light sample (its shadow ray left in the lane
+    for the packet to trace, its contribution in CR..CB, added to L if the
+    ray is clear), the next ray, Russian roulette. Clears ACT when the path
+    ends. A lane's values depend on its own sample only, so they are the
+    bytes a path traced on its own gives (same arithmetic, same order).
 
     `strategy` decides how direct light is estimated at non-specular vertices:
     BSDF_ONLY (emission found by BSDF-sampled rays counts in full; no light
@@ -94,197 +140,285 @@ def li_path(sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic, 
     ONE_SAMPLE (either of the two, chosen with probability 1/2, weighted by
     the mixture pdf 1/2 p_light + 1/2 p_bsdf), MIS (both, weighted by the
     `heuristic`), DIRECT (NEE at the first diffuse vertex, then stop: only
-    specular chains continue). `hemisphere` picks cosine or uniform sampling of diffuse
-    lobes. Random numbers come from the pixel sampler `smp` for sample
-    `index` of `pixel` (`key` is that sample's hash key, the fast path of the
-    `random` sampler; `memo` the row's sampler scratch, samplers/dispatch.py).
+    specular chains continue). `hemisphere` picks cosine or uniform sampling
+    of diffuse lobes. Random numbers come from the pixel sampler `smp` for
+    sample `index` of `pixel` (`key` is that sample's hash key, the fast path
+    of the `random` sampler; `memo` the row's sampler scratch, samplers/
+    dispatch.py).
 
-    Also returns the sample's AOVs (film.py): the albedo and shading normal of
-    the first diffuse or glossy surface, followed through mirrors and glass as
-    Intel Open Image Denoise expects (0 if the path never reaches one), and
-    the distance to the first hit (0 for a miss).
-    """
-    lr, lg, lb = 0.0, 0.0, 0.0
-    br, bg, bb = 1.0, 1.0, 1.0
-    eta_scale = 1.0
-    specular = True  # the camera is a delta "lobe" too: count emission in full
-    chose_bsdf = True  # one-sample MIS: which strategy the previous vertex drew
-    prev_pdf = 0.0
-    vx, vy, vz = ox, oy, oz  # the previous path vertex, on its surface (not offset)
-    rays = 0
-    aov_set = False
-    alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    The lane's AOVs (film.py): the albedo and shading normal of the first
+    diffuse or glossy surface, followed through mirrors and glass as Intel
+    Open Image Denoise expects (0 if the path never reaches one), and the
+    distance to the first hit (0 for a miss)."""
+    prim = il[PRIM, r]
+    il[RAYS, r] += 1
+    if prim < 0:
+        il[ACT, r] = 0
+        return
+    ox, oy, oz = fl[OX, r], fl[OY, r], fl[OZ, r]
+    dx, dy, dz = fl[DX, r], fl[DY, r], fl[DZ, r]
+    t = fl[T, r]
+    br, bg, bb = fl[BR, r], fl[BG, r], fl[BB, r]
     n_lights = sc.light_type.shape[0]
-    # unpacked once: see geometry.py on passing SceneArrays into hot calls
-    nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
-    tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
-    sph_flip, sph_mat, sph_light = sc.sph_flip, sc.sph_mat, sc.sph_light
     light_rgb, mat_type, mat_rgb, mat_param = sc.light_rgb, sc.mat_type, sc.mat_rgb, sc.mat_param
-    for bounce in range(depth + 1):
-        t, prim = intersect_arrays(nodes, info, prims, tri, sph, stack,
-                                   ox, oy, oz, dx, dy, dz, np.inf, False)
-        rays += 1
-        if prim < 0:
-            break
-        hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
-        nx, ny, nz, mat, light = surface_at_arrays(tri_n, tri_mat, tri_light, sph, sph_flip,
-                                                   sph_mat, sph_light, prim, hx, hy, hz)
-        if bounce == 0:
-            first_t = t
-        mtype = mat_type[mat]
-        if not aov_set and (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY):
-            aov_set = True
-            alb_r, alb_g, alb_b = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
-            an_x, an_y, an_z = nx, ny, nz
-        cos_o = -(dx * nx + dy * ny + dz * nz)
-        if light >= 0 and cos_o > 0.0:
-            w = 1.0
-            if not specular and strategy != BSDF_ONLY:
-                if strategy == NEE or (strategy == ONE_SAMPLE and not chose_bsdf):
-                    w = 0.0  # this light was (or will be) counted by light sampling
-                else:
-                    pl = light_pdf(sc, light, prim, vx, vy, vz, hx, hy, hz, cos_o)
-                    if strategy == MIS:
-                        w = mis_weight(prev_pdf, pl, heuristic)
-                    else:  # ONE_SAMPLE drew the BSDF: f L cos / (1/2 pb + 1/2 pl) in all
-                        w = prev_pdf / (0.5 * prev_pdf + 0.5 * pl)
-            lr += br * w * light_rgb[light, 0]
-            lg += bg * w * light_rgb[light, 1]
-            lb += bb * w * light_rgb[light, 2]
-        if bounce == depth:
-            break
-        base = 2 + DIMS_PER_BOUNCE * bounce
-        have_rr = False  # the Russian roulette number, drawn with the light pick
-        u_rr = 0.0
-        if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
-            if cos_o <= 0.0:
-                break  # one-sided: the back of a diffuse or glossy surface is black
-            ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
-            alpha = mat_param[mat, 1]
-            use_light = strategy == NEE or strategy == MIS or strategy == DIRECT
-            light_scale = 1.0
-            if strategy == ONE_SAMPLE:
-                chose_bsdf = u1d(smp, key, seed, pixel, index, spp, base + DIM_STRATEGY,
-                                 memo) >= 0.5
-                use_light = not chose_bsdf
-                light_scale = 2.0  # the light strategy was drawn with probability 1/2
-            if use_light and n_lights > 0:
-                ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
-                u_pick, u_rr = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK, memo)
-                have_rr = True
-                wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, u_pick, ua, ub)
-                cos_i = wx * nx + wy * ny + wz * nz
-                if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
-                    if mtype == MAT_DIFFUSE:
-                        f, pb = diffuse_eval(cos_o, cos_i)
-                        fr, fg, fb = ar * f, ag * f, ab * f
-                        if hemisphere == UNIFORM:
-                            pb = 0.5 * INV_PI
-                    else:
-                        fr, fg, fb, pb = glossy_eval(nx, ny, nz, -dx, -dy, -dz, wx, wy, wz,
-                                                     alpha, ar, ag, ab)
-                    sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz, dist)
-                    rays += 1
-                    if (fr > 0.0 or fg > 0.0 or fb > 0.0) and intersect_arrays(
-                            nodes, info, prims, tri, sph, stack, sx, sy, sz, tx, ty, tz, tmax,
-                            True)[1] < 0:
-                        if delta or strategy == NEE or strategy == DIRECT:
-                            # delta lights: one-sample picks them with probability 1/2 pl
-                            weight = light_scale * cos_i / pl
-                        elif strategy == MIS:
-                            weight = cos_i * mis_weight(pl, pb, heuristic) / pl
-                        else:  # ONE_SAMPLE: one-sample MIS divides by the mixture pdf
-                            weight = cos_i / (0.5 * pl + 0.5 * pb)
-                        lr += br * fr * er * weight
-                        lg += bg * fg * eg * weight
-                        lb += bb * fb * eb * weight
-            if strategy == DIRECT:
-                break  # Whitted: light stops at the first non-specular surface
-            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF, memo)
-            if mtype == MAT_GLOSSY:
-                wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
-                    nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab, ua, ub)
-            elif hemisphere == UNIFORM:
-                lx, ly, lz = uniform_hemisphere(ua, ub)
-                wx, wy, wz = to_world(lx, ly, lz, nx, ny, nz)
-                pdf = 0.5 * INV_PI
-                k = lz * INV_PI / pdf  # f cos / pdf = albedo * 2 cos
-                sr, sg, sb = ar * k, ag * k, ab * k
+    hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
+    nx, ny, nz, mat, light = surface_at_arrays(sc.tri_n, sc.tri_mat, sc.tri_light, sc.sph,
+                                               sc.sph_flip, sc.sph_mat, sc.sph_light, prim,
+                                               hx, hy, hz)
+    if bounce == 0:
+        fl[FIRST_T, r] = t
+    mtype = mat_type[mat]
+    if il[AOV_SET, r] == 0 and (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY):
+        il[AOV_SET, r] = 1
+        fl[ALB_R, r], fl[ALB_G, r], fl[ALB_B, r] = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+        fl[AN_X, r], fl[AN_Y, r], fl[AN_Z, r] = nx, ny, nz
+    specular = il[SPEC, r] != 0
+    cos_o = -(dx * nx + dy * ny + dz * nz)
+    if light >= 0 and cos_o > 0.0:
+        w = 1.0
+        if not specular and strategy != BSDF_ONLY:
+            if strategy == NEE or (strategy == ONE_SAMPLE and il[CHOSE, r] == 0):
+                w = 0.0  # this light was (or will be) counted by light sampling
             else:
-                wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, ua, ub)
-                sr, sg, sb = ar, ag, ab  # f cos / pdf = albedo exactly
-            if pdf <= 0.0 or (sr <= 0.0 and sg <= 0.0 and sb <= 0.0):
-                break
-            br *= sr
-            bg *= sg
-            bb *= sb
-            prev_pdf = pdf
-            specular = False
-            vx, vy, vz = hx, hy, hz
-            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
-            dx, dy, dz = wx, wy, wz
-        else:  # a mirror or glass
-            if mtype == MAT_MIRROR and cos_o <= 0.0:
-                break
-            u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
-                                                    base + DIM_GLASS, memo)
-            dx, dy, dz, ox, oy, oz, wr, wg, wb, es = specular_step(
-                mtype, mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2], mat_param[mat, 0],
-                hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
-            br *= wr
-            bg *= wg
-            bb *= wb
-            eta_scale *= es
-            specular = True
-        if bounce >= 1:
-            m = max(br, max(bg, bb)) * eta_scale
-            if m < 1.0:
-                q = max(0.0, 1.0 - m)
-                if not have_rr:
-                    u_rr = u1d(smp, key, seed, pixel, index, spp, base + DIM_RR, memo)
-                if u_rr < q:
-                    break
-                s = 1.0 / (1.0 - q)
-                br *= s
-                bg *= s
-                bb *= s
-    return lr, lg, lb, rays, alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t
+                pl = light_pdf(sc, light, prim, fl[VX, r], fl[VY, r], fl[VZ, r],
+                               hx, hy, hz, cos_o)
+                prev_pdf = fl[PREV_PDF, r]
+                if strategy == MIS:
+                    w = mis_weight(prev_pdf, pl, heuristic)
+                else:  # ONE_SAMPLE drew the BSDF: f L cos / (1/2 pb + 1/2 pl) in all
+                    w = prev_pdf / (0.5 * prev_pdf + 0.5 * pl)
+        fl[LR, r] += br * w * light_rgb[light, 0]
+        fl[LG, r] += bg * w * light_rgb[light, 1]
+        fl[LB, r] += bb * w * light_rgb[light, 2]
+    if bounce == depth:
+        il[ACT, r] = 0
+        return
+    base = 2 + DIMS_PER_BOUNCE * bounce
+    have_rr = False  # the Russian roulette number, drawn with the light pick
+    u_rr = 0.0
+    if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
+        if cos_o <= 0.0:
+            il[ACT, r] = 0  # one-sided: the back of a diffuse or glossy surface is black
+            return
+        ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+        alpha = mat_param[mat, 1]
+        use_light = strategy == NEE or strategy == MIS or strategy == DIRECT
+        light_scale = 1.0
+        if strategy == ONE_SAMPLE:
+            chose_bsdf = u1d(smp, key, seed, pixel, index, spp, base + DIM_STRATEGY,
+                             memo) >= 0.5
+            il[CHOSE, r] = 1 if chose_bsdf else 0
+            use_light = not chose_bsdf
+            light_scale = 2.0  # the light strategy was drawn with probability 1/2
+        if use_light and n_lights > 0:
+            ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
+            u_pick, u_rr = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK, memo)
+            have_rr = True
+            wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, u_pick, ua, ub)
+            cos_i = wx * nx + wy * ny + wz * nz
+            if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
+                if mtype == MAT_DIFFUSE:
+                    f, pb = diffuse_eval(cos_o, cos_i)
+                    fr, fg, fb = ar * f, ag * f, ab * f
+                    if hemisphere == UNIFORM:
+                        pb = 0.5 * INV_PI
+                else:
+                    fr, fg, fb, pb = glossy_eval(nx, ny, nz, -dx, -dy, -dz, wx, wy, wz,
+                                                 alpha, ar, ag, ab)
+                il[RAYS, r] += 1
+                if fr > 0.0 or fg > 0.0 or fb > 0.0:
+                    sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz,
+                                                              wx, wy, wz, dist)
+                    if delta or strategy == NEE or strategy == DIRECT:
+                        # delta lights: one-sample picks them with probability 1/2 pl
+                        weight = light_scale * cos_i / pl
+                    elif strategy == MIS:
+                        weight = cos_i * mis_weight(pl, pb, heuristic) / pl
+                    else:  # ONE_SAMPLE: one-sample MIS divides by the mixture pdf
+                        weight = cos_i / (0.5 * pl + 0.5 * pb)
+                    # added to L once the packet's shadow rays find this one clear
+                    fl[CR, r] = br * fr * er * weight
+                    fl[CG, r] = bg * fg * eg * weight
+                    fl[CB, r] = bb * fb * eb * weight
+                    fl[SOX, r], fl[SOY, r], fl[SOZ, r] = sx, sy, sz
+                    fl[SDX, r], fl[SDY, r], fl[SDZ, r] = tx, ty, tz
+                    fl[ST, r] = tmax
+                    il[SACT, r] = 1
+        if strategy == DIRECT:
+            il[ACT, r] = 0  # Whitted: light stops at the first non-specular surface
+            return
+        ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_BSDF, memo)
+        if mtype == MAT_GLOSSY:
+            wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
+                nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab, ua, ub)
+        elif hemisphere == UNIFORM:
+            lx, ly, lz = uniform_hemisphere(ua, ub)
+            wx, wy, wz = to_world(lx, ly, lz, nx, ny, nz)
+            pdf = 0.5 * INV_PI
+            k = lz * INV_PI / pdf  # f cos / pdf = albedo * 2 cos
+            sr, sg, sb = ar * k, ag * k, ab * k
+        else:
+            wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, ua, ub)
+            sr, sg, sb = ar, ag, ab  # f cos / pdf = albedo exactly
+        if pdf <= 0.0 or (sr <= 0.0 and sg <= 0.0 and sb <= 0.0):
+            il[ACT, r] = 0
+            return
+        br *= sr
+        bg *= sg
+        bb *= sb
+        fl[PREV_PDF, r] = pdf
+        il[SPEC, r] = 0
+        fl[VX, r], fl[VY, r], fl[VZ, r] = hx, hy, hz
+        ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
+        dx, dy, dz = wx, wy, wz
+    else:  # a mirror or glass
+        if mtype == MAT_MIRROR and cos_o <= 0.0:
+            il[ACT, r] = 0
+            return
+        u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
+                                                base + DIM_GLASS, memo)
+        dx, dy, dz, ox, oy, oz, wr, wg, wb, es = specular_step(
+            mtype, mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2], mat_param[mat, 0],
+            hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+        br *= wr
+        bg *= wg
+        bb *= wb
+        fl[ETA, r] *= es
+        il[SPEC, r] = 1
+    if bounce >= 1:
+        m = max(br, max(bg, bb)) * fl[ETA, r]
+        if m < 1.0:
+            q = max(0.0, 1.0 - m)
+            if not have_rr:
+                u_rr = u1d(smp, key, seed, pixel, index, spp, base + DIM_RR, memo)
+            if u_rr < q:
+                il[ACT, r] = 0
+                return
+            s = 1.0 / (1.0 - q)
+            br *= s
+            bg *= s
+            bb *= s
+    fl[BR, r], fl[BG, r], fl[BB, r] = br, bg, bb
+    fl[OX, r], fl[OY, r], fl[OZ, r] = ox, oy, oz
+    fl[DX, r], fl[DY, r], fl[DZ, r] = dx, dy, dz
+    fl[T, r] = np.inf
 
 
 @kernel_parallel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
                  strategy, heuristic, hemisphere, out_sum, out_sq, out_w, out_aov, row_rays, stacks,
-                 memos, aov_rows):
-    """The tile loop (integrators/tile.py) over `li_path`, with the AOVs'
-    fold beside the radiance's; rows in parallel."""
+                 memos, aov_rows, lane_floats, lane_ints, lane_keys, rings, ring_done):
+    """The tile loop (integrators/tile.py) over packets of paths; rows in parallel.
+
+    A row's camera samples, pixel by pixel and in sample order, are a queue
+    of items. PACKET lanes trace one item's path each: every step, the live
+    lanes' rays are one packet (kernels/packet.py), each lane is shaded on
+    its own (`_shade_lane`, at its own bounce), the shadow rays are a second
+    packet, and a lane whose path ended takes the next item, so the packets
+    stay full while paths end at different depths. A finished item's values
+    wait in the row's ring (RING items ahead of the oldest unfinished one at
+    most) until every item before it is folded: the fold takes samples in
+    the canonical order, so the film is the one a sample-at-a-time loop
+    makes, whatever the tiling."""
     ox, oy, oz = cam[0], cam[1], cam[2]
+    nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n = n_samples(blocks)
+    s_lo = blocks[0, 0]
+    total = (x1 - x0) * n
     for row in prange(y1 - y0):
         stack = stacks[row]
         memo = memos[row]
         scr = aov_rows[row]
+        fl = lane_floats[row]
+        il = lane_ints[row]
+        keys = lane_keys[row]
+        ring = rings[row]
+        done = ring_done[row]
         y = y0 + row
         rays = 0
-        for x in range(x0, x1):
-            pixel = y * width + x
-            ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            for bi in range(blocks.shape[0]):
-                sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-                for s in range(blocks[bi, 0], blocks[bi, 1]):
+        for r in range(PACKET):
+            il[ACT, r] = 0
+            il[SACT, r] = 0
+            il[ITEM, r] = -1
+            fl[DX, r], fl[DY, r], fl[DZ, r] = 1.0, 1.0, 1.0
+            fl[SDX, r], fl[SDY, r], fl[SDZ, r] = 1.0, 1.0, 1.0
+        for k in range(RING):
+            done[k] = 0
+        k_next = 0  # the next item to start
+        k_fold = 0  # the next item to fold
+        # the fold's state: the pixel's sums, the block's, the block index
+        ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        bi = 0
+        while k_fold < total:
+            live = 0
+            for r in range(PACKET):
+                if il[ITEM, r] < 0 and k_next < total and k_next < k_fold + RING:
+                    x = x0 + k_next // n
+                    s = s_lo + k_next % n
+                    pixel = y * width + x
                     key = sample_key(seed, pixel, s)
+                    keys[r] = key
                     fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-                    r, g, b, nr, alr, alg, alb, anx, any_, anz, dist = li_path(
-                        sc, stack, ox, oy, oz, dx, dy, dz, key, depth, strategy, heuristic,
-                        hemisphere, smp, seed, pixel, s, spp, memo)
-                    rays += nr
-                    sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
-                    add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
-                ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
-                                                   sr, sg, sb, tr, tg, tb)
-                add_aov_block(scr)
-            store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n)
-            store_aov(out_aov, row, x - x0, scr)
+                    _start_lane(fl, il, r, k_next, ox, oy, oz, dx, dy, dz)
+                    k_next += 1
+                live += il[ACT, r]
+            if live > 0:
+                packet_intersect(nodes, info, prims, tri, sph, stack,
+                                 fl[OX], fl[OY], fl[OZ], fl[DX], fl[DY], fl[DZ],
+                                 fl[IX], fl[IY], fl[IZ], fl[T], il[PRIM], il[ACT], False)
+                shadows = 0
+                for r in range(PACKET):
+                    if il[ACT, r] != 0:
+                        item = il[ITEM, r]
+                        _shade_lane(sc, fl, il, r, il[BOUNCE, r], keys[r], depth, strategy,
+                                    heuristic, hemisphere, smp, seed,
+                                    y * width + x0 + item // n, s_lo + item % n, spp, memo)
+                        il[BOUNCE, r] += 1
+                        shadows += il[SACT, r]
+                if shadows > 0:
+                    packet_intersect(nodes, info, prims, tri, sph, stack,
+                                     fl[SOX], fl[SOY], fl[SOZ], fl[SDX], fl[SDY], fl[SDZ],
+                                     fl[SIX], fl[SIY], fl[SIZ], fl[ST], il[SPRIM], il[SACT], True)
+                    for r in range(PACKET):
+                        # still set: the lane's shadow ray was traced and found nothing
+                        if il[SACT, r] != 0:
+                            fl[LR, r] += fl[CR, r]
+                            fl[LG, r] += fl[CG, r]
+                            fl[LB, r] += fl[CB, r]
+                            il[SACT, r] = 0
+                for r in range(PACKET):
+                    item = il[ITEM, r]
+                    if item >= 0 and il[ACT, r] == 0:  # the path ended: its values wait
+                        slot = item % RING
+                        for c in range(RING_VALUES):
+                            ring[slot, c] = fl[LR + c, r]
+                        done[slot] = 1
+                        rays += il[RAYS, r]
+                        il[ITEM, r] = -1
+            while k_fold < k_next and done[k_fold % RING] != 0:
+                slot = k_fold % RING
+                done[slot] = 0
+                j = k_fold % n
+                s = s_lo + j
+                sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb,
+                                                    ring[slot, 0], ring[slot, 1], ring[slot, 2])
+                add_aov_sample(scr, ring[slot, 3], ring[slot, 4], ring[slot, 5], ring[slot, 6],
+                               ring[slot, 7], ring[slot, 8], ring[slot, 9])
+                if s + 1 == blocks[bi, 1]:  # the end of a canonical block
+                    ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
+                                                       sr, sg, sb, tr, tg, tb)
+                    add_aov_block(scr)
+                    sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                    bi += 1
+                if j == n - 1:  # the pixel's last sample
+                    c = k_fold // n
+                    store_pixel(out_sum, out_sq, out_w, row, c, ar, ag, ab, qr, qg, qb, n)
+                    store_aov(out_aov, row, c, scr)
+                    ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+                    bi = 0
+                k_fold += 1
         row_rays[row] = rays
 
 
@@ -296,8 +430,17 @@ def render_tile(scene, spec, unit, inputs, options, *, strategy: int) -> Partial
     _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
                  spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
                  spec.spp, strategy, heuristic, hemisphere, t.film.sum, t.film.sum_sq,
-                 t.film.weight, t.film.aov, t.row_rays, t.stacks, t.memos, t.aov_rows)
+                 t.film.weight, t.film.aov, t.row_rays, t.stacks, t.memos, t.aov_rows,
+                 *lane_scratch(unit.y1 - unit.y0))
     return t.finish(unit)
+
+
+def lane_scratch(rows: int):
+    """Per-row scratch of `_render_tile`: the lanes' floats, ints and sample
+    keys, the ring of finished items and its flags."""
+    return (np.zeros((rows, N_LANE_FLOATS, PACKET)), np.zeros((rows, N_LANE_INTS, PACKET), np.int64),
+            np.zeros((rows, PACKET), np.uint64), np.zeros((rows, RING, RING_VALUES)),
+            np.zeros((rows, RING), np.int64))
 
 
 METHODS = (

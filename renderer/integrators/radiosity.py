@@ -186,7 +186,7 @@ def _patch_uv(geo, p, hx, hy, hz):
 def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key, depth,
                  gather, smp, seed, pixel, index, spp, memo):
     """Radiance arriving at o from -d through the patch solution: (r, g, b,
-    rays), the sample's AOVs as path.li_path gives them (albedo and normal
+    rays), the sample's AOVs as path tracing gives them (albedo and normal
     of the first diffuse or glossy hit through mirrors and glass, distance to
     the first hit), and where it read the solution, for the jackknife
     (`_jackknife_sample`): the B(k) index, the patch (-1: nowhere), whether

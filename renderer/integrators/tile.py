@@ -19,6 +19,10 @@ order, so any tiling and any retry give the same bytes. A kernel's loop:
             ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb, sr, sg, sb, tr, tg, tb)
         store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n_samples(blocks))
 
+The path family traces a row's samples as packets of paths (integrators/
+path.py): its samples finish out of order, wait in a per-row ring, and are
+folded in this order by the same inline kernels.
+
 Numba's on-disk cache cannot keep a kernel that takes another jitted
 function as an argument (numba issues 2956, 2065), so there is no
 higher-order loop: each integrator has its own module-level kernel over

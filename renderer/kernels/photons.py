@@ -147,7 +147,7 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
     depth - specular bounces (the longest photon path k it may gather; -1
     when there is no visible point), Ld the emission seen along the chain
     plus direct light at the visible point by light sampling, aov the
-    sample's AOVs as path.li_path gives them (albedo and normal of the first
+    sample's AOVs as path tracing gives them (albedo and normal of the first
     diffuse or glossy hit, distance to the first hit: 7 floats). `memo`: the
     sampler's row scratch (samplers/dispatch.py) or NO_MEMO."""
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
