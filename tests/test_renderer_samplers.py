@@ -129,13 +129,13 @@ def test02_sobol_memo_gives_the_same_values(spp):
     # pixels interleaved (one row's memo shared by all of them, entries
     # overwritten back and forth), indices past spp (later blocks, other
     # tags), and pairs past spp (their own permutations).
-    pixels, dims = [0, 1, 4096], range(0, 2 * (spp + 3), 2)
+    pixels, dims = [0, 1, 4096, 5, 4], range(0, 2 * (spp + 3), 2)
     walk = [(px, i, d) for px in pixels for i in range(2 * spp) for d in dims]
     rng = np.random.default_rng(2)
     for order in (walk, [walk[k] for k in rng.permutation(len(walk))]):
         visits = np.asarray(order, np.int64)
         memo = memo_rows(SAMPLER_SOBOL, spp, 1)[0]
-        assert memo.shape == (2 * spp,)
+        assert memo.shape == (2 * spp * sobol.MEMO_BANKS,)
         out = np.empty((len(visits), 2))
         _sobol_memo_draws(SEED, spp, visits, memo, out)
         plain = [sample_2d(SAMPLER_SOBOL, SEED, px, i, spp, d) for px, i, d in order]

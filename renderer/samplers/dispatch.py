@@ -131,17 +131,18 @@ def u2d(smp, key, seed, pixel, index, spp, dim, memo):
     return sample_2d(smp, seed, pixel, index, spp, dim)
 
 
-# A unit's memo stays under this (a 64-row tile at 4096 spp takes 4 MiB; a
-# whole 8192-row frame in one unit would take 512 MiB: it goes without).
+# A unit's memo stays under this (a 64-row tile at 4096 spp takes 16 MiB; a
+# whole 8192-row frame in one unit would take 2 GiB: it goes without).
 MEMO_MAX_BYTES = 32 << 20
 
 
 def memo_rows(sampler_id: int, spp: int, rows: int) -> np.ndarray:
-    """Per-row scratch for u1d/u2d's memo: (rows, 2 * spp) for `sobol` with
-    spp up to sobol.MEMO_MAX_SPP and within MEMO_MAX_BYTES (tags start at 0,
-    which no entry uses), else (rows, 0), no memo. The memo changes no value,
-    only the time."""
-    width = 2 * spp if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP else 0
+    """Per-row scratch for u1d/u2d's memo: (rows, 2 * spp * sobol.MEMO_BANKS)
+    for `sobol` with spp up to sobol.MEMO_MAX_SPP and within MEMO_MAX_BYTES
+    (tags start at 0, which no entry uses), else (rows, 0), no memo. The
+    memo changes no value, only the time."""
+    width = (2 * spp * sobol.MEMO_BANKS
+             if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP else 0)
     if rows * width * 8 > MEMO_MAX_BYTES:
         width = 0
     return np.zeros((rows, width), np.int64)

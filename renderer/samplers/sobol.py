@@ -141,6 +141,8 @@ def owen_scramble(v, seed):
 _ORDER_SALT = 9
 # The memo (`sample_pair_memo`) holds one pixel's order for spp up to this.
 MEMO_MAX_SPP = 4096
+# Banks of the memo, pixels taking turns (a power of two; sample_pair_memo).
+MEMO_BANKS = 4
 
 
 @kernel_inline
@@ -195,14 +197,18 @@ def sample_pair(seed, pixel, index, spp, pair):
 @kernel_inline
 def sample_pair_memo(seed, pixel, index, spp, pair, memo):
     """`sample_pair`, with the pixel's permutation memoized in `memo` (int64,
-    2 * spp entries: tags, then values; any other length: no memo). A
-    tag names the pixel and block an entry was computed for, so the memo
-    needs no clearing between pixels or units and a stale entry is never
-    read. Same values as `sample_pair`, bit for bit (tested)."""
+    MEMO_BANKS banks of 2 * spp entries, tags then values; any other length:
+    no memo). A pixel uses bank pixel mod MEMO_BANKS: the path tracer's
+    packets run the last samples of one pixel beside the first of the next
+    ones, and with one bank they evicted each other's entries (sobol cost a
+    quarter of the samples/s instead of a tenth). A tag names the pixel and
+    block an entry was computed for, so the memo needs no clearing between
+    pixels or units and a stale entry is never read. Same values as
+    `sample_pair`, bit for bit (tested)."""
     b, i, n = split_block(index, spp, spp)
     key = pair_key(seed, pixel, pair, 7)
-    if pair < n and memo.shape[0] == 2 * n and b < 1 << 20:  # (b < 2^20: tags stay unique)
-        t = _rotated(i, pair, n)
+    if pair < n and memo.shape[0] == 2 * MEMO_BANKS * n and b < 1 << 20:  # (tags stay unique)
+        t = 2 * n * (pixel & (MEMO_BANKS - 1)) + _rotated(i, pair, n)
         tag = (np.int64(pixel) << 20) + b + 1
         if memo[t] == tag:
             p = memo[n + t]
