@@ -197,7 +197,7 @@ def test05_workers_are_shown_busy_idle_lost_and_offline(redis_url, spawn_worker,
         assert workers[doomed.pid]["concurrency"] == 1 and workers[leaving.pid]["concurrency"] == 2
         assert all(w["kind"] == "celery" and w["state"] == "idle" for w in workers.values())
         # A job in flight: some worker shows the units it renders, then counts them.
-        job_id = client.post("/jobs", json=dict(TINY, width=64, height=64, spp=16)).json()["id"]
+        job_id = client.post("/jobs", json=dict(TINY, width=64, height=64, spp=128)).json()["id"]
         busy = wait_for(lambda: [w for w in get("/workers") if w["state"] == "busy"], 120,
                         "a worker to be busy")
         assert all(r["job_id"] == job_id for w in busy for r in w["running"]), (job_id, busy)
