@@ -47,6 +47,27 @@ were cheaper still and failed that test, as did (2026-11-26) a
 multiply-xorshift permutation with shifts scaled to n. The light pick and
 Russian roulette share a pair (dispatch.py), and u1d/u2d call this module
 directly.
+
+Measured and not kept (2026-11-27, cornell-box, 32 spp, one thread, three
+interleaved pairs of processes against 2.05-2.15 M samples/s):
+- The pairs of a packet's sixteen lanes in three loops over the lanes (keys
+  and memo entries, the missing entries lane by lane, then the scrambled
+  points), which LLVM vectorized with AVX-512 gathers and 64-bit
+  multiplies: 1.90-1.94 M, slower. The same restructuring with the pairs
+  still drawn lane by lane ran at the old speed, so the vector loops
+  themselves lost: the gathers of the memo and the byte tables cost more
+  than the scalar code they replaced.
+- The pixel's part of the pair key (two of pair_key's three mix64) computed
+  once per sample and carried by the lane: 1.95-2.03 M, slower. After
+  inlining, the compiler already shares it between the pairs of a vertex;
+  carrying it cost a load and a register.
+- A random digital shift (xor) instead of the Owen scramble: +3 % (the
+  scramble's ten multiplies pipeline well), for a weaker randomization.
+  What a pair costs is mostly its chain of dependent hashes (pair key,
+  memo tag, scramble seed), about 9 ns against 2-3 ns for `random`'s two
+  hashes (micro-benchmark with the kernels' settings; with Numba's
+  reference counting on, as a plain @njit test harness has it, the memo
+  array's increfs made the same code 15 ns).
 """
 
 import numpy as np
