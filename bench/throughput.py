@@ -23,7 +23,10 @@ Russian roulette that makes samples cheap but noisy does not win by it.
 3. Mitsuba 3 (`pip install -e '.[mitsuba]'`, `llvm_ad_rgb` when it JITs,
    else `scalar_rgb`) with its default settings (independent sampler,
    Russian roulette from depth 5), max_depth = depth + 1, box filter, in a
-   child process: Dr.Jit's LLVM and Numba's stay apart.
+   child process: Dr.Jit's LLVM and Numba's stay apart. The child renders
+   on request, and the renders interleave: each repeat renders Mitsuba,
+   then each of rayfarm's samplers, so a drift of this VM's speed (up to a
+   third within minutes, seen here) weighs on every row alike.
 4. Scaling: the default's samples/s on 1 thread and on --workers threads,
    and through the local process pool with 1 and --workers processes.
 5. BVH traversal alone, rays/s per core (bench/traversal.py), on the
@@ -200,7 +203,11 @@ def mse_against(image, ref_mean, ref_var, mask) -> float:
 # -- Mitsuba (child process) --------------------------------------------------------------
 
 def mitsuba_child(args) -> None:
-    """Render the reference if missing, then each spp --repeat times; print JSON."""
+    """Render the reference if missing and warm up, print one JSON line; then
+    render what each line on stdin asks ({"spp", "seed"}), one JSON line
+    each ({"seconds", "image"}), until stdin closes. The parent asks for
+    Mitsuba's renders between its own, so that a drift of this VM's speed
+    weighs on both alike."""
     sys.path.insert(0, str(HERE))
     import mitsuba as mi
     from mitsuba_reference import choose_variant, mitsuba_scene_dict
@@ -222,29 +229,58 @@ def mitsuba_child(args) -> None:
         np.savez(ref, mean=stack.mean(axis=0), var=stack.var(axis=0, ddof=1) / passes)
     scene = mi.load_dict(mitsuba_scene_dict(doc, args.depth))  # its default Russian roulette
     np.array(mi.render(scene, spp=4, seed=0))  # warm-up: JIT compilation
-    rows = []
-    for spp in args.spp:
-        for rep in range(args.repeat):
-            t0 = time.perf_counter()
-            image = np.array(mi.render(scene, spp=spp, seed=1 + rep), dtype=np.float64)[..., :3]
-            seconds = time.perf_counter() - t0
-            name = out / f"mitsuba_{spp}_{rep}.npy"
-            np.save(name, image)
-            rows.append({"spp": spp, "rep": rep, "seconds": seconds, "image": str(name)})
-    print(json.dumps({"variant": variant, "version": mi.__version__, "reference": str(ref),
-                      "rows": rows}))
+    print(json.dumps({"variant": variant, "version": mi.__version__, "reference": str(ref)}),
+          flush=True)
+    for count, line in enumerate(sys.stdin):
+        ask = json.loads(line)
+        t0 = time.perf_counter()
+        image = np.array(mi.render(scene, spp=ask["spp"], seed=ask["seed"]),
+                         dtype=np.float64)[..., :3]
+        seconds = time.perf_counter() - t0
+        name = out / f"mitsuba_{count}.npy"
+        np.save(name, image)
+        print(json.dumps({"seconds": seconds, "image": str(name)}), flush=True)
 
 
-def run_mitsuba(args, scene_name: str, tmp: Path) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--mitsuba-child", str(tmp),
-           "--scenes", scene_name, "--spp", ",".join(map(str, args.spp)), "--depth", str(args.depth),
-           "--repeat", str(args.repeat), "--ref-spp", str(args.ref_spp), "--refs", str(args.refs)]
-    if args.mitsuba_variant:
-        cmd += ["--mitsuba-variant", args.mitsuba_variant]
-    proc = subprocess.run(cmd, capture_output=True, text=True)
-    if proc.returncode != 0:
-        return {"error": (proc.stderr.strip().splitlines() or ["no output"])[-1]}
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+# Seconds between two timed renders: after a render, each renderer's worker
+# threads spin for 10-20 ms before they sleep (measured: Dr.Jit's pool and
+# Numba's OpenMP one), which would slow the other renderer's next render.
+SETTLE = 0.1
+
+
+class Mitsuba:
+    """The Mitsuba child (`mitsuba_child`), rendering on request: `info` holds
+    its variant, version and reference, or {"error": ...} if it failed."""
+
+    def __init__(self, args, scene_name: str, tmp: Path):
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--mitsuba-child", str(tmp),
+               "--scenes", scene_name, "--depth", str(args.depth), "--ref-spp", str(args.ref_spp),
+               "--refs", str(args.refs)]
+        if args.mitsuba_variant:
+            cmd += ["--mitsuba-variant", args.mitsuba_variant]
+        self.errors = tempfile.TemporaryFile(mode="w+")
+        self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=self.errors, text=True)
+        self.info = self._answer()
+
+    def _answer(self) -> dict:
+        line = self.proc.stdout.readline()
+        if not line:
+            self.proc.wait()
+            self.errors.seek(0)
+            return {"error": (self.errors.read().strip().splitlines() or ["no output"])[-1]}
+        return json.loads(line)
+
+    def render(self, spp: int, seed: int) -> dict:
+        self.proc.stdin.write(json.dumps({"spp": spp, "seed": seed}) + "\n")
+        self.proc.stdin.flush()
+        return self._answer()
+
+    def close(self) -> None:
+        if self.proc.stdin:
+            self.proc.stdin.close()
+        self.proc.wait(60)
+        self.errors.close()
 
 
 # -- the farm -----------------------------------------------------------------------------
@@ -444,38 +480,52 @@ def main(argv: list[str] | None = None) -> int:
         mts_eff: dict[int, float] = {}
         rows = []
         with tempfile.TemporaryDirectory() as tmp:
-            if mts_available:
-                mts = run_mitsuba(args, scene_name, Path(tmp))
-                if "error" in mts:
-                    report(f"Mitsuba failed: {mts['error']}")
-                else:
-                    zref = np.load(mts["reference"])
-                    for spp in args.spp:
-                        runs = [r for r in mts["rows"] if r["spp"] == spp]
-                        seconds = median([r["seconds"] for r in runs])
-                        mse = float(np.mean([mse_against(np.load(r["image"]), zref["mean"],
-                                                         zref["var"], mask) for r in runs]))
-                        mts_eff[spp] = 1.0 / (mse * seconds)
-                        rows.append((f"Mitsuba {mts['version']} {mts['variant']}, independent", spp,
-                                     size[0] * size[1] * spp / seconds, None, mse, mts_eff[spp]))
-                    if scene_name == "cornell-box":  # the same scene: the references must agree
-                        raw = float(((zref["mean"] - ref_mean)[mask] ** 2).mean())
-                        noise = float((ref_var + zref["var"])[mask].mean())
-                        report(f"The two references differ by RMSE {raw ** 0.5:.5f}; their noise "
-                               f"alone explains {noise ** 0.5:.5f} (image mean "
-                               f"{ref_mean[mask].mean():.4f}).")
-                        report()
-        for sampler in samplers:
-            rf.render(1, sampler, 0)  # every sampler's branch compiled and warm
+            mts = Mitsuba(args, scene_name, Path(tmp)) if mts_available else None
+            if mts is not None and "error" in mts.info:
+                report(f"Mitsuba failed: {mts.info['error']}")
+                mts.close()
+                mts = None
+            if mts is not None and scene_name == "cornell-box":  # the same scene: the references must agree
+                zref = np.load(mts.info["reference"])
+                raw = float(((zref["mean"] - ref_mean)[mask] ** 2).mean())
+                noise = float((ref_var + zref["var"])[mask].mean())
+                report(f"The two references differ by RMSE {raw ** 0.5:.5f}; their noise "
+                       f"alone explains {noise ** 0.5:.5f} (image mean "
+                       f"{ref_mean[mask].mean():.4f}).")
+                report()
+            for sampler in samplers:
+                rf.render(1, sampler, 0)  # every sampler's branch compiled and warm
+            # Interleaved: each repeat renders Mitsuba, then every sampler, so
+            # that a drift of this VM's speed weighs on every row alike.
             for spp in args.spp:
-                runs = [rf.render(spp, sampler, 1 + rep) for rep in range(args.repeat)]
-                seconds = median([r[2] for r in runs])
-                mse = float(np.mean([mse_against(r[0], ref_mean, ref_var, mask) for r in runs]))
-                label = f"rayfarm, {sampler}" + (" (default)" if sampler == default else "")
-                rows.append((label, spp, size[0] * size[1] * spp / seconds,
-                             runs[0][3] / seconds / args.workers, mse, 1.0 / (mse * seconds)))
-                print(f"  {label:28s} {spp:4d} spp  {rows[-1][2] / 1e6:.2f} M samples/s  "
-                      f"RMSE {mse ** 0.5:.5f}", flush=True)
+                runs: dict[str, list] = {}
+                for rep in range(args.repeat):
+                    if mts is not None:
+                        time.sleep(SETTLE)
+                        runs.setdefault("mitsuba", []).append(mts.render(spp, 1 + rep))
+                    for sampler in samplers:
+                        time.sleep(SETTLE)
+                        runs.setdefault(sampler, []).append(rf.render(spp, sampler, 1 + rep))
+                if mts is not None:
+                    zref = np.load(mts.info["reference"])
+                    seconds = median([r["seconds"] for r in runs["mitsuba"]])
+                    mse = float(np.mean([mse_against(np.load(r["image"]), zref["mean"],
+                                                     zref["var"], mask) for r in runs["mitsuba"]]))
+                    mts_eff[spp] = 1.0 / (mse * seconds)
+                    rows.append((f"Mitsuba {mts.info['version']} {mts.info['variant']}, independent",
+                                 spp, size[0] * size[1] * spp / seconds, None, mse, mts_eff[spp]))
+                for sampler in samplers:
+                    seconds = median([r[2] for r in runs[sampler]])
+                    mse = float(np.mean([mse_against(r[0], ref_mean, ref_var, mask)
+                                         for r in runs[sampler]]))
+                    label = f"rayfarm, {sampler}" + (" (default)" if sampler == default else "")
+                    rows.append((label, spp, size[0] * size[1] * spp / seconds,
+                                 runs[sampler][0][3] / seconds / args.workers, mse,
+                                 1.0 / (mse * seconds)))
+                    print(f"  {label:28s} {spp:4d} spp  {rows[-1][2] / 1e6:.2f} M samples/s  "
+                          f"RMSE {mse ** 0.5:.5f}", flush=True)
+            if mts is not None:
+                mts.close()
         report("| renderer, sampler | spp | samples/s | rays/s per core | RMSE | efficiency | vs Mitsuba |")
         report("|---|---|---|---|---|---|---|")
         for label, spp, rate, rays, mse, eff in sorted(rows, key=lambda r: (r[1], r[0][0] != "M")):
