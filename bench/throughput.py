@@ -75,7 +75,10 @@ NOTES = """## Reading the table
   vertex, survival = the path throughput's largest channel (measured with
   `random` on cornell-box at 256 spp, efficiency relative to this rule:
   start at the second vertex 0.98, third 1.00, fourth 0.96, fifth 0.92, no
-  roulette 0.70; kept).
+  roulette 0.70; kept). Measured again with packets and `sobol` on
+  2026-11-27, efficiency against Mitsuba at 16 / 64 / 256 spp: from the
+  third vertex 1.27 / 1.41 / 1.92, the fourth 1.14 / 1.31 / 1.89, the
+  sixth 1.05 / 1.33 / 1.96 (kept).
 - veach-mis: the MSE is dominated by the few pixels where the smooth plates
   reflect the two smallest lights (radiance 338 and 3040): there a sampler
   that stratifies the pixel footprint (every one but `random` and `nrooks`'
@@ -83,8 +86,12 @@ NOTES = """## Reading the table
   Fresnel and height-correlated G2 here, no Fresnel and separable G in
   Mitsuba's `roughconductor`), so each renderer is measured against its own
   reference.
-- `sobol` costs about 13 % of `random`'s samples/s on one thread (1.14 M
-  against 1.30 M on cornell-box at 64 spp, 2026-11-26): its pairs below
+- `sobol` costs 19-22 % of `random`'s samples/s with packets (4.06 M
+  against 5.01 M at 64 spp, 2026-11-27), about 13 % before them (1.14 M
+  against 1.30 M on one thread, 2026-11-26): packets made everything else
+  cheaper. A `sobol` pair takes about 9 ns, `random`'s 2-3 ns: a chain of
+  dependent hashes (pair key, memo tag, scramble seed). What was tried to
+  shorten it and not kept is in samplers/sobol.py. Its pairs below
   spp share one hashed permutation per pixel at rotated positions, which
   the tile kernels memoize per row (samplers/sobol.py), where every pair
   of every sample used to hash its own (22 %; 40 % before 2026-11-24). Its

@@ -61,6 +61,11 @@ interleaved pairs of processes against 2.05-2.15 M samples/s):
   once per sample and carried by the lane: 1.95-2.03 M, slower. After
   inlining, the compiler already shares it between the pairs of a vertex;
   carrying it cost a load and a register.
+- `sample_pair_memo` out of line (one copy of its code for the kernel's
+  six call sites instead of six inlined ones): 1.83-1.87 M, slower; the
+  calls cost more than the smaller hot code saved.
+- Not hashing the sample's `random` key for other samplers (u1d/u2d read
+  it only for `random`): within the noise (+0.4 %).
 - A random digital shift (xor) instead of the Owen scramble: +3 % (the
   scramble's ten multiplies pipeline well), for a weaker randomization.
   What a pair costs is mostly its chain of dependent hashes (pair key,
