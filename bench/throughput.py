@@ -281,7 +281,10 @@ class Mitsuba:
     def render(self, spp: int, seed: int) -> dict:
         self.proc.stdin.write(json.dumps({"spp": spp, "seed": seed}) + "\n")
         self.proc.stdin.flush()
-        return self._answer()
+        answer = self._answer()
+        if "error" in answer:
+            raise RuntimeError(f"Mitsuba's child failed: {answer['error']}")
+        return answer
 
     def close(self) -> None:
         if self.proc.stdin:
@@ -492,8 +495,8 @@ def main(argv: list[str] | None = None) -> int:
                 report(f"Mitsuba failed: {mts.info['error']}")
                 mts.close()
                 mts = None
+            zref = np.load(mts.info["reference"]) if mts is not None else None
             if mts is not None and scene_name == "cornell-box":  # the same scene: the references must agree
-                zref = np.load(mts.info["reference"])
                 raw = float(((zref["mean"] - ref_mean)[mask] ** 2).mean())
                 noise = float((ref_var + zref["var"])[mask].mean())
                 report(f"The two references differ by RMSE {raw ** 0.5:.5f}; their noise "
@@ -514,7 +517,6 @@ def main(argv: list[str] | None = None) -> int:
                         time.sleep(SETTLE)
                         runs.setdefault(sampler, []).append(rf.render(spp, sampler, 1 + rep))
                 if mts is not None:
-                    zref = np.load(mts.info["reference"])
                     seconds = median([r["seconds"] for r in runs["mitsuba"]])
                     mse = float(np.mean([mse_against(np.load(r["image"]), zref["mean"],
                                                      zref["var"], mask) for r in runs["mitsuba"]]))
