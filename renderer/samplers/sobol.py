@@ -73,6 +73,33 @@ interleaved pairs of processes against 2.05-2.15 M samples/s):
   hashes (micro-benchmark with the kernels' settings; with Numba's
   reference counting on, as a plain @njit test harness has it, the memo
   array's increfs made the same code 15 ns).
+
+Measured and not kept (2026-11-27, third session, AVX2 machine): whole-path
+stratification, the one lever of issue 13 not measured before. cornell-box,
+path-mis, depth 7, MSE against the 8192-spp reference (bench/throughput.py's
+functions), mean of 4 seeds, standard error 2.5 / 0.9 / 0.5 % at 16 / 64 /
+256 spp; changes against this sampler:
+- 4D groups: the BSDF pair of bounce b and the light pair of bounce b + 1
+  sharing one sample order, as Sobol' dimensions 0-1 and 2-3 (direction
+  numbers derived here from x^2 + x + 1, m = 1, 3 and x^3 + x + 1,
+  m = 1, 3, 1; the four dimensions are a (t, m, 4)-net with t = 2 at 16 and
+  64 points, 3 at 256), each coordinate Owen-scrambled on its own, so the
+  next vertex's light sample is stratified jointly with the direction that
+  found the vertex: MSE +0.1 / -0.5 / -0.9 %, noise. The other way round
+  (the light pair on dimensions 0-1): +1.7 / +1.0 % at 64 / 256. The film
+  pair and the first light pair as one 4D group as well: -0.1 / -0.6 /
+  -0.8 %.
+- The pairs of bounces 3 and deeper from `random` (u1d/u2d's hash) instead:
+  MSE +0.2 / 0.0 / +0.9 %, samples/s +1.5 % (one thread, 32 spp); of
+  bounces 2 and deeper: +0.7 / +0.5 / +1.9 %, +2.5 %. Efficiency within
+  ±1 % either way, for a sampler that would no longer be one sequence.
+So the deep dimensions do not need stratifying, and stratifying two
+vertices jointly gains nothing measurable: what `sobol` takes off deep
+indirect light (its error divided by 1.2-1.4 against `random`,
+bench/error_budget.py) comes from the first vertices' pairs, which every
+deeper bounce inherits. A full-dimensional Owen-scrambled Sobol' could gain
+at most what these two experiments bound, while its higher dimensions'
+2D projections are weaker than the (0, 2)-sequence every pair uses here.
 """
 
 import numpy as np
