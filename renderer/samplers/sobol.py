@@ -97,9 +97,10 @@ So the deep dimensions do not need stratifying, and stratifying two
 vertices jointly gains nothing measurable: what `sobol` takes off deep
 indirect light (its error divided by 1.2-1.4 against `random`,
 bench/error_budget.py) comes from the first vertices' pairs, which every
-deeper bounce inherits. A full-dimensional Owen-scrambled Sobol' could gain
-at most what these two experiments bound, while its higher dimensions'
-2D projections are weaker than the (0, 2)-sequence every pair uses here.
+deeper bounce inherits. On this scene, then, a full-dimensional
+Owen-scrambled Sobol' has little left to gain (an inference from these two
+experiments, not a measurement of it), and its higher dimensions' 2D
+projections are weaker than the (0, 2)-sequence every pair uses here.
 """
 
 import numpy as np
