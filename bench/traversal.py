@@ -9,6 +9,12 @@ then traced --repeat times on one thread; the figure is the median. The
 same rays for every build, so a change to the BVH's layout or traversal is
 measured on exactly the same work (bench/throughput.py measures whole
 renders: shading, sampling and all).
+
+Each kind of ray is traced twice: one ray at a time
+(`geometry.intersect_arrays`, what every method but the path tracer uses)
+and in packets of PACKET consecutive rays (`packet.packet_intersect`, the
+path tracer's traversal; consecutive camera rays are neighbouring pixels,
+consecutive bounce and shadow rays start from neighbouring pixels' hits).
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from renderer.kernels.geometry import (
     surface_at_arrays,
 )
 from renderer.kernels.lights import sample_light
+from renderer.kernels.packet import PACKET, packet_intersect
 from renderer.kernels.sampling import cosine_hemisphere, to_world
 
 
@@ -89,6 +96,32 @@ def _trace(sc, rays, any_hit, out):
     return hits
 
 
+@njit(cache=False, error_model="numpy")
+def _trace_packets(sc, rays, any_hit, out):
+    """`_trace` in packets of PACKET consecutive rays (the last one padded
+    with idle lanes)."""
+    stack = np.zeros(STACK_SIZE, np.int64)
+    lanes = np.zeros((10, PACKET))
+    prim = np.zeros(PACKET, np.int64)
+    act = np.zeros(PACKET, np.int64)
+    hits = 0
+    for base in range(0, rays.shape[0], PACKET):
+        m = min(PACKET, rays.shape[0] - base)
+        for r in range(PACKET):
+            i = base + min(r, m - 1)
+            for c in range(6):
+                lanes[c, r] = rays[i, c]
+            lanes[9, r] = rays[i, 6] if rays.shape[1] > 6 else np.inf
+            act[r] = 1 if r < m else 0
+        packet_intersect(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph, stack,
+                         lanes[0], lanes[1], lanes[2], lanes[3], lanes[4], lanes[5], lanes[6],
+                         lanes[7], lanes[8], lanes[9], prim, act, any_hit)
+        for r in range(m):
+            out[base + r] = prim[r]
+            hits += prim[r] >= 0
+    return hits
+
+
 HEAVY = "cornell-mesh"
 SIZES = {"cornell-box": (256, 256), "veach-mis": (256, 144), HEAVY: (256, 256)}
 
@@ -114,25 +147,29 @@ def measure(name: str, size: tuple[int, int], repeat: int) -> dict:
            "nodes": int(sc.bvh_nodes.shape[0]), "build_s": build}
     for label, rays, any_hit in (("camera", cam_rays, False), ("bounce", bounce, False),
                                  ("shadow", shadow, True)):
-        prims = np.zeros(len(rays), np.int64)
-        _trace(sc, rays[:16], any_hit, prims)
-        times = []
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            hits = _trace(sc, rays, any_hit, prims)
-            times.append(time.perf_counter() - t0)
-        out[label] = (len(rays) / float(np.median(times)), hits / len(rays))
+        for suffix, trace in (("", _trace), ("_packets", _trace_packets)):
+            prims = np.zeros(len(rays), np.int64)
+            trace(sc, rays[:PACKET], any_hit, prims)
+            times = []
+            for _ in range(repeat):
+                t0 = time.perf_counter()
+                hits = trace(sc, rays, any_hit, prims)
+                times.append(time.perf_counter() - t0)
+            out[label + suffix] = (len(rays) / float(np.median(times)), hits / len(rays))
     return out
 
 
 def table(sizes: dict, repeat: int):
     """The Markdown table, a line at a time (the rows as they are measured)."""
-    yield "| scene | triangles | wide BVH nodes | scene build s | camera rays/s | bounce rays/s | shadow rays/s |"
-    yield "|---|---|---|---|---|---|---|"
+    yield ("| scene | triangles | wide BVH nodes | scene build s | camera rays/s | bounce rays/s "
+           f"| shadow rays/s | camera, bounce, shadow rays/s in packets of {PACKET} |")
+    yield "|---|---|---|---|---|---|---|---|"
     for name, size in sizes.items():
         r = measure(name, size, repeat)
         yield (f"| {name} | {r['triangles']} | {r['nodes']} | {r['build_s']:.2f} | "
                + " | ".join(f"{r[k][0] / 1e6:.2f} M ({100 * r[k][1]:.0f} % hit)"
+                            for k in ("camera", "bounce", "shadow")) + " | "
+               + " / ".join(f"{r[k + '_packets'][0] / 1e6:.2f} M"
                             for k in ("camera", "bounce", "shadow")) + " |")
 
 

@@ -49,6 +49,42 @@ not relative. At about a third of a sample's time in traversal
 this is about 1.1x on a whole render. Building it means the single-ray
 traversal in float32 too (a lane's hit must stay the one a path traced
 alone finds), and the offsets and margins re-derived for float32.
+
+Measured and not kept (2026-11-27, fourth session, AVX-512 machine, Zen 5,
+bench/traversal.py's rays, one thread, interleaved pairs of runs): float32
+boxes alone, with the triangle tests left in float64 so every hit stays
+the float64 one. The boxes were stored float32, each bound moved out by
+2^-20 of its magnitude and rounded outwards; each lane's near and far
+terms o / d were moved apart by 2^-20 |o / d|, sixteen times the four
+roundings of t = bound * inv - o * inv, so the float32 slab test can only
+enter more boxes than the exact one. The camera and bounce rays found the
+same primitives as float64, every one, on cornell-box, veach-mis and
+cornell-mesh. A test aiming rays at vertices and edge midpoints of a soup
+moved 9e5 from the origin passed with the slack and failed without it.
+Packets, float32 against float64:
+- cornell-box camera / bounce / shadow: 1.06-1.11x / 0.97-1.02x / 0.78-0.89x;
+- veach-mis: 0.94-1.05x / 0.99-1.10x / 0.99-1.02x;
+- cornell-mesh: 1.08-1.10x / 0.90-0.96x / 0.75-0.93x.
+Single rays: 0.95-1.00x on camera rays, 0.87-0.95x on bounce rays and
+0.67-0.94x on shadow rays.
+Two causes:
+- Shadow rays: tmax = d (1 - 1e-9) no longer prunes the light's own leaf,
+  since a float32 bound cannot tell 1e-9 apart. Every shadow ray now tests
+  the light's triangles. A shadow epsilon of 1e-4 (pbrt-v4's) would prune
+  it again.
+- The rest: on these small trees an incoherent packet opens nearly every
+  leaf, so its time goes to the triangle tests, which stayed float64. The
+  1.5x of the all-float32 prototype above came from the triangles.
+What would make float32 triangles exact enough (not built):
+- each lane keeps the smallest (t32, prim) pair, primitive id as the tie
+  break, so the answer does not depend on the order leaves are visited in
+  (packets go depth-first, single rays nearest first);
+- box padding at least the triangle test's own widening, with an absolute
+  term, so a lane never accepts a triangle its own box test would skip
+  (else its answer would depend on its packet mates, and so on the tiling);
+- the winner's t recomputed in float64 for the hit point, a float64
+  re-trace when that disagrees (self-hits at grazing angles);
+- a shadow margin that is absolute, not relative (the prototype above).
 """
 
 from __future__ import annotations

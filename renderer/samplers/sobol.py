@@ -101,6 +101,23 @@ deeper bounce inherits. On this scene, then, a full-dimensional
 Owen-scrambled Sobol' has little left to gain (an inference from these two
 experiments, not a measurement of it), and its higher dimensions' 2D
 projections are weaker than the (0, 2)-sequence every pair uses here.
+
+Measured and not kept (2026-11-27, fourth session, AVX-512 machine, Zen 5,
+path-mis at 64 spp, 2 threads, interleaved pairs of processes): the pairs
+drawn ahead of the shading. A pair is a chain of dependent multiplies
+(pair key, memo tag, scramble seed, scramble), and inside a lane's shading
+the lane's work waits for it. So the path tracer drew a vertex's three
+pairs (light point, light pick with Russian roulette, BSDF direction) for
+all sixteen lanes in one loop after the packet's traversal, where the
+lanes' chains can overlap, and the shading read them back. The films were
+the same to the bit, and the samples/s:
+- cornell-box: `sobol` +2 to +6 %, `random` -3 to -10 %;
+- veach-mis: `sobol` -5 to -8 %;
+- cornell-box `halton` +1 to +2 %, `bluenoise` 0.
+With `random` exempt (its two hashes drawn in the shading as before),
+`sobol` gained 0 to +4 % and `random` still lost 3 to 6 %. So the chain's
+latency is not where `sobol`'s cost over `random` (about 20 % of the
+samples/s) goes, and the extra loop and lane rows cost what it saved.
 """
 
 import numpy as np
