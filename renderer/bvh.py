@@ -13,7 +13,7 @@ veach-mis and 20 % on a 100 k-triangle mesh (bench/heavy_mesh.py). Float32
 boxes (rounded outwards, half the bytes) were slower on all three: the
 conversions cost more than the memory they save at these sizes. Tested in
 float32 as well (2026-11-27, kernels/packet.py's docstring), they gained
-packets at most 10 %, on camera rays, and cost shadow rays.
+packets at most 11 %, on camera rays, and cost shadow rays.
 
 Tried and not kept (2026-11-26, AVX-512 machine, bench/traversal.py's rays):
 8-wide nodes whose eight slab tests are one loop Numba's loop vectorizer
