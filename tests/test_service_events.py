@@ -39,10 +39,17 @@ def read_events(response, stop=lambda kind, data: kind == "end", limit: float = 
     return events
 
 
-# Test01's job: four units, about a second of work, so that the stream opens
-# while it runs. (TINY at 16 spp is 16384 samples, a few ms once warm: it could
-# finish between the POST and the GET, and the stream saw only "done".)
-STREAMED = dict(TINY, width=64, height=64, spp=256, tile_size=16)
+# Test01's job: sixteen units, long enough that the stream opens while it runs
+# (TINY at 16 spp is 16384 samples, a few ms once warm: it could finish between
+# the POST and the GET, and the stream saw only "done") and that the scheduler
+# lands its units in several ticks. The ETA needs two landings before the last
+# (Job.note_samples: the first only starts the measurement), and a tick
+# collects every unit that landed since the one before, up to poll_interval
+# (50 ms here) apart: at 256 spp the job took about 0.2 s on one machine and
+# less on a faster one, whose ticks landed it in two batches, the second
+# finishing the job, so no running job ever showed an ETA. At 1024 spp it
+# takes about four times as many ticks.
+STREAMED = dict(TINY, width=64, height=64, spp=1024, tile_size=16)
 
 
 def test01_a_job_stream_carries_snapshot_units_previews_progress_and_end(local_client):
@@ -58,7 +65,7 @@ def test01_a_job_stream_carries_snapshot_units_previews_progress_and_end(local_c
     assert [j["status"] for j in jobs][-1] == "done" and "running" in [j["status"] for j in jobs]
     # Progress only grows, ends at every sample, and an ETA was measured on the way.
     done = [j["progress"]["samples_done"] for j in jobs]
-    assert done == sorted(done) and done[-1] == 64 * 64 * 256 == jobs[-1]["progress"]["samples_total"]
+    assert done == sorted(done) and done[-1] == 64 * 64 * 1024 == jobs[-1]["progress"]["samples_total"]
     assert any(j["progress"]["eta"] and j["status"] == "running" for j in jobs)
     # Every unit is seen done, the done ones with their worker and time: in a unit
     # event, or in the stream's first `units` snapshot if it landed before the
