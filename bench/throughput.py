@@ -86,12 +86,17 @@ NOTES = """## Reading the table
   Fresnel and height-correlated G2 here, no Fresnel and separable G in
   Mitsuba's `roughconductor`), so each renderer is measured against its own
   reference.
-- `sobol` costs 19-22 % of `random`'s samples/s with packets (4.06 M
-  against 5.01 M at 64 spp, 2026-11-27), about 13 % before them (1.14 M
-  against 1.30 M on one thread, 2026-11-26): packets made everything else
-  cheaper. A `sobol` pair takes about 9 ns, `random`'s 2-3 ns: a chain of
-  dependent hashes (pair key, memo tag, scramble seed). What was tried to
-  shorten it and not kept is in samplers/sobol.py. Its pairs below
+- `sobol` costs 11 % of `random`'s samples/s on cornell-box at 64 spp
+  (3.67 M against 4.11 M, Intel AVX-512, 2026-11-27's fifth session),
+  18 % before its pair tables (3.27 M against 4.01 M, same machine):
+  19-22 % with packets before (4.06 M against 5.01 M, Zen 5), about 13 %
+  before packets (1.14 M against 1.30 M on one thread, 2026-11-26):
+  packets made everything else cheaper. A `sobol` draw was a chain of
+  about a hundred integer operations, 8-9 ns (pair key, memo tag, two
+  scrambles, bit reversals) against 2-3 ns for `random`'s two hashes; the
+  tile kernels now compute each pixel's pair tables in vectorized loops
+  and read a draw from them, 2.1-2.4 ns, 4.0 ns with the tables' own
+  cost (samplers/sobol.py, the same values to the bit). Its pairs below
   spp share one hashed permutation per pixel at rotated positions, which
   the tile kernels memoize per row (samplers/sobol.py), where every pair
   of every sample used to hash its own (22 %; 40 % before 2026-11-24). Its

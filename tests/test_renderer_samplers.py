@@ -121,27 +121,32 @@ def _sobol_memo_draws(seed, spp, visits, memo, out):
                                    spp, visits[k, 2], memo)
 
 
+@pytest.mark.parametrize("tables", [False, True])
 @pytest.mark.parametrize("spp", [1, 16, 10, 64])
-def test02_sobol_memo_gives_the_same_values(spp):
-    # The tile kernels keep one pixel's sample order in a per-row memo
-    # (samplers/dispatch.py memo_rows); the values must be those of the plain
-    # kernel whatever the order of the visits: pixel-major as a tile walks,
-    # pixels interleaved (one row's memo shared by all of them, entries
-    # overwritten back and forth), indices past spp (later blocks, other
-    # tags), and pairs past spp (their own permutations).
-    pixels, dims = [0, 1, 4096, 5, 4], range(0, 2 * (spp + 3), 2)
+def test02_sobol_memo_gives_the_same_values(spp, tables):
+    # The tile kernels keep one pixel's sample order (and, in the tables
+    # layout, its pairs' points) in a per-row memo (samplers/dispatch.py
+    # memo_rows); the values must be those of the plain kernel whatever the
+    # order of the visits: pixel-major as a tile walks, pixels interleaved
+    # (one row's memo shared by all of them, banks claimed back and forth,
+    # draws of a pixel that lost its bank), indices past spp (later blocks,
+    # other tags), pairs past the tables (sobol.TABLE_PAIRS) and past spp
+    # (their own permutations).
+    pixels, dims = [0, 1, 4096, 5, 4], range(0, 2 * (max(spp, sobol.TABLE_PAIRS) + 3), 2)
     walk = [(px, i, d) for px in pixels for i in range(2 * spp) for d in dims]
     rng = np.random.default_rng(2)
     for order in (walk, [walk[k] for k in rng.permutation(len(walk))]):
         visits = np.asarray(order, np.int64)
-        memo = memo_rows(SAMPLER_SOBOL, spp, 1)[0]
-        assert memo.shape == (2 * spp * sobol.MEMO_BANKS,)
+        memo = memo_rows(SAMPLER_SOBOL, spp, 1, tables)[0]
+        assert memo.shape == (sobol.memo_bank_width(spp, tables) * sobol.MEMO_BANKS,)
         out = np.empty((len(visits), 2))
         _sobol_memo_draws(SEED, spp, visits, memo, out)
         plain = [sample_2d(SAMPLER_SOBOL, SEED, px, i, spp, d) for px, i, d in order]
         assert [tuple(o) for o in out] == plain
     assert memo_rows(SAMPLER_RANDOM, spp, 3).shape == (3, 0)  # other samplers keep none
-    assert memo_rows(SAMPLER_SOBOL, 4096, 8192).shape == (8192, 0)  # nor a huge unit
+    assert memo_rows(SAMPLER_SOBOL, 4096, 8192, tables).shape == (8192, 0)  # nor a huge unit
+    # over the budget with tables, a unit keeps the entries layout
+    assert memo_rows(SAMPLER_SOBOL, 4096, 32, True).shape == (32, 2 * 4096 * sobol.MEMO_BANKS)
 
 
 def _point_set(p):

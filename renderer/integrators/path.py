@@ -96,9 +96,11 @@ N_LANE_FLOATS = 41
 # what a finished item leaves in the ring: rows LR..FIRST_T
 RING_VALUES = 10
 # ints: the hit primitive, tracing, the shadow ray's hit and tracing, the
-# specular flag, one-sample MIS's choice, AOVs taken, rays traced, sample index
-PRIM, ACT, SPRIM, SACT, SPEC, CHOSE, AOV_SET, RAYS, ITEM, BOUNCE = range(10)
-N_LANE_INTS = 10
+# specular flag, one-sample MIS's choice, AOVs taken, rays traced, the row's
+# item, the bounce, and the item's pixel and sample index (kept, not derived
+# from the item at every vertex: a 64-bit division each time)
+PRIM, ACT, SPRIM, SACT, SPEC, CHOSE, AOV_SET, RAYS, ITEM, BOUNCE, PIXEL, INDEX = range(12)
+N_LANE_INTS = 12
 # items a row's lanes may run ahead of the oldest one not yet folded
 RING = 256
 
@@ -362,6 +364,8 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
                     dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
                     _start_lane(fl, il, r, k_next, ox, oy, oz, dx, dy, dz)
+                    il[PIXEL, r] = pixel
+                    il[INDEX, r] = s
                     k_next += 1
                 live += il[ACT, r]
             if live > 0:
@@ -371,10 +375,9 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                 shadows = 0
                 for r in range(PACKET):
                     if il[ACT, r] != 0:
-                        item = il[ITEM, r]
                         _shade_lane(sc, fl, il, r, il[BOUNCE, r], keys[r], depth, strategy,
-                                    heuristic, hemisphere, smp, seed,
-                                    y * width + x0 + item // n, s_lo + item % n, spp, memo)
+                                    heuristic, hemisphere, smp, seed, il[PIXEL, r], il[INDEX, r],
+                                    spp, memo)
                         il[BOUNCE, r] += 1
                         shadows += il[SACT, r]
                 if shadows > 0:

@@ -18,7 +18,7 @@ float64.
 
 import numpy as np
 
-from ..kernels import kernel
+from ..kernels import kernel, kernel_inline
 from ..kernels.rng import mix64, sample_key, uniform
 
 U1 = np.uint64(1)
@@ -88,6 +88,30 @@ def hash32(key, n):
     return mix64(np.uint64(key) + np.uint64(n) * _GOLDEN) >> U32
 
 
+@kernel_inline
+def _permute_round(x, p, w):
+    """One round of Kensler's hash: a bijection on [0, w + 1) for w + 1 a power of two."""
+    x ^= p
+    x = (x * _P1) & MASK32
+    x ^= p >> U16
+    x ^= (x & w) >> U4
+    x ^= p >> U8
+    x = (x * _P2) & MASK32
+    x ^= p >> U23
+    x ^= (x & w) >> U1
+    x = (x * (U1 | (p >> U27))) & MASK32
+    x = (x * _P3) & MASK32
+    x ^= (x & w) >> U11
+    x = (x * _P4) & MASK32
+    x ^= (x & w) >> U2
+    x = (x * _P5) & MASK32
+    x ^= (x & w) >> U2
+    x = (x * _P6) & MASK32
+    x &= w
+    x ^= x >> U5
+    return x
+
+
 @kernel
 def permute(i, n, key):
     """Element `i` of the random permutation of [0, n) chosen by `key`.
@@ -106,29 +130,27 @@ def permute(i, n, key):
     w |= w >> U8
     w |= w >> U16
     while True:
-        x ^= p
-        x = (x * _P1) & MASK32
-        x ^= p >> U16
-        x ^= (x & w) >> U4
-        x ^= p >> U8
-        x = (x * _P2) & MASK32
-        x ^= p >> U23
-        x ^= (x & w) >> U1
-        x = (x * (U1 | (p >> U27))) & MASK32
-        x = (x * _P3) & MASK32
-        x ^= (x & w) >> U11
-        x = (x * _P4) & MASK32
-        x ^= (x & w) >> U2
-        x = (x * _P5) & MASK32
-        x ^= (x & w) >> U2
-        x = (x * _P6) & MASK32
-        x &= w
-        x ^= x >> U5
+        x = _permute_round(x, p, w)
         if x < ln:
             break
     if w + U1 == ln:  # a power of two: the same value without a division
         return np.int64((x + p) & w)
     return np.int64((x + p) % ln)
+
+
+@kernel
+def permute_all(n, key, out):
+    """out[i] = permute(i, n, key) for every i < n. For a power of two n the
+    first round always lands below n, so the loop has no cycle walk and no
+    branch, and LLVM vectorizes it."""
+    if n > 0 and n & (n - 1) == 0:
+        p = np.uint64(key) & MASK32
+        w = np.uint64(n) - U1
+        for i in range(n):
+            out[i] = np.int64((_permute_round(np.uint64(i), p, w) + p) & w)
+    else:
+        for i in range(n):
+            out[i] = permute(i, n, key)
 
 
 @kernel

@@ -131,18 +131,29 @@ def u2d(smp, key, seed, pixel, index, spp, dim, memo):
     return sample_2d(smp, seed, pixel, index, spp, dim)
 
 
-# A unit's memo stays under this (a 64-row tile at 4096 spp takes 16 MiB; a
-# whole 8192-row frame in one unit would take 2 GiB: it goes without).
-MEMO_MAX_BYTES = 32 << 20
+# A unit's memo stays under this. The entries layout takes 64 KiB per row at
+# 1024 spp (a 64-row tile at 4096 spp: 16 MiB; a whole 8192-row frame in one
+# unit would take 2 GiB: it goes without); the tables layout 19 entries per
+# sample instead of 2, 156 KiB per row at 256 spp (a 256-row frame in one
+# unit: 40 MiB), and falls back to the entries layout above this.
+MEMO_MAX_BYTES = 64 << 20
 
 
-def memo_rows(sampler_id: int, spp: int, rows: int) -> np.ndarray:
-    """Per-row scratch for u1d/u2d's memo: (rows, 2 * spp * sobol.MEMO_BANKS)
-    for `sobol` with spp up to sobol.MEMO_MAX_SPP and within MEMO_MAX_BYTES
-    (tags start at 0, which no entry uses), else (rows, 0), no memo. The
-    memo changes no value, only the time."""
-    width = (2 * spp * sobol.MEMO_BANKS
-             if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP else 0)
-    if rows * width * 8 > MEMO_MAX_BYTES:
-        width = 0
+def memo_rows(sampler_id: int, spp: int, rows: int, tables: bool = False) -> np.ndarray:
+    """Per-row scratch for u1d/u2d's memo: (rows, sobol.MEMO_BANKS banks of
+    sobol.memo_bank_width(spp, tables)) for `sobol` with spp up to
+    sobol.MEMO_MAX_SPP and within MEMO_MAX_BYTES (tags start at 0, which no
+    entry uses), else (rows, 0), no memo. `tables` (for a kernel that draws
+    each pixel's samples in order, the film pair first, every sample of its
+    blocks: the tile kernels) asks for the layout with pair tables, which
+    falls back to the entries layout above the budget. The memo changes no
+    value, only the time."""
+    width = 0
+    if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP:
+        for layout in ((True, False) if tables else (False,)):
+            width = sobol.MEMO_BANKS * sobol.memo_bank_width(spp, layout)
+            if rows * width * 8 <= MEMO_MAX_BYTES:
+                break
+        if rows * width * 8 > MEMO_MAX_BYTES:
+            width = 0
     return np.zeros((rows, width), np.int64)

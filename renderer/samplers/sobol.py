@@ -27,14 +27,41 @@ hashes), half of it the padding permutation, Kensler's hash with its nine
 multiplies, evaluated for every pair of every sample. Since 2026-11-26 the
 pairs below n share a pixel's permutation at rotated positions, so the tile
 kernels memoize it per row (`sample_pair_memo`, dispatch.memo_rows): one
-hash per pixel and sample instead of one per pair. On cornell-box (64 spp,
-one thread) `sobol` went from 1.02 to 1.14 M samples/s (`random` 1.30 M);
+hash per pixel and sample instead of one per pair (and since 2026-11-27
+the path tracer's memo holds whole pair tables, below). On cornell-box
+(64 spp, one thread) `sobol` went from 1.02 to 1.14 M samples/s (`random`
+1.30 M);
 its RMSE at 16, 64 and 256 spp and the coupling test
 (tests/test_renderer_samplers.py test04_sobol_pairs_are_padded: two pairs'
 coarse strata paired as by a random permutation) are unchanged within
 their noise: two rotations of one random permutation are coupled like two
 independent ones, since (perm(t), perm(t + d)) runs through a random
 matching of [0, n) for every offset d != 0 mod n.
+
+Pair tables (2026-11-27, fifth session, Intel Xeon with AVX-512): what a
+`sobol` draw costs over `random` is its chain of about a hundred scalar
+integer operations. Measured by ablation on cornell-box (32 spp, one
+thread): with u1d/u2d answering `sobol` draws by `random`'s hash, the
+render ran at `random`'s speed (1.17 s -> 0.96-0.98 s), so nothing but the
+draws separates the two; without the pair key's hashing, the memo's
+permutation or the Owen scramble, one at a time, 0 / 3 / 4-6 % faster, and
+without all three as fast as `random`: the cost is the sum of the links,
+not one of them (nor their latency, 2026-11-27's fourth session). So the
+path tracer's memo now takes the tables layout (`sample_pair_memo`): a
+pixel's first film pair claims a bank and computes every position's
+sequence index (`permute_all`: for a power-of-two spp one branch-free,
+vectorized loop) and Sobol' dimension 1; a pair's first draw fills its
+whole table of packed points in one vectorized loop (`_fill_table`, about
+1 ns a point); every draw after that is a load and two conversions, inline,
+with everything else out of line (`_sample_pair_memo_slow`). Per draw, in
+a loop over pixels, samples and 8 pairs: 4.0 ns with the tables' fills,
+2.1 ns without (`random` 2.2 ns), against 7.9 ns for the entries layout.
+The same films to the bit (the same integers, in another order);
+cornell-box 64 spp on 2 threads +7 to +9 %, veach-mis +5 to +7 %
+(interleaved runs). Measured and not kept on the way: LLVM's bitreverse
+intrinsic for `reverse_bits32` (no change: LLVM already recognizes the
+pattern), a 64-bit division less per vertex (the lanes keep their pixel
+and sample index; within the noise, kept since it costs nothing).
 
 Measured and not kept (2026-11-25): a permutation from the nested family
 (i's bits scrambled top-down by the Laine-Karras hash on reversed bits, the
@@ -125,6 +152,7 @@ import numpy as np
 from ..kernels import kernel, kernel_inline
 from ..registry import Sampler, register_sampler
 from .common import (INV_2_32, MASK32, U1, U8, U16, U32, block_key, hash32, pair_key, permute,
+                     permute_all,
                      reverse_bits32, split_block)
 
 SAMPLER_SOBOL = 7
@@ -265,28 +293,129 @@ def sample_pair(seed, pixel, index, spp, pair):
     return _pair_values(np.uint64(b * (spp if spp > 0 else 1) + p) & MASK32, key)
 
 
+# Pairs below this get a table per pixel and block in the memo's table
+# layout (`sample_pair_memo`): the film pair and the pairs of the first
+# four vertices (pairs 1 + 4 b + 0..3, samplers/dispatch.py). Deeper pairs
+# are drawn by fewer paths (Russian roulette); 13 and 29 measured within
+# a few percent of this on cornell-box.
+TABLE_PAIRS = 17
+
+
+def memo_bank_width(spp: int, tables: bool) -> int:
+    """int64 entries of one bank of `sample_pair_memo`'s memo (module doc)."""
+    return 1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * spp if tables else 2 * spp
+
+
+@kernel
+def _claim_bank(memo, base, tag, seed, pixel, b, n, spp):
+    """Bank `base` now holds pixel `pixel`'s block b: every position's
+    sequence index J[t] = b spp + perm(t) and its reversed Sobol' dimension
+    1, no pair table yet. Out of line: once per pixel and block."""
+    memo[base] = tag
+    for k in range(TABLE_PAIRS):
+        memo[base + 1 + k] = 0
+    jo = base + 1 + TABLE_PAIRS
+    seq, dim1 = memo[jo:jo + n], memo[jo + n:jo + 2 * n]
+    permute_all(n, _order_key(seed, pixel, b), seq)
+    for t in range(n):
+        j = np.uint64(b * spp + seq[t]) & MASK32
+        seq[t] = np.int64(j)
+        dim1[t] = np.int64(_reversed_sobol1(j))
+
+
+@kernel
+def _fill_table(memo, base, tag, pair, n, key):
+    """Pair `pair`'s scrambled points at every position of the bank's block,
+    packed (u bits << 32 | v bits): one loop of integer arithmetic over the
+    positions, which LLVM vectorizes, instead of one hash chain per draw."""
+    jo = base + 1 + TABLE_PAIRS
+    to = jo + (2 + pair) * n
+    s1 = hash32(key, 1)
+    s2 = key >> U32
+    # slices, not offsets into memo: indices LLVM can tell are in bounds and
+    # non-negative, or the loop stays scalar
+    seq, dim1, out = memo[jo:jo + n], memo[jo + n:jo + 2 * n], memo[to:to + n]
+    for t in range(n):
+        u = reverse_bits32(_scramble_reversed(np.uint64(seq[t]), s1))
+        v = reverse_bits32(_scramble_reversed(np.uint64(dim1[t]), s2))
+        out[t] = np.int64((u << U32) | v)
+    memo[base + 1 + pair] = tag
+
+
 @kernel_inline
 def sample_pair_memo(seed, pixel, index, spp, pair, memo):
     """`sample_pair`, with the pixel's permutation memoized in `memo` (int64,
-    MEMO_BANKS banks of 2 * spp entries, tags then values; any other length:
-    no memo). A pixel uses bank pixel mod MEMO_BANKS: the path tracer's
-    packets run the last samples of one pixel beside the first of the next
-    ones, and with one bank they evicted each other's entries (sobol cost a
-    quarter of the samples/s instead of a tenth). A tag names the pixel and
-    block an entry was computed for, so the memo needs no clearing between
-    pixels or units and a stale entry is never read. Same values as
-    `sample_pair`, bit for bit (tested)."""
+    MEMO_BANKS banks of `memo_bank_width` entries; any other length: no
+    memo), bit for bit the same values (tested). A pixel uses bank pixel mod
+    MEMO_BANKS: the path tracer's packets run the last samples of one pixel
+    beside the first of the next ones, and with one bank they evicted each
+    other's entries (sobol cost a quarter of the samples/s instead of a
+    tenth). A tag names the pixel and block an entry was computed for, so
+    the memo needs no clearing between pixels or units and a stale entry is
+    never read. Two layouts:
+
+    - entries (width 2 spp): each position's tag and permuted index, filled
+      as draws need them;
+    - tables (memo_bank_width(spp, True), for kernels that draw a pixel's
+      samples in order, the film pair first, and every sample of the
+      block: the tile kernels, integrators/tile.py): a
+      pixel's first film pair (pair 0) claims the bank and computes every
+      position's sequence index and its Sobol' dimension 1 (`_claim_bank`);
+      the first draw of a pair below TABLE_PAIRS then computes the pair's
+      points at every position in one vectorized loop (`_fill_table`), and
+      each draw reads its packed point. A draw whose pixel lost the bank to
+      a later one (packets run a few pixels at once) computes its point
+      itself. A pair's draw was a chain of about a hundred scalar integer
+      operations (pair key, memo tag, two scrambles, bit reversals); from a
+      table it is a load and two conversions."""
     b, i, n = split_block(index, spp, spp)
-    key = pair_key(seed, pixel, pair, 7)
-    if pair < n and memo.shape[0] == 2 * MEMO_BANKS * n and b < 1 << 20:  # (tags stay unique)
-        t = 2 * n * (pixel & (MEMO_BANKS - 1)) + _rotated(i, pair, n)
+    if pair < n and b < 1 << 20:  # (tags stay unique)
+        w = memo.shape[0]
         tag = (np.int64(pixel) << 20) + b + 1
-        if memo[t] == tag:
-            p = memo[n + t]
-        else:
-            p = _sample_order(seed, pixel, b, i, n, pair, key)
-            memo[t] = tag
-            memo[n + t] = p
-    else:
-        p = _sample_order(seed, pixel, b, i, n, pair, key)
+        bw = 1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * n
+        if pair < TABLE_PAIRS and w == MEMO_BANKS * bw:
+            base = bw * (pixel & (MEMO_BANKS - 1))
+            if memo[base + 1 + pair] == tag and memo[base] == tag:
+                x = np.uint64(memo[base + 1 + TABLE_PAIRS + (2 + pair) * n + _rotated(i, pair, n)])
+                return float(x >> U32) * INV_2_32, float(x & MASK32) * INV_2_32
+        elif w == 2 * MEMO_BANKS * n:  # the entries layout: as it was, inline
+            t = 2 * n * (pixel & (MEMO_BANKS - 1)) + _rotated(i, pair, n)
+            if memo[t] == tag:
+                p = memo[n + t]
+            else:
+                p = _sample_order(seed, pixel, b, i, n, pair, 0)
+                memo[t] = tag
+                memo[n + t] = p
+            return _pair_values(np.uint64(b * (spp if spp > 0 else 1) + p) & MASK32,
+                                pair_key(seed, pixel, pair, 7))
+    return _sample_pair_memo_slow(seed, pixel, index, spp, pair, memo)
+
+
+@kernel
+def _sample_pair_memo_slow(seed, pixel, index, spp, pair, memo):
+    """`sample_pair_memo` but for the inline cases (a pair's table ready, an
+    entries-layout draw): out of line, so that the tile kernels inline only
+    those."""
+    b, i, n = split_block(index, spp, spp)
+    if pair < n and b < 1 << 20:  # (tags stay unique)
+        w = memo.shape[0]
+        tag = (np.int64(pixel) << 20) + b + 1
+        if w == MEMO_BANKS * (1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * n):
+            base = (1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * n) * (pixel & (MEMO_BANKS - 1))
+            if pair == 0 and memo[base] != tag:
+                _claim_bank(memo, base, tag, seed, pixel, b, n, spp)
+            if memo[base] == tag:
+                t = _rotated(i, pair, n)
+                jo = base + 1 + TABLE_PAIRS
+                if pair < TABLE_PAIRS:
+                    if memo[base + 1 + pair] != tag:
+                        _fill_table(memo, base, tag, pair, n, pair_key(seed, pixel, pair, 7))
+                    x = np.uint64(memo[jo + (2 + pair) * n + t])
+                    return float(x >> U32) * INV_2_32, float(x & MASK32) * INV_2_32
+                key = pair_key(seed, pixel, pair, 7)
+                u = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + t]), hash32(key, 1)))
+                v = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + n + t]), key >> U32))
+                return float(u) * INV_2_32, float(v) * INV_2_32
+    key = pair_key(seed, pixel, pair, 7)
+    p = _sample_order(seed, pixel, b, i, n, pair, key)
     return _pair_values(np.uint64(b * (spp if spp > 0 else 1) + p) & MASK32, key)
