@@ -86,8 +86,8 @@ NOTES = """## Reading the table
   Fresnel and height-correlated G2 here, no Fresnel and separable G in
   Mitsuba's `roughconductor`), so each renderer is measured against its own
   reference.
-- `sobol` costs 11 % of `random`'s samples/s on cornell-box at 64 spp
-  (3.67 M against 4.11 M, Intel AVX-512, 2026-11-27's fifth session),
+- `sobol` costs 8-11 % of `random`'s samples/s on cornell-box at 64 spp
+  (3.99 M against 4.36 M, Intel AVX-512, 2026-11-27's fifth session),
   18 % before its pair tables (3.27 M against 4.01 M, same machine):
   19-22 % with packets before (4.06 M against 5.01 M, Zen 5), about 13 %
   before packets (1.14 M against 1.30 M on one thread, 2026-11-26):

@@ -109,3 +109,24 @@ def test04_rectangle_light_sampling_matches_its_solid_angle_pdf():
 
     assert np.allclose(pdfs, rect_pdf(dirs), rtol=1e-9)
     assert chi2_pvalue(histogram(dirs), expected_counts(rect_pdf, N, sub=16)) > ALPHA
+
+
+def test05_the_quarter_turn_sincos_is_libm_to_an_ulp():
+    # The concentric map's cos and sin (sampling.sincos_quarter) are
+    # polynomials, not libm's calls: within an ulp of libm on [-pi/4, pi/4],
+    # and the map's points keep their radius. (Not a chi-square test: the
+    # polynomials are exact enough that no histogram could tell them apart,
+    # so their error is checked directly; test01 checks the map's pdf.)
+    from renderer.kernels.sampling import concentric_disk, sincos_quarter
+
+    th = np.concatenate([np.linspace(-math.pi / 4, math.pi / 4, 100_001),
+                         [0.0, 1e-300, -1e-8, math.pi / 4, -math.pi / 4]])
+    for t in th:
+        c, s = sincos_quarter(t)
+        assert abs(c - math.cos(t)) <= 2 * math.ulp(math.cos(t))
+        assert abs(s - math.sin(t)) <= 2 * math.ulp(abs(math.sin(t)) or 5e-324)
+    rng = np.random.default_rng(5)
+    for u1, u2 in rng.random((20_000, 2)):
+        x, y = concentric_disk(u1, u2)
+        r = max(abs(2 * u1 - 1), abs(2 * u2 - 1))  # the concentric map's radius
+        assert abs(math.hypot(x, y) - r) <= 4e-16

@@ -10,6 +10,32 @@ from . import kernel
 
 INV_PI = 1.0 / math.pi
 
+# Minimax polynomials of sin and cos on [-pi/4, pi/4], the coefficients of
+# fdlibm's __kernel_sin and __kernel_cos (Sun Microsystems, 1993): with them
+# both are within about an ulp there.
+_S1, _S2, _S3 = -1.66666666666666324348e-01, 8.33333333332248946124e-03, -1.98412698298579493134e-04
+_S4, _S5, _S6 = 2.75573137070700676789e-06, -2.50507602534068634195e-08, 1.58969099521155010221e-10
+_C1, _C2, _C3 = 4.16666666666666019037e-02, -1.38888888888741095749e-03, 2.48015872894767294178e-05
+_C4, _C5, _C6 = -2.75573143513906633035e-07, 2.08757232129817482790e-09, -1.13596475577881948265e-11
+
+
+@kernel
+def sincos_quarter(th):
+    """(cos th, sin th) for |th| <= pi/4, by the polynomials above.
+
+    Why not math.cos and math.sin: libm's calls, each with its own range
+    reduction, were about 8 % of a cornell-box sample's time (one pair per
+    diffuse bounce, in the concentric map; measured by replacing them with
+    a cheap approximation), and the concentric map needs them only on a
+    quarter turn, where a polynomial is exact to about an ulp (tested
+    against libm). Measured on 2026-11-27 (Intel AVX-512, cornell-box,
+    32 spp, one thread, interleaved runs): +3 to +6 % samples/s; the films
+    differ from libm's in the last bits."""
+    z = th * th
+    s = th + th * z * (_S1 + z * (_S2 + z * (_S3 + z * (_S4 + z * (_S5 + z * _S6)))))
+    r = z * z * (_C1 + z * (_C2 + z * (_C3 + z * (_C4 + z * (_C5 + z * _C6)))))
+    return 1.0 - (0.5 * z - r), s
+
 
 @kernel
 def onb(nx, ny, nz):
@@ -37,11 +63,12 @@ def concentric_disk(u1, u2):
     b = 2.0 * u2 - 1.0
     if a == 0.0 and b == 0.0:
         return 0.0, 0.0
-    if abs(a) > abs(b):
-        r, phi = a, (math.pi / 4) * (b / a)
-    else:
-        r, phi = b, math.pi / 2 - (math.pi / 4) * (a / b)
-    return r * math.cos(phi), r * math.sin(phi)
+    if abs(a) > abs(b):  # phi = pi/4 b/a
+        c, s = sincos_quarter((math.pi / 4) * (b / a))
+        return a * c, a * s
+    # phi = pi/2 - th with th = pi/4 a/b: cos phi = sin th, sin phi = cos th
+    c, s = sincos_quarter((math.pi / 4) * (a / b))
+    return b * s, b * c
 
 
 @kernel
