@@ -75,6 +75,16 @@ Two causes:
 - The rest: on these small trees an incoherent packet opens nearly every
   leaf, so its time goes to the triangle tests, which stayed float64. The
   1.5x of the all-float32 prototype above came from the triangles.
+Measured (2026-11-27, fifth session, Intel AVX-512, cornell-box, 32 spp,
+one thread, `sobol`): the shadow rays' packets take about a fifth of a
+render (left untraced, timing only: 1.11 s -> 0.89-0.92 s), more than
+bench/traversal.py's 30 M shadow rays/s would say, since a vertex's shadow
+packet holds only the lanes that sampled a light. Tracing a packet with at
+most 4 (8) such lanes one ray at a time instead: 0 to +5 % (-1 to -5 %),
+not kept. Dropping the triangle test's division (wrong hits, an upper
+bound): +12 % bounce and +8 % shadow rays/s; a division-free superset test
+with the exact test only for the lanes it passes: 0.72x bounce rays/s
+(many lane-triangle pairs pass), not kept.
 What would make float32 triangles exact enough (not built):
 - each lane keeps the smallest (t32, prim) pair, primitive id as the tie
   break, so the answer does not depend on the order leaves are visited in
