@@ -114,7 +114,9 @@ def test04_rectangle_light_sampling_matches_its_solid_angle_pdf():
 def test05_the_quarter_turn_sincos_is_libm_to_an_ulp():
     # The concentric map's cos and sin (sampling.sincos_quarter) are
     # polynomials, not libm's calls: within an ulp of libm on [-pi/4, pi/4],
-    # and the map's points keep their radius. (Not a chi-square test: the
+    # and the map's points are libm's map's points to rounding (its second
+    # branch swaps cos and sin: a swap the wrong way round would keep the
+    # radius and the pdf, so the points are compared). (Not a chi-square test: the
     # polynomials are exact enough that no histogram could tell them apart,
     # so their error is checked directly; test01 checks the map's pdf.)
     from renderer.kernels.sampling import concentric_disk, sincos_quarter
@@ -128,5 +130,8 @@ def test05_the_quarter_turn_sincos_is_libm_to_an_ulp():
     rng = np.random.default_rng(5)
     for u1, u2 in rng.random((20_000, 2)):
         x, y = concentric_disk(u1, u2)
-        r = max(abs(2 * u1 - 1), abs(2 * u2 - 1))  # the concentric map's radius
-        assert abs(math.hypot(x, y) - r) <= 4e-16
+        a, b = 2 * u1 - 1, 2 * u2 - 1
+        r, phi = (a, math.pi / 4 * (b / a)) if abs(a) > abs(b) else \
+            (b, math.pi / 2 - math.pi / 4 * (a / b))  # Shirley-Chiu with libm
+        assert abs(math.hypot(x, y) - abs(r)) <= 4e-16
+        assert abs(x - r * math.cos(phi)) <= 1e-15 and abs(y - r * math.sin(phi)) <= 1e-15

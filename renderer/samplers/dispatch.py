@@ -148,12 +148,8 @@ def memo_rows(sampler_id: int, spp: int, rows: int, tables: bool = False) -> np.
     blocks: the tile kernels) asks for the layout with pair tables, which
     falls back to the entries layout above the budget. The memo changes no
     value, only the time."""
-    width = 0
-    if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP:
-        for layout in ((True, False) if tables else (False,)):
-            width = sobol.MEMO_BANKS * sobol.memo_bank_width(spp, layout)
-            if rows * width * 8 <= MEMO_MAX_BYTES:
-                break
-        if rows * width * 8 > MEMO_MAX_BYTES:
-            width = 0
+    layouts = ((True, False) if tables else (False,)) \
+        if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP else ()
+    widths = [sobol.MEMO_BANKS * sobol.memo_bank_width(spp, layout) for layout in layouts]
+    width = next((w for w in widths if rows * w * 8 <= MEMO_MAX_BYTES), 0)
     return np.zeros((rows, width), np.int64)

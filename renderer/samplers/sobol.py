@@ -301,9 +301,22 @@ def sample_pair(seed, pixel, index, spp, pair):
 TABLE_PAIRS = 17
 
 
+@kernel_inline
+def _table_bank_width(n):
+    """A bank of the tables layout: its tag, a tag per pair table, the
+    positions' sequence indices and Sobol' dimension 1, the pair tables."""
+    return 1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * n
+
+
+@kernel_inline
+def _table_start(base, pair, n):
+    """Where pair `pair`'s table starts in the bank at `base`."""
+    return base + 1 + TABLE_PAIRS + (2 + pair) * n
+
+
 def memo_bank_width(spp: int, tables: bool) -> int:
     """int64 entries of one bank of `sample_pair_memo`'s memo (module doc)."""
-    return 1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * spp if tables else 2 * spp
+    return _table_bank_width(spp) if tables else 2 * spp
 
 
 @kernel
@@ -329,7 +342,7 @@ def _fill_table(memo, base, tag, pair, n, key):
     packed (u bits << 32 | v bits): one loop of integer arithmetic over the
     positions, which LLVM vectorizes, instead of one hash chain per draw."""
     jo = base + 1 + TABLE_PAIRS
-    to = jo + (2 + pair) * n
+    to = _table_start(base, pair, n)
     s1 = hash32(key, 1)
     s2 = key >> U32
     # slices, not offsets into memo: indices LLVM can tell are in bounds and
@@ -372,11 +385,11 @@ def sample_pair_memo(seed, pixel, index, spp, pair, memo):
     if pair < n and b < 1 << 20:  # (tags stay unique)
         w = memo.shape[0]
         tag = (np.int64(pixel) << 20) + b + 1
-        bw = 1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * n
+        bw = _table_bank_width(n)
         if pair < TABLE_PAIRS and w == MEMO_BANKS * bw:
             base = bw * (pixel & (MEMO_BANKS - 1))
             if memo[base + 1 + pair] == tag and memo[base] == tag:
-                x = np.uint64(memo[base + 1 + TABLE_PAIRS + (2 + pair) * n + _rotated(i, pair, n)])
+                x = np.uint64(memo[_table_start(base, pair, n) + _rotated(i, pair, n)])
                 return float(x >> U32) * INV_2_32, float(x & MASK32) * INV_2_32
         elif w == 2 * MEMO_BANKS * n:  # the entries layout: as it was, inline
             t = 2 * n * (pixel & (MEMO_BANKS - 1)) + _rotated(i, pair, n)
@@ -400,8 +413,9 @@ def _sample_pair_memo_slow(seed, pixel, index, spp, pair, memo):
     if pair < n and b < 1 << 20:  # (tags stay unique)
         w = memo.shape[0]
         tag = (np.int64(pixel) << 20) + b + 1
-        if w == MEMO_BANKS * (1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * n):
-            base = (1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * n) * (pixel & (MEMO_BANKS - 1))
+        bw = _table_bank_width(n)
+        if w == MEMO_BANKS * bw:
+            base = bw * (pixel & (MEMO_BANKS - 1))
             if pair == 0 and memo[base] != tag:
                 _claim_bank(memo, base, tag, seed, pixel, b, n, spp)
             if memo[base] == tag:
@@ -410,7 +424,7 @@ def _sample_pair_memo_slow(seed, pixel, index, spp, pair, memo):
                 if pair < TABLE_PAIRS:
                     if memo[base + 1 + pair] != tag:
                         _fill_table(memo, base, tag, pair, n, pair_key(seed, pixel, pair, 7))
-                    x = np.uint64(memo[jo + (2 + pair) * n + t])
+                    x = np.uint64(memo[_table_start(base, pair, n) + t])
                     return float(x >> U32) * INV_2_32, float(x & MASK32) * INV_2_32
                 key = pair_key(seed, pixel, pair, 7)
                 u = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + t]), hash32(key, 1)))
