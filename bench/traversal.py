@@ -73,7 +73,7 @@ def _make_rays(sc, cam, width, height, seed):
             ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
             # a shadow ray towards a point on a light, as next event estimation picks it
             lx, ly, lz, dist, pdf, _, _, _, _ = sample_light(sc, ox, oy, oz, np.random.random(),
-                                                            np.random.random(), np.random.random())
+                                                            np.random.random())
             if pdf <= 0.0:
                 continue
             bounce[n_b] = (ox, oy, oz, wx, wy, wz)

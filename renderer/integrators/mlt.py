@@ -104,7 +104,7 @@ from ..film import PartialFilm
 from ..kernels import kernel, kernel_parallel
 from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import STREAM_BOOTSTRAP, STREAM_CHAINS, stream_key, uniform
-from ..kernels.sampling import BALANCE, POWER
+from ..kernels.sampling import BALANCE, ONE_MINUS_EPS, POWER
 from ..kernels.subpaths import NV, conn0, light0, mlt_L
 from ..kernels.subpaths import dims as bdpt_dims
 from ..plan import Unit
@@ -114,7 +114,6 @@ from ..scene import camera_array
 CHAIN_UNITS = 8  # at most this many chain units: the variance's batches
 BOOTSTRAP_CHUNKS = 64  # prange work items of the bootstrap (each with its buffers)
 NORMAL, EXPONENTIAL = 0, 1
-ONE_MINUS_EPS = 1.0 - 2.0 ** -53  # the largest float64 below 1
 
 
 @kernel

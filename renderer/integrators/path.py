@@ -26,10 +26,10 @@ surviving throughput by the survival probability, so it adds noise, not bias.
 
 Random dimensions of a camera sample (drawn from the job's pixel sampler,
 renderer/samplers/): 0-1 the film position, then 8 per bounce b at 2 + 8 b:
-the 2D pairs +0..1 the point on a light, +2..3 the BSDF direction; then the
-1D decisions +4 which light, +5 Russian roulette (one pair: a stratified
-sampler evaluates it once), +6 glass reflect/refract, +7 the one-sample
-strategy choice (samplers/dispatch.py names them).
+the 2D pairs +0..1 the point on a light (its first number also picks the
+light and the triangle, kernels/lights.py), +2..3 the BSDF direction; then
+the 1D decisions +5 Russian roulette, +6 glass reflect/refract, +7 the
+one-sample strategy choice (+4 is unused; samplers/dispatch.py names them).
 """
 
 from __future__ import annotations
@@ -71,8 +71,8 @@ from ..kernels.sampling import (
 from ..kernels.tile import (add_aov_block, add_aov_sample, add_block, add_sample, n_samples,
                             store_aov, store_pixel)
 from ..registry import SAMPLERS, Method, Option
-from ..samplers import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIM_RR, DIM_STRATEGY,
-                        DIMS_PER_BOUNCE, u1d, u2d)
+from ..samplers import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_RR, DIM_STRATEGY, DIMS_PER_BOUNCE,
+                        u1d, u2d)
 from .tile import start_tile, tile_plan
 
 # The AOVs every method of the family writes (_shade_lane, film.py).
@@ -196,8 +196,6 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
         il[ACT, r] = 0
         return
     base = 2 + DIMS_PER_BOUNCE * bounce
-    have_rr = False  # the Russian roulette number, drawn with the light pick
-    u_rr = 0.0
     if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
         if cos_o <= 0.0:
             il[ACT, r] = 0  # one-sided: the back of a diffuse or glossy surface is black
@@ -214,9 +212,7 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
             light_scale = 2.0  # the light strategy was drawn with probability 1/2
         if use_light and n_lights > 0:
             ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
-            u_pick, u_rr = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK, memo)
-            have_rr = True
-            wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, u_pick, ua, ub)
+            wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, ua, ub)
             cos_i = wx * nx + wy * ny + wz * nz
             if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
                 if mtype == MAT_DIFFUSE:
@@ -291,9 +287,7 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
         m = max(br, max(bg, bb)) * fl[ETA, r]
         if m < 1.0:
             q = max(0.0, 1.0 - m)
-            if not have_rr:
-                u_rr = u1d(smp, key, seed, pixel, index, spp, base + DIM_RR, memo)
-            if u_rr < q:
+            if u1d(smp, key, seed, pixel, index, spp, base + DIM_RR, memo) < q:
                 il[ACT, r] = 0
                 return
             s = 1.0 / (1.0 - q)

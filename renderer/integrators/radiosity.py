@@ -156,7 +156,7 @@ from ..radiosity_solve import (
     welded_vertices,
 )
 from ..registry import SAMPLERS, Method, Option
-from ..samplers import DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIMS_PER_BOUNCE, u1d, u2d
+from ..samplers import DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
 from .tile import start_tile
 
 # ---------------------------------------------------------------- display
@@ -250,9 +250,7 @@ def li_radiosity(sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz
             ar, ag, ab = pt.rho[p, 0], pt.rho[p, 1], pt.rho[p, 2]
             if n_lights > 0:
                 ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
-                wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
-                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK,
-                                        memo), ua, ub)
+                wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0:
                     sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz,

@@ -38,7 +38,7 @@ from ..kernels.lights import sample_light
 from ..kernels.rng import sample_key
 from ..kernels.sampling import INV_PI
 from ..registry import SAMPLERS, Method
-from ..samplers import NO_MEMO, u1d, u2d
+from ..samplers import NO_MEMO, u2d
 from ..scene import camera_array
 from .tile import tile_plan, unit_blocks
 
@@ -180,8 +180,7 @@ def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, ke
     mtype = sc.mat_type[mat]
     if (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY) and sc.light_type.shape[0] > 0:
         ua, ub = u2d(smp, key, seed, pixel, index, spp, 2, memo)
-        wx, wy, wz, dist, pdf, er, eg, eb, delta = sample_light(
-            sc, px, py, pz, u1d(smp, key, seed, pixel, index, spp, 4, memo), ua, ub)
+        wx, wy, wz, dist, pdf, er, eg, eb, delta = sample_light(sc, px, py, pz, ua, ub)
         cos_i = wx * nx + wy * ny + wz * nz
         if pdf > 0.0 and cos_i > 0.0:
             ar, ag, ab = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]

@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numba import prange
 
-from ..samplers import DIM_GLASS, DIM_LIGHT, DIM_LIGHT_PICK, DIMS_PER_BOUNCE, u1d, u2d
+from ..samplers import DIM_GLASS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
 from . import kernel, kernel_inline, kernel_parallel
 from .bsdf import (
     MAT_DIFFUSE,
@@ -191,9 +191,7 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
                 break
             if n_lights > 0:
                 ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
-                wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(
-                    sc, hx, hy, hz, u1d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT_PICK,
-                                        memo), ua, ub)
+                wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
                 if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
                     if mtype == MAT_DIFFUSE:

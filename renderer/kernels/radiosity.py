@@ -34,7 +34,7 @@ from .rng import STREAM_RADIOSITY, stream_key, uniform
 from .sampling import cosine_hemisphere, to_world, uniform_triangle
 
 PATCH_TRI, PATCH_SPHERE = 0, 1
-DIMS_PER_RAY = 8  # point on the patch (2), direction (2), light pick (1), light point (2)
+DIMS_PER_RAY = 8  # point on the patch (2), direction (2), unused (1), light point (2)
 DIRECT_NONE, DIRECT_POINT, DIRECT_ALL = 0, 1, 2
 SOLVER_JACOBI, SOLVER_GAUSS_SEIDEL, SOLVER_PROGRESSIVE = 0, 1, 2
 
@@ -193,8 +193,7 @@ def form_factor_rays(sc, kind, geo, normal, tri_start, tri_k, cells, sph_start, 
                 px, py, pz, nx, ny, nz = patch_point(kind, geo, normal, i, uniform(key, base),
                                                      uniform(key, base + 1))
                 wx, wy, wz, dist, pdf, lr, lg, lb, delta = sample_light(
-                    sc, px, py, pz, uniform(key, base + 4), uniform(key, base + 5),
-                    uniform(key, base + 6))
+                    sc, px, py, pz, uniform(key, base + 5), uniform(key, base + 6))
                 if direct == DIRECT_POINT and not delta:
                     continue
                 cos_i = wx * nx + wy * ny + wz * nz

@@ -9,6 +9,7 @@ import math
 from . import kernel
 
 INV_PI = 1.0 / math.pi
+ONE_MINUS_EPS = 1.0 - 2.0 ** -53  # the largest float64 below 1: where [0, 1) ends
 
 # Minimax polynomials of sin and cos on [-pi/4, pi/4], the coefficients of
 # fdlibm's __kernel_sin and __kernel_cos (Sun Microsystems, 1993): with them

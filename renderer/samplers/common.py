@@ -20,6 +20,7 @@ import numpy as np
 
 from ..kernels import kernel, kernel_inline
 from ..kernels.rng import mix64, sample_key, uniform
+from ..kernels.sampling import ONE_MINUS_EPS
 
 U1 = np.uint64(1)
 U2 = np.uint64(2)
@@ -35,7 +36,6 @@ U32 = np.uint64(32)
 MASK32 = np.uint64(0xFFFFFFFF)
 INV_2_32 = 1.0 / 4294967296.0
 _INV_2_53 = 1.0 / 9007199254740992.0
-ONE_MINUS_EPS = 1.0 - 2.0 ** -53  # the largest float64 below 1
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _K_SEED = np.uint64(0xA0761D6478BD642F)

@@ -89,13 +89,14 @@ def fill_2d(sampler_id, seed, pixel, first, spp, dim, out):
 
 # The dimensions a path vertex draws, at 2 + DIMS_PER_BOUNCE * bounce + the
 # offsets below: path tracing and the specular continuations of photon
-# mapping and radiosity's display pass read the same ones. The light pick and
-# Russian roulette share a pair, so a diffuse vertex costs a stratified
-# sampler three pair evaluations, not four.
+# mapping and radiosity's display pass read the same ones. The light point's
+# first number also picks the light and its triangle (kernels/lights.py: a
+# pick from a dimension of its own broke the pair's stratification), so +4
+# is unused; a diffuse vertex costs a stratified sampler three pair
+# evaluations.
 DIMS_PER_BOUNCE = 8
-DIM_LIGHT = 0  # 2D: the point on the light
+DIM_LIGHT = 0  # 2D: the point on the light, and which light
 DIM_BSDF = 2  # 2D: the BSDF-sampled direction
-DIM_LIGHT_PICK = 4  # 1D: which light (first of a pair with DIM_RR)
 DIM_RR = 5  # 1D: Russian roulette
 DIM_GLASS = 6  # 1D: reflect or refract at glass
 DIM_STRATEGY = 7  # 1D: one-sample MIS's choice of strategy

@@ -71,9 +71,8 @@ strata of two pairs less randomly: on integrands coupling two pairs its MSE
 was 1.3-2x Kensler's (test04_sobol_pairs_are_padded), on cornell-box 1-2 %
 higher; not worth a weaker sampler. Two rounds of xor-multiply-xorshift
 were cheaper still and failed that test, as did (2026-11-26) a
-multiply-xorshift permutation with shifts scaled to n. The light pick and
-Russian roulette share a pair (dispatch.py), and u1d/u2d call this module
-directly.
+multiply-xorshift permutation with shifts scaled to n. u1d/u2d
+(dispatch.py) call this module directly.
 
 Measured and not kept (2026-11-27, cornell-box, 32 spp, one thread, three
 interleaved pairs of processes against 2.05-2.15 M samples/s):
