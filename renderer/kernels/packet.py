@@ -89,9 +89,9 @@ Measured (2026-11-27, sixth session, AMD EPYC Zen 3, AVX2, the same
 render): full shadow packets. Each lane's shadow ray went to a row queue
 and was traced sixteen at a time, the clear ones' contributions summed per
 item in queue order (so still the same bytes whatever the tiling), and an
-item folded once its queued rays were traced: 0 to -2 %, not kept. A
-vertex's shadow packet is fuller than the fifth above suggests; the cost
-is the any-hit traversal itself, not empty lanes.
+item folded once its queued rays were traced: 0 to -2 %, not kept. So
+the empty lanes of a vertex's shadow packet are not what that fifth pays
+for (the packets' occupancy itself was not measured).
 What would make float32 triangles exact enough (not built):
 - each lane keeps the smallest (t32, prim) pair, primitive id as the tie
   break, so the answer does not depend on the order leaves are visited in
