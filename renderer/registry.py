@@ -68,7 +68,10 @@ class Method:
     `warm_options` are option sets whose kernels the defaults do not compile
     (photon's `photonmap` mode: a k-NN kernel of its own, 38 s to compile on
     a 2-core machine): `renderer.warm_up` renders each of them too, so no
-    unit of any job compiles in a render process.
+    unit of any job compiles in a render process. `warm_base` holds options
+    every warm-up render adds: the same kernels for less work (radiosity: a
+    coarse mesh and few form-factor rays, since warm-up runs in every render
+    process's start).
     """
 
     name: str
@@ -81,6 +84,7 @@ class Method:
     phases: tuple[str, ...] = ("tile",)
     check_scene: Callable | None = None
     warm_options: tuple[dict, ...] = field(default=(), compare=False)
+    warm_base: dict = field(default_factory=dict, compare=False)
     # The AOV layers (film.py) its films carry beyond the beauty, var and
     # samples, and, when there are none, why: what GET /methods says.
     aovs: tuple[str, ...] = ()

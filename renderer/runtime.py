@@ -168,9 +168,10 @@ def _method_families() -> list[list[str]]:
 def _warm_methods(names: list[str]) -> None:
     scene = build_scene(resolve_document("cornell-box"))
     for name in names:
-        for options in ({}, *METHODS[name].warm_options):
+        method = METHODS[name]
+        for options in ({}, *method.warm_options):
             run_plan(scene, RenderSpec(method=name, spp=2, depth=2, width=4, height=4,
-                                       tile_size=4, options=options))
+                                       tile_size=4, options={**method.warm_base, **options}))
 
 
 def run_plan(scene: Scene, spec: RenderSpec, progressive: bool = False) -> list[PartialFilm]:

@@ -563,4 +563,10 @@ METHODS = (Method(
     # Each solver is a kernel of its own (the default's solve may even be
     # skipped at warm-up: a cached solution needs none).
     warm_options=({"solver": "gauss-seidel"}, {"solver": "progressive"}),
+    # Warm-up needs the kernels, not a solution: cornell-box's default mesh
+    # (about 6000 patches, 512 rays each) and its jackknife took 14 s of every
+    # render process's start on a 2-core AMD EPYC, the progressive solver
+    # 9 s of it; with 0.5-unit patches (about 300) and 16 rays, 0.04 s, the same kernels
+    # (tests/test_renderer_structure.py test10 checks that none is left over).
+    warm_base={"patch_size": 0.5, "ff_rays": 16},
 ),)

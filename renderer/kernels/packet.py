@@ -92,6 +92,18 @@ item in queue order (so still the same bytes whatever the tiling), and an
 item folded once its queued rays were traced: 0 to -2 %, not kept. So
 the empty lanes of a vertex's shadow packet are not what that fifth pays
 for (the packets' occupancy itself was not measured).
+Measured and not kept (2026-11-27, seventh session, AMD EPYC Zen 3,
+AVX2, cornell-box, 32 or 64 spp, one or two threads, interleaved runs of
+/tmp copies; the films were the same bytes in every variant):
+- PACKET = 8 (two ymm registers per value instead of four): 1.7x slower
+  (4.30-4.39 s against 2.48-2.70 s at 32 spp; not profiled: a packet's
+  node visits are shared by half as many rays); PACKET = 32: within the
+  noise or slower (median 2.76 s against 2.68 s at 64 spp, six pairs).
+- The triangle test without its division for lanes that miss: the
+  barycentric and t numerators compared with |det| (signs made det's),
+  the division done only for the lanes a triangle is hit by: 3-5 %
+  slower (2.69-2.82 s against 2.59-2.68 s), the extra multiplies cost
+  more than the divisions they spare on AVX2.
 What would make float32 triangles exact enough (not built):
 - each lane keeps the smallest (t32, prim) pair, primitive id as the tie
   break, so the answer does not depend on the order leaves are visited in
