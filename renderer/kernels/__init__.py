@@ -17,7 +17,7 @@ from pathlib import Path
 
 from numba import njit
 
-__all__ = ["kernel", "kernel_inline", "kernel_parallel"]
+__all__ = ["kernel", "kernel_inline", "kernel_parallel", "cache_is_empty"]
 
 # `_nrt=False` turns off Numba's reference counting in the kernels. Kernels
 # allocate nothing (callers pass every buffer in), and with the runtime on,
@@ -60,3 +60,17 @@ def _invalidate_stale_cache() -> None:
 
 
 _invalidate_stale_cache()
+
+
+def cache_is_empty() -> bool:
+    """True when Numba's on-disk cache holds no kernel of the package: a
+    fresh checkout, or a source change `_invalidate_stale_cache` just acted
+    on (it drops all of them at once, so the cache is warm or cold as a
+    whole). `renderer.warm_up` then compiles in parallel from the start.
+    With NUMBA_CACHE_DIR set the cache is elsewhere: False, not known."""
+    from numba.core import config
+
+    if config.CACHE_DIR:
+        return False
+    root = Path(__file__).resolve().parent.parent
+    return not any(root.rglob("__pycache__/*.nbi"))
