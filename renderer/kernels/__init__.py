@@ -36,8 +36,16 @@ kernel_parallel = njit(cache=True, error_model="numpy", _nrt=False, parallel=Tru
 # the branchless frame's copysign and the error bounds the robust traversal
 # and the ray offsets rely on.
 
+_PACKAGE = Path(__file__).resolve().parent.parent  # the renderer package
+
+
+def _cached_files(suffix: str) -> list[Path]:
+    """The package's files of Numba's on-disk cache: index (nbi) or data (nbc)."""
+    return list(_PACKAGE.rglob(f"__pycache__/*.{suffix}"))
+
+
 def _invalidate_stale_cache() -> None:
-    root = Path(__file__).resolve().parent.parent  # the renderer package
+    root = _PACKAGE
     sources = sorted([*root.glob("kernels/*.py"), *root.glob("integrators/*.py"),
                       *root.glob("samplers/*.py"), root / "bvh.py"])
     digest = hashlib.sha256()
@@ -49,7 +57,7 @@ def _invalidate_stale_cache() -> None:
     try:
         if stamp.exists() and stamp.read_text() == stamp_text:
             return
-        for cached in list(root.rglob("__pycache__/*.nbi")) + list(root.rglob("__pycache__/*.nbc")):
+        for cached in _cached_files("nbi") + _cached_files("nbc"):
             cached.unlink(missing_ok=True)
         stamp.parent.mkdir(exist_ok=True)
         tmp = stamp.with_suffix(".tmp")
@@ -72,5 +80,4 @@ def cache_is_empty() -> bool:
 
     if config.CACHE_DIR:
         return False
-    root = Path(__file__).resolve().parent.parent
-    return not any(root.rglob("__pycache__/*.nbi"))
+    return not _cached_files("nbi")
