@@ -71,14 +71,26 @@ REF_SEED = 987654
 NOTES = """## Reading the table
 
 - Mitsuba renders with its defaults (independent sampler, Russian roulette
-  from depth 5); rayfarm with `path-mis`, Russian roulette from the third
-  vertex, survival = the path throughput's largest channel (measured with
-  `random` on cornell-box at 256 spp, efficiency relative to this rule:
-  start at the second vertex 0.98, third 1.00, fourth 0.96, fifth 0.92, no
-  roulette 0.70; kept). Measured again with packets and `sobol` on
-  2026-11-27, efficiency against Mitsuba at 16 / 64 / 256 spp: from the
-  third vertex 1.27 / 1.41 / 1.92, the fourth 1.14 / 1.31 / 1.89, the
-  sixth 1.05 / 1.33 / 1.96 (kept).
+  from depth 5, survival = the throughput's largest channel, at most
+  0.95); rayfarm with `path-mis`, Russian roulette from the third vertex,
+  survival = min(1, 2 x the path throughput's largest channel): the
+  `roulette` option, 2 by default (renderer/integrators/path.py).
+  Where the roulette starts was measured with survival = 1 x the largest
+  channel (pbrt-v4's and Mitsuba's rule): with `random` on cornell-box at
+  256 spp, efficiency relative to the third vertex: the second 0.98, the
+  fourth 0.96, the fifth 0.92, no roulette 0.70; with packets and `sobol`
+  (2026-11-27), against Mitsuba at 16 / 64 / 256 spp: from the third
+  vertex 1.27 / 1.41 / 1.92, the fourth 1.14 / 1.31 / 1.89, the sixth
+  1.05 / 1.33 / 1.96. The survival's scale was measured later (2026-11-27,
+  the eighth session, Zen 5, `sobol`, variance over 6-8 seeds and the
+  median time, efficiency relative to scale 1 at 16 / 64 / 256 spp):
+  cornell-box 1.5: +12 / +18 / +24 %, 2: +9 / +19 / +26 %, 3: +6 / +17 /
+  +31 %, no roulette: -17 / -9 / +6 %; veach-mis 1.5: -6 / -1 / 0 %, 2:
+  -7 / -9 / -3 %; at 64 spp door-ajar 1.5: +21 %, 2: +31 %, and
+  cornell-caustic +11 % and +10 %. Scale 2 kept: a closed bright room's
+  deep bounces are much of its image and of its error (below), and scale
+  1 cut them hardest; where the error is direct light (veach-mis) longer
+  paths only cost time.
 - veach-mis: the MSE is dominated by the few pixels where the smooth plates
   reflect the two smallest lights (radiance 338 and 3040): there a sampler
   that stratifies the pixel footprint (every one but `random` and `nrooks`'
@@ -110,8 +122,9 @@ NOTES = """## Reading the table
   the second bounce's by 3, the deeper ones by 1.2-1.4: what is left is
   deep indirect light, where no 2D stratification reaches. Russian
   roulette from the fifth vertex instead of the third (measured with
-  `sobol`, 64 spp) lowers the MSE by 24 % and costs 32 % more time: the
-  same efficiency (kept as it is).
+  `sobol`, 64 spp, survival scale 1) lowers the MSE by 24 % and costs 32 %
+  more time: the same efficiency; a survival scale of 2 from the third
+  vertex lowers it by 34 % for 22 % more time (above).
 - The var channels are the variance of the mean of independent samples:
   exact for `random`, an overstatement for stratified samplers (README).
 - The BVH is 4-wide, collapsed from a binned-SAH binary tree (renderer/

@@ -48,8 +48,10 @@ def furnace_points(n):
 def test01_registry_lists_every_method_with_its_options():
     assert {"path-bsdf", "path-nee", "path-onesample", "path-mis", "path"} <= set(METHODS)
     assert METHODS["path"] is METHODS["path-mis"]
-    assert [o.name for o in METHODS["path-bsdf"].options] == ["hemisphere"]
-    assert [o.name for o in METHODS["path-mis"].options] == ["heuristic"]
+    assert [o.name for o in METHODS["path-bsdf"].options] == ["hemisphere", "roulette"]
+    assert [o.name for o in METHODS["path-mis"].options] == ["heuristic", "roulette"]
+    for name in ("path-nee", "path-onesample", "direct"):
+        assert [o.name for o in METHODS[name].options] == ["roulette"]
     with pytest.raises(SpecError, match="unknown option"):
         RenderSpec(method="path-nee", options={"heuristic": "power"}).validate()
     with pytest.raises(SpecError, match="must be one of"):
@@ -82,6 +84,29 @@ def test04_emitter_furnace(method, depth):
                                   seed=10 + depth))
     mean, se = mean_and_stderr(film)
     assert abs(mean - (1 - 0.5 ** (depth + 1))) <= Z * se + 1e-12, (mean, se)
+
+
+@pytest.mark.parametrize("method", ["path-bsdf", "path-mis"])
+def test04_roulette_trades_rays_for_noise_never_for_bias(method):
+    """Russian roulette's survival scale (the `roulette` option; 0 turns it
+    off) in the emitter furnace at depth 8, where the throughput halves at
+    every bounce: each scale gives the furnace's mean, a higher scale traces
+    more rays (with 2 no path ends at the third vertex, with 1 half of them
+    do), and roulette's noise is real: off has less variance than 0.5."""
+    scene = load_scene("furnace-emitter")
+    rays, variance = {}, {}
+    for roulette in (0.0, 0.5, 1.0, 2.0):
+        spec = RenderSpec(method=method, spp=64, depth=8, width=16, height=16, tile_size=16,
+                          seed=21, sampler="random", options={"roulette": roulette})
+        film = render_inline(scene, spec)
+        mean, se = mean_and_stderr(film)
+        assert abs(mean - (1 - 0.5 ** 9)) <= Z * se, (roulette, mean, se)
+        rays[roulette] = film.stats["rays"]
+        variance[roulette] = se ** 2
+    assert rays[0.5] < rays[1.0] < rays[2.0] < rays[0.0], rays
+    assert variance[0.0] < variance[0.5], variance
+    with pytest.raises(SpecError, match="options.roulette"):
+        RenderSpec(method="path-mis", options={"roulette": -1.0}).validate()
 
 
 def _square_light_scene():

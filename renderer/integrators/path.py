@@ -22,7 +22,8 @@ reached through them counts in full (`specular` below).
 Depth (the lecture's convention): `depth` counts surface bounces; depth 0
 shows emitters seen directly, depth 1 is direct illumination; a path has at
 most depth + 1 segments. Russian roulette from the third vertex on divides
-surviving throughput by the survival probability, so it adds noise, not bias.
+surviving throughput by the survival probability, so it adds noise, not bias;
+the `roulette` option scales that probability (ROULETTE below).
 
 Random dimensions of a camera sample (drawn from the job's pixel sampler,
 renderer/samplers/): 0-1 the film position, then 8 per bounce b at 2 + 8 b:
@@ -126,7 +127,7 @@ def _start_lane(fl, il, r, item, ox, oy, oz, dx, dy, dz):
 
 
 @kernel_inline
-def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphere,
+def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphere, roulette,
                 smp, seed, pixel, index, spp, memo):
     """Vertex `bounce` of lane r's path, once its ray found (T, PRIM):
     emission met there, the light sample (its shadow ray left in the lane
@@ -283,8 +284,8 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
         bb *= wb
         fl[ETA, r] *= es
         il[SPEC, r] = 1
-    if bounce >= 1:
-        m = max(br, max(bg, bb)) * fl[ETA, r]
+    if bounce >= 1 and roulette > 0.0:
+        m = roulette * max(br, max(bg, bb)) * fl[ETA, r]
         if m < 1.0:
             q = max(0.0, 1.0 - m)
             if u1d(smp, key, seed, pixel, index, spp, base + DIM_RR, memo) < q:
@@ -302,7 +303,8 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
 
 @kernel_parallel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
-                 strategy, heuristic, hemisphere, out_sum, out_sq, out_w, out_aov, row_rays, stacks,
+                 strategy, heuristic, hemisphere, roulette, out_sum, out_sq, out_w, out_aov, row_rays,
+                 stacks,
                  memos, aov_rows, lane_floats, lane_ints, lane_keys, rings, ring_done):
     """The tile loop (integrators/tile.py) over packets of paths; rows in parallel.
 
@@ -370,8 +372,8 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                 for r in range(PACKET):
                     if il[ACT, r] != 0:
                         _shade_lane(sc, fl, il, r, il[BOUNCE, r], keys[r], depth, strategy,
-                                    heuristic, hemisphere, smp, seed, il[PIXEL, r], il[INDEX, r],
-                                    spp, memo)
+                                    heuristic, hemisphere, roulette, smp, seed, il[PIXEL, r],
+                                    il[INDEX, r], spp, memo)
                         il[BOUNCE, r] += 1
                         shadows += il[SACT, r]
                 if shadows > 0:
@@ -426,7 +428,8 @@ def render_tile(scene, spec, unit, inputs, options, *, strategy: int) -> Partial
     t = start_tile(scene, spec, unit, aov=True)
     _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
                  spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
-                 spec.spp, strategy, heuristic, hemisphere, t.film.sum, t.film.sum_sq,
+                 spec.spp, strategy, heuristic, hemisphere, float(options["roulette"]),
+                 t.film.sum, t.film.sum_sq,
                  t.film.weight, t.film.aov, t.row_rays, t.stacks, t.memos, t.aov_rows,
                  *lane_scratch(unit.y1 - unit.y0))
     return t.finish(unit)
@@ -440,6 +443,24 @@ def lane_scratch(rows: int):
             np.zeros((rows, RING), np.int64))
 
 
+# Russian roulette's survival scale K: from the third vertex on a path goes
+# on with probability q = min(1, K x the largest channel of its throughput
+# (times the squared eta of its refractions)) and its throughput is divided
+# by q. K = 1 is pbrt-v4's and Mitsuba 3's rule: a survivor carries unit
+# weight. K = 2 was measured more efficient (1 / (variance x seconds), 64
+# spp, variance over 6-8 seeds, 2026-11-27, docs/throughput.md):
+# cornell-box +9 / +19 / +26 % at 16 / 64 / 256 spp, door-ajar +31 %,
+# cornell-caustic +10 %, veach-mis -7 / -9 / -3 % (its error is the glossy
+# plates' direct light, so longer paths only cost time there). K = 1.5 was
+# +12 / +18 / +24, +21, +11 and -6 / -1 / 0 %; K = 3 +6 / +17 / +31 % on
+# cornell-box; no roulette (K -> inf) -17 / -9 / +6 %. In a closed, bright
+# scene the deep bounces carry much of the image (cornell-box: bounces 4-7
+# are half its error, bench/error_budget.py) and K = 1 cut them hardest.
+ROULETTE = Option("roulette", float, 2.0, "Russian roulette from the third vertex: a path goes "
+                  "on with probability min(1, roulette x its throughput's largest channel), "
+                  "reweighted by 1/probability (1 is pbrt-v4's and Mitsuba's rule, higher keeps "
+                  "more deep paths: less noise, more time); 0 turns it off", bounds=(0.0, 1e6))
+
 METHODS = (
     Method(
         name="path-bsdf",
@@ -447,7 +468,7 @@ METHODS = (
                     "sampled ray hits them; point lights are never reached.",
         run=partial(render_tile, strategy=BSDF_ONLY),
         options=(Option("hemisphere", str, "cosine", "diffuse lobe sampling: cosine-weighted "
-                        "(pdf cos/pi) or uniform (pdf 1/2pi)", ("cosine", "uniform")),),
+                        "(pdf cos/pi) or uniform (pdf 1/2pi)", ("cosine", "uniform")), ROULETTE),
         plan=tile_plan,
         aovs=PATH_AOVS,
     ),
@@ -456,6 +477,7 @@ METHODS = (
         description="Path tracing with next event estimation: a shadow ray to a sampled light "
                     "point at every non-specular vertex.",
         run=partial(render_tile, strategy=NEE),
+        options=(ROULETTE,),
         plan=tile_plan,
         aovs=PATH_AOVS,
     ),
@@ -464,6 +486,7 @@ METHODS = (
         description="Single-sample importance sampling: at each non-specular vertex light or "
                     "BSDF sampling with probability 1/2, weighted by the mixture pdf.",
         run=partial(render_tile, strategy=ONE_SAMPLE),
+        options=(ROULETTE,),
         plan=tile_plan,
         aovs=PATH_AOVS,
     ),
@@ -472,6 +495,7 @@ METHODS = (
         description="Whitted-style direct lighting: emission seen directly, shadow rays at the "
                     "first diffuse hit, perfect mirror and glass chains followed up to depth.",
         run=partial(render_tile, strategy=DIRECT),
+        options=(ROULETTE,),
         plan=tile_plan,
         aovs=PATH_AOVS,
     ),
@@ -482,7 +506,7 @@ METHODS = (
                     "sampling; Russian roulette.",
         run=partial(render_tile, strategy=MIS),
         options=(Option("heuristic", str, "power", "MIS weights: Veach's power (beta = 2) or "
-                        "balance heuristic", ("power", "balance")),),
+                        "balance heuristic", ("power", "balance")), ROULETTE),
         plan=tile_plan,
         aovs=PATH_AOVS,
     ),
