@@ -2,6 +2,7 @@
 
     python bench/error_budget.py                                  # cornell-box, sobol and random, 64 spp
     python bench/error_budget.py --scene veach-mis --spp 256 --samplers sobol
+    python bench/error_budget.py --samplers sobol --roulette 1   # pbrt-v4's and Mitsuba's roulette
 
 The MSE of an unbiased image is its variance, measured here as the spread of
 --repeat renders with different seeds (per pixel, averaged over the pixels
@@ -33,7 +34,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--depth", type=int, default=7)
     parser.add_argument("--repeat", type=int, default=6, help="seeds per depth")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    parser.add_argument("--roulette", type=float, default=None,
+                        help="path-mis's Russian roulette survival scale (default: the method's)")
     args = parser.parse_args(argv)
+    options = {} if args.roulette is None else {"roulette": args.roulette}
 
     import numba
 
@@ -45,14 +49,16 @@ def main(argv: list[str] | None = None) -> int:
 
     def render(spp: int, sampler: str, seed: int, depth: int):
         spec = RenderSpec(method="path-mis", spp=spp, depth=depth, width=width, height=height,
-                          tile_size=max(width, height), seed=seed, sampler=sampler).validate()
+                          tile_size=max(width, height), seed=seed, sampler=sampler,
+                          options=options).validate()
         t0 = time.perf_counter()
         part = run_unit(scene, spec, Unit(0, 0, 0, width, height, 0, spp))
         return merge(width, height, [part]).mean(), time.perf_counter() - t0
 
     mask = render(4, "random", 1, 0)[0].max(axis=2) <= 0.0  # pixels that see no emitter
     depths = sorted({1, 2, 3, args.depth})
-    print(f"{args.scene} {width}x{height}, path-mis, {args.spp} spp, {args.repeat} seeds per row; "
+    print(f"{args.scene} {width}x{height}, path-mis {options or ''}, {args.spp} spp, "
+          f"{args.repeat} seeds per row; "
           "MSE = variance over seeds, mean over the pixels that see no emitter")
     print(f"{'sampler':8s} {'depth':>5s} {'MSE':>10s} {'added':>10s} {'share':>6s} {'s/render':>8s}")
     for sampler in args.samplers.split(","):

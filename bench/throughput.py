@@ -116,15 +116,18 @@ NOTES = """## Reading the table
   at 16 / 64 / 256 spp against 0.02459 / 0.01078 / 0.00497 before), 45 %,
   56 % and 68 % lower than `random`'s.
 - Where cornell-box's error is (`python bench/error_budget.py`, 64 spp,
-  variance over 6 seeds): with `sobol`, direct light 8 % of the MSE, the
-  second bounce 15 %, the third 24 %, bounces 4-7 52 %; with `random`,
-  direct light 39 %. `sobol` divides the error of direct light by 11 and
+  variance over 6 seeds): with `sobol` and survival scale 1, direct light
+  8 % of the MSE, the second bounce 15 %, the third 24 %, bounces 4-7
+  53 %; with scale 2, 11 / 23 / 23 / 43 % of an MSE a third lower; with
+  `random` (scale 1), direct light 39 %. `sobol` divides the error of direct light by 11 and
   the second bounce's by 3, the deeper ones by 1.2-1.4: what is left is
   deep indirect light, where no 2D stratification reaches. Russian
   roulette from the fifth vertex instead of the third (measured with
   `sobol`, 64 spp, survival scale 1) lowers the MSE by 24 % and costs 32 %
   more time: the same efficiency; a survival scale of 2 from the third
-  vertex lowers it by 34 % for 22 % more time (above).
+  vertex lowers it by 33 % for 21 % more time (above). With `random` that
+  scale gains only 16 % of MSE for 14 % more time: `sobol` leaves the
+  deep bounces as most of the error, where roulette adds the most.
 - The var channels are the variance of the mean of independent samples:
   exact for `random`, an overstatement for stratified samplers (README).
 - The BVH is 4-wide, collapsed from a binned-SAH binary tree (renderer/

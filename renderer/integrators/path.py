@@ -453,9 +453,15 @@ def lane_scratch(rows: int):
 # cornell-caustic +10 %, veach-mis -7 / -9 / -3 % (its error is the glossy
 # plates' direct light, so longer paths only cost time there). K = 1.5 was
 # +12 / +18 / +24, +21, +11 and -6 / -1 / 0 %; K = 3 +6 / +17 / +31 % on
-# cornell-box; no roulette (K -> inf) -17 / -9 / +6 %. In a closed, bright
-# scene the deep bounces carry much of the image (cornell-box: bounces 4-7
-# are half its error, bench/error_budget.py) and K = 1 cut them hardest.
+# cornell-box; no roulette (K -> inf) -17 / -9 / +6 %. A survival floor on
+# top of K = 2 (at least 0.25 or 0.5): within the noise (the same variance
+# to 1 %). Why K = 1 was kept before: it was measured with `random`, whose
+# error is mostly direct light and the first bounces. `sobol` removes most
+# of that, so deep bounces are what is left, and there K = 1 added the most
+# (bench/error_budget.py, cornell-box, 64 spp, MSE over 6 seeds: with
+# `sobol` K = 1 -> 2 takes the bounces 4-7 from 6.1e-5 to 3.3e-5 and the
+# whole from 1.15e-4 to 7.7e-5 for 21 % more time; with `random` the whole
+# only from 2.76e-4 to 2.31e-4 for 14 % more time).
 ROULETTE = Option("roulette", float, 2.0, "Russian roulette from the third vertex: a path goes "
                   "on with probability min(1, roulette x its throughput's largest channel), "
                   "reweighted by 1/probability (1 is pbrt-v4's and Mitsuba's rule, higher keeps "
