@@ -461,7 +461,10 @@ def lane_scratch(rows: int):
 # (bench/error_budget.py, cornell-box, 64 spp, MSE over 6 seeds: with
 # `sobol` K = 1 -> 2 takes the bounces 4-7 from 6.1e-5 to 3.3e-5 and the
 # whole from 1.15e-4 to 7.7e-5 for 21 % more time; with `random` the whole
-# only from 2.76e-4 to 2.31e-4 for 14 % more time).
+# only from 2.76e-4 to 2.31e-4 for 14 % more time). What the longer paths
+# cost is their bounce rays and shading: left untraced (timing only), the
+# shadow rays from the fourth vertex on were 4-6 % of a cornell-box render
+# at 64 spp, so a roulette on shadow rays could save no more (not built).
 ROULETTE = Option("roulette", float, 2.0, "Russian roulette from the third vertex: a path goes "
                   "on with probability min(1, roulette x its throughput's largest channel), "
                   "reweighted by 1/probability (1 is pbrt-v4's and Mitsuba's rule, higher keeps "

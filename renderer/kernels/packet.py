@@ -104,6 +104,15 @@ AVX2, cornell-box, 32 or 64 spp, one or two threads, interleaved runs of
   the division done only for the lanes a triangle is hit by: 3-5 %
   slower (2.69-2.82 s against 2.59-2.68 s), the extra multiplies cost
   more than the divisions they spare on AVX2.
+Measured and not kept (2026-11-27, eighth session, AMD EPYC Zen 5,
+AVX-512, cornell-box, 32 spp, one thread, three interleaved pairs of
+processes): this kernel's triangle tests in float32 (a float32 copy of
+tri_isect, each packet's rays converted once, t compared in float64),
+without any of the exactness below, as an upper bound of the speed: 0.88-
+0.94 s against 0.86-0.92 s for float64, no gain. On AVX-512 sixteen
+float64 lanes are two registers per value, and the whole render is not
+bound by them here (on the AVX2 machine above the traversal alone was
+1.5x).
 What would make float32 triangles exact enough (not built):
 - each lane keeps the smallest (t32, prim) pair, primitive id as the tie
   break, so the answer does not depend on the order leaves are visited in
