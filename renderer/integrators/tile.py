@@ -34,6 +34,12 @@ OpenMP layer's static schedule). Measured on 2026-11-27 (AMD EPYC, 2
 threads, 256x256, 32 spp): smaller dynamic shares (numba.set_parallel_
 chunksize 1 or 8) made no difference on cornell-box or veach-mis; their
 halves cost about the same (cornell-box 1.32 s and 1.29 s on one thread).
+Again with roulette 2 (Zen 5, 64 spp): the halves 1.09 s and 1.05 s on
+one thread, the whole 2.17 s on one thread and 1.13 s on two; chunksize 1
+or 4, or rows dealt out across the image (row = i x stride mod h, the
+same film bytes): no difference beyond the noise of 3 %. What two threads
+lose against two processes (1.91x against 1.98x in bench/throughput.py's
+scaling) is not the rows' shares.
 """
 
 from __future__ import annotations
