@@ -303,9 +303,9 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
 
 @kernel_parallel
 def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, smp, spp,
-                 strategy, heuristic, hemisphere, roulette, out_sum, out_sq, out_w, out_aov, row_rays,
-                 stacks,
-                 memos, aov_rows, lane_floats, lane_ints, lane_keys, rings, ring_done):
+                 strategy, heuristic, hemisphere, roulette, out_sum, out_sq, out_w, out_aov,
+                 row_rays, stacks, memos, aov_rows, lane_floats, lane_ints, lane_keys, rings,
+                 ring_done):
     """The tile loop (integrators/tile.py) over packets of paths; rows in parallel.
 
     A row's camera samples, pixel by pixel and in sample order, are a queue
@@ -429,8 +429,8 @@ def render_tile(scene, spec, unit, inputs, options, *, strategy: int) -> Partial
     _render_tile(scene.arrays, t.cam, unit.x0, unit.y0, unit.x1, unit.y1, spec.width,
                  spec.height, t.blocks, spec.seed, spec.depth, SAMPLERS[spec.sampler].id,
                  spec.spp, strategy, heuristic, hemisphere, float(options["roulette"]),
-                 t.film.sum, t.film.sum_sq,
-                 t.film.weight, t.film.aov, t.row_rays, t.stacks, t.memos, t.aov_rows,
+                 t.film.sum, t.film.sum_sq, t.film.weight, t.film.aov, t.row_rays, t.stacks,
+                 t.memos, t.aov_rows,
                  *lane_scratch(unit.y1 - unit.y0))
     return t.finish(unit)
 
