@@ -446,25 +446,15 @@ def lane_scratch(rows: int):
 # Russian roulette's survival scale K: from the third vertex on a path goes
 # on with probability q = min(1, K x the largest channel of its throughput
 # (times the squared eta of its refractions)) and its throughput is divided
-# by q. K = 1 is pbrt-v4's and Mitsuba 3's rule: a survivor carries unit
-# weight. K = 2 was measured more efficient (1 / (variance x seconds), 64
-# spp, variance over 6-8 seeds, 2026-11-27, docs/throughput.md):
-# cornell-box +9 / +19 / +26 % at 16 / 64 / 256 spp, door-ajar +31 %,
-# cornell-caustic +10 %, veach-mis -7 / -9 / -3 % (its error is the glossy
-# plates' direct light, so longer paths only cost time there). K = 1.5 was
-# +12 / +18 / +24, +21, +11 and -6 / -1 / 0 %; K = 3 +6 / +17 / +31 % on
-# cornell-box; no roulette (K -> inf) -17 / -9 / +6 %. A survival floor on
-# top of K = 2 (at least 0.25 or 0.5): within the noise (the same variance
-# to 1 %). Why K = 1 was kept before: it was measured with `random`, whose
-# error is mostly direct light and the first bounces. `sobol` removes most
-# of that, so deep bounces are what is left, and there K = 1 added the most
-# (bench/error_budget.py, cornell-box, 64 spp, MSE over 6 seeds: with
-# `sobol` K = 1 -> 2 takes the bounces 4-7 from 6.1e-5 to 3.3e-5 and the
-# whole from 1.15e-4 to 7.7e-5 for 21 % more time; with `random` the whole
-# only from 2.76e-4 to 2.31e-4 for 14 % more time). What the longer paths
-# cost is their bounce rays and shading: left untraced (timing only), the
-# shadow rays from the fourth vertex on were 4-6 % of a cornell-box render
-# at 64 spp, so a roulette on shadow rays could save no more (not built).
+# by q. K = 1 is pbrt-v4's and Mitsuba 3's rule. K = 2 reached a given error
+# sooner on cornell-box, door-ajar and cornell-caustic (+10 to +31 %) and
+# lost a little on veach-mis, whose error is direct light (-3 to -9 %); the
+# measurements of K = 1.5 / 2 / 3 / off, and why a roulette measured with
+# `random` had stayed at 1, are in bench/throughput.py's notes
+# (docs/throughput.md). Measured and not kept on top of K = 2: a survival
+# floor of 0.25 or 0.5, or a start one vertex later (within the noise); a
+# roulette on shadow rays was not built, since the shadow rays from the
+# fourth vertex on were only 4-6 % of a cornell-box render at 64 spp.
 ROULETTE = Option("roulette", float, 2.0, "Russian roulette from the third vertex: a path goes "
                   "on with probability min(1, roulette x its throughput's largest channel), "
                   "reweighted by 1/probability (1 is pbrt-v4's and Mitsuba's rule, higher keeps "
