@@ -317,7 +317,13 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     wait in the row's ring (RING items ahead of the oldest unfinished one at
     most) until every item before it is folded: the fold takes samples in
     the canonical order, so the film is the one a sample-at-a-time loop
-    makes, whatever the tiling."""
+    makes, whatever the tiling.
+
+    Each row's queue drains at its end: its last packets run part-empty.
+    Measured 2026-11-28 (Zen 3, one thread, cornell-box 64 spp, the same
+    image as tiles of 256 / 64 / 32 / 16 / 8 pixels, 3 rounds): rows of
+    16384 / 4096 / 2048 / 1024 / 512 samples took 5.95 / 5.95 / 6.04 /
+    6.08 / 6.59 s. Below about 1000 samples a row the drain starts to count."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n = n_samples(blocks)
