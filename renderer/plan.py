@@ -121,14 +121,16 @@ def sample_passes(spp: int, progressive: bool, tile_pixels: int = 0) -> list[tup
 # in the same order, whatever unit it is in. Units stay well below a second,
 # so fair share (service.fairshare) still switches jobs often.
 #
-# Measured 2026-11-28 (Zen 3, 2 cores): a progressive job still costs more
-# than a one-pass job with the same plan of tiles. The job was 176 spp on
-# cornell-box, `renderer.render` on a pool of 2 processes, 10 interleaved
-# pairs: +6.2 % +- 1.6 % (24 units against 16). The extra is inside the
-# units' own render seconds, not in dispatch or the tail: wall time minus
-# half the units' seconds was 0.13-0.44 s for either plan. Nor is it the row
-# queues' drain: these units' rows hold 2048 samples or more, and the path
-# kernel's note measures that drain at about 1 % there. Cause not found yet.
+# A progressive job costs more than a one-pass job with the same tiles
+# (measured 2026-11-28: +6.2 +- 1.6 % in a pool of 2 on Zen 3, +13 to +19 %
+# on one thread on Zen 5). The cause was the `sobol` sampler's memo, whose
+# pair tables covered whole blocks of spp samples, so a pass's units went
+# without them; they now cover the unit's samples (samplers/sobol.py,
+# "Windows"): +7 % on one thread. What is left is the sampler's per-pixel
+# setup over the first passes' few samples (+23 % on a pass of 8 samples,
+# nothing from 64 on); with `random` a progressive job costs what one pass
+# does (-1 to +0 %). Not the row queues' drain: these units' rows hold 2048
+# samples or more, and the path kernel's note measures it at about 1 %.
 MIN_UNIT_SAMPLES = 1 << 19
 
 
