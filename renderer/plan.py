@@ -121,16 +121,16 @@ def sample_passes(spp: int, progressive: bool, tile_pixels: int = 0) -> list[tup
 # in the same order, whatever unit it is in. Units stay well below a second,
 # so fair share (service.fairshare) still switches jobs often.
 #
-# A progressive job costs more than a one-pass job with the same tiles
-# (measured 2026-11-28: +6.2 +- 1.6 % in a pool of 2 on Zen 3, +13 to +19 %
-# on one thread on Zen 5). The cause was the `sobol` sampler's memo, whose
-# pair tables covered whole blocks of spp samples, so a pass's units went
-# without them; they now cover the unit's samples (samplers/sobol.py,
-# "Windows"): +7 % on one thread. What is left is the sampler's per-pixel
-# setup over the first passes' few samples (+23 % on a pass of 8 samples,
-# nothing from 64 on); with `random` a progressive job costs what one pass
-# does (-1 to +0 %). Not the row queues' drain: these units' rows hold 2048
-# samples or more, and the path kernel's note measures it at about 1 %.
+# A progressive job costs more than a one-pass job with the same tiles:
+# +6.2 +- 1.6 % in a pool of 2 on Zen 3 (2026-11-28, 176 spp, 10 pairs);
+# on Zen 5 +13 to +19 % on one thread and +10 to +19 % in a pool of 2 (176
+# and 589 spp). The cause is the `sobol` sampler's memo: its pair tables
+# take whole blocks of spp samples, so a pass's units (part of each pixel's
+# samples) go with the entries layout (integrators/tile.py, samplers/
+# sobol.py "Windows"); with `random` a progressive job costs what one pass
+# does (-1 to +0 % on one thread). Not the row queues' drain either: these
+# units' rows hold 2048 samples or more, where the path kernel's note
+# measures it at about 1 %.
 MIN_UNIT_SAMPLES = 1 << 19
 
 

@@ -140,21 +140,17 @@ def u2d(smp, key, seed, pixel, index, spp, dim, memo):
 MEMO_MAX_BYTES = 64 << 20
 
 
-def memo_rows(sampler_id: int, spp: int, rows: int,
-              window: tuple[int, int] | None = None) -> np.ndarray:
-    """Per-row scratch for u1d/u2d's memo: (rows, sobol.memo_width) for
-    `sobol` with spp up to sobol.MEMO_MAX_SPP and within MEMO_MAX_BYTES
-    (tags start at 0, which no entry uses), else (rows, 0), no memo. A
-    `window` [lo, hi) of sample indices (for a kernel that draws only those,
-    each pixel's in order, the film pair first: the tile kernels, over
-    their unit's sample range) asks for the layout with pair tables, which
+def memo_rows(sampler_id: int, spp: int, rows: int, tables: bool = False) -> np.ndarray:
+    """Per-row scratch for u1d/u2d's memo: (rows, sobol.MEMO_BANKS banks of
+    sobol.memo_bank_width(spp, tables)) for `sobol` with spp up to
+    sobol.MEMO_MAX_SPP and within MEMO_MAX_BYTES (tags start at 0, which no
+    entry uses), else (rows, 0), no memo. `tables` (for a kernel that draws
+    each pixel's samples in order, the film pair first, every sample of its
+    blocks: the tile kernels) asks for the layout with pair tables, which
     falls back to the entries layout above the budget. The memo changes no
     value, only the time."""
-    layouts = ((True, False) if window is not None else (False,)) \
+    layouts = ((True, False) if tables else (False,)) \
         if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP else ()
-    layout = next((t for t in layouts if rows * sobol.memo_width(spp, t) * 8 <= MEMO_MAX_BYTES),
-                  None)
-    memo = np.zeros((rows, 0 if layout is None else sobol.memo_width(spp, layout)), np.int64)
-    if layout:
-        sobol.memo_window(memo, spp, *window)
-    return memo
+    widths = [sobol.MEMO_BANKS * sobol.memo_bank_width(spp, layout) for layout in layouts]
+    width = next((w for w in widths if rows * w * 8 <= MEMO_MAX_BYTES), 0)
+    return np.zeros((rows, width), np.int64)

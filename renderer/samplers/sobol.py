@@ -63,24 +63,27 @@ intrinsic for `reverse_bits32` (no change: LLVM already recognizes the
 pattern), a 64-bit division less per vertex (the lanes keep their pixel
 and sample index; within the noise, kept since it costs nothing).
 
-Windows (2026-11-28, Zen 5, one thread, cornell-box 176 spp): the tables
-were computed for every position of a block of spp samples, so a unit
-rendering part of a pixel's samples (a progressive pass) would have paid
-for all of them, and went with the entries layout instead: a progressive
-job cost +13 to +19 % over one pass, against -1 to +0 % with `random`.
-The memo now holds the window of samples its unit renders (in each
-bank's header: `memo_window`), and a claim and a table cover the window's
-positions only; a tile kernel draws no sample outside its window, which is
-the layout's contract. Progressive -5 % (+7 % over one pass); one pass
-within the noise (+0.4 +- 2.7 %, five pairs of processes; the same
-binary varies by +-3 % from one process to the next). What a pass still
-pays is the padding permutation per pixel: Kensler's cycle walk costs
-about 14 ns a position when spp is not a power of two (1.5 ns when it is,
-in `permute_all`'s vector loop), and a pass of 8 samples claims 24
-positions a pixel, about 65 ns a sample of setup against 19 ns in one
-pass. A first version kept the window at the end of each row and checked
-it in the inline draw: one pass measured +3 to +5 % slower, so the inline
-draw is as it was and the window is read out of line only.
+Windows, measured and not kept (2026-11-28, Zen 5): the tables cover every
+position of a block of spp samples, so a unit that renders part of a
+pixel's samples (a progressive pass) would pay for all of them and takes
+the entries layout instead; that is most of what a progressive job costs
+over one pass (plan.py). Commit a5c74c3 gave the memo the window of
+samples its unit renders (in each bank's header) and made a claim and a
+table cover the window's positions only, with the same values (tested).
+Progressive jobs ran 5 % faster (one thread, 176 spp; 5.5 % in a pool of
+2 at 589 spp: +7.5 % over one pass instead of +17 %), but one pass ran
++3.6 +- 1.5 % slower at 64 spp (five pairs of processes; at 176 spp
++0.4 +- 2.7 % on one thread, +3.5 % in the pool at 589 spp), although a draw's inline code, the claim and the
+fills measured the same in micro-benchmarks. The same binary varies by
++-3 % from one process to the next, so this took pairs of processes to
+see. Not kept, since one pass is what the efficiency against Mitsuba is
+measured on; the cause of that 3 % was not found. What a pass would still
+pay with windows is the padding permutation per pixel: Kensler's cycle
+walk costs about 14 ns a position when spp is not a power of two (1.5 ns
+when it is, in `permute_all`'s vector loop), and a pass of 8 samples
+claims 24 positions a pixel, about 65 ns a sample of setup against 19 ns
+in one pass. A first version kept the window at each row's end and checked
+it in the inline draw; it measured one pass +3 to +5 % slower too.
 
 Measured and not kept (2026-11-25): a permutation from the nested family
 (i's bits scrambled top-down by the Laine-Karras hash on reversed bits, the
@@ -319,25 +322,17 @@ def sample_pair(seed, pixel, index, spp, pair):
 TABLE_PAIRS = 17
 
 
-# A bank of the tables layout starts with its tag, a tag per pair table, the
-# positions its claim computed (first, count: `_claim_bank`) and the memo's
-# window: the sample indices [lo, hi) its kernel draws (`memo_window`).
-CLAIMED = 1 + TABLE_PAIRS
-WINDOW = CLAIMED + 2
-BANK_HEADER = WINDOW + 2
-
-
 @kernel_inline
 def _table_bank_width(n):
-    """A bank of the tables layout: its header, the positions' sequence
-    indices and Sobol' dimension 1, the pair tables."""
-    return BANK_HEADER + (2 + TABLE_PAIRS) * n
+    """A bank of the tables layout: its tag, a tag per pair table, the
+    positions' sequence indices and Sobol' dimension 1, the pair tables."""
+    return 1 + TABLE_PAIRS + (2 + TABLE_PAIRS) * n
 
 
 @kernel_inline
 def _table_start(base, pair, n):
     """Where pair `pair`'s table starts in the bank at `base`."""
-    return base + BANK_HEADER + (2 + pair) * n
+    return base + 1 + TABLE_PAIRS + (2 + pair) * n
 
 
 def memo_bank_width(spp: int, tables: bool) -> int:
@@ -345,95 +340,39 @@ def memo_bank_width(spp: int, tables: bool) -> int:
     return _table_bank_width(spp) if tables else 2 * spp
 
 
-def memo_width(spp: int, tables: bool) -> int:
-    """int64 entries of a `sample_pair_memo` memo."""
-    return MEMO_BANKS * memo_bank_width(spp, tables)
-
-
-def memo_window(memos: np.ndarray, spp: int, lo: int, hi: int) -> None:
-    """Give rows of tables-layout memos the window [lo, hi) (in every bank)."""
-    banks = memos.reshape(memos.shape[0], MEMO_BANKS, memo_bank_width(spp, True))
-    banks[:, :, WINDOW] = lo
-    banks[:, :, WINDOW + 1] = hi
-
-
-@kernel_inline
-def _window(memo, base, b, spp, n):
-    """The positions in block b (first, count) of the samples of the memo's
-    window [lo, hi), which meets the block."""
-    start = b * spp
-    i0 = max(memo[base + WINDOW] - start, 0)
-    return i0, min(memo[base + WINDOW + 1] - start, n) - i0
-
-
 @kernel
 def _claim_bank(memo, base, tag, seed, pixel, b, n, spp):
-    """Bank `base` now holds pixel `pixel`'s block b: the sequence index
-    J[t] = b spp + perm(t) and its reversed Sobol' dimension 1 at the
-    positions t the memo's window reads for the pair tables (i0 + k + pair
-    mod n for its m samples from i0, pairs below TABLE_PAIRS; every
-    position if that is all of them), no pair table yet. Out of line: once
-    per pixel, block and unit."""
+    """Bank `base` now holds pixel `pixel`'s block b: every position's
+    sequence index J[t] = b spp + perm(t) and its reversed Sobol' dimension
+    1, no pair table yet. Out of line: once per pixel and block."""
     memo[base] = tag
     for k in range(TABLE_PAIRS):
         memo[base + 1 + k] = 0
-    jo = base + BANK_HEADER
+    jo = base + 1 + TABLE_PAIRS
     seq, dim1 = memo[jo:jo + n], memo[jo + n:jo + 2 * n]
-    key = _order_key(seed, pixel, b)
-    i0, m = _window(memo, base, b, spp, n)
-    span = m + TABLE_PAIRS - 1
-    if span >= n:
-        i0, span = 0, n
-        permute_all(n, key, seq)
-        for t in range(n):
-            _claim_position(seq, dim1, t, b, spp)
-    else:
-        for k in range(span):
-            t = _rotated(i0, k, n)
-            seq[t] = permute(t, n, key)
-            _claim_position(seq, dim1, t, b, spp)
-    memo[base + CLAIMED] = i0
-    memo[base + CLAIMED + 1] = span
-
-
-@kernel_inline
-def _claim_position(seq, dim1, t, b, spp):
-    """Position t's sequence index from its permuted position, and its
-    reversed Sobol' dimension 1 (`_claim_bank`)."""
-    j = np.uint64(b * spp + seq[t]) & MASK32
-    seq[t] = np.int64(j)
-    dim1[t] = np.int64(_reversed_sobol1(j))
-
-
-@kernel_inline
-def _fill_range(seq, dim1, out, s1, s2):
-    """A pair table's packed points at a range of positions (`_fill_table`:
-    slices of the bank, so that the loop's indices run from 0, which LLVM
-    can tell are in bounds and non-negative, or the loop stays scalar)."""
-    for t in range(out.shape[0]):
-        u = reverse_bits32(_scramble_reversed(np.uint64(seq[t]), s1))
-        v = reverse_bits32(_scramble_reversed(np.uint64(dim1[t]), s2))
-        out[t] = np.int64((u << U32) | v)
+    permute_all(n, _order_key(seed, pixel, b), seq)
+    for t in range(n):
+        j = np.uint64(b * spp + seq[t]) & MASK32
+        seq[t] = np.int64(j)
+        dim1[t] = np.int64(_reversed_sobol1(j))
 
 
 @kernel
-def _fill_table(memo, base, tag, pair, n, key, b, spp):
-    """Pair `pair`'s scrambled points at the positions the window's m
-    samples from i0 read (i0 + pair + k mod n), packed (u bits << 32 | v
-    bits): one loop of integer arithmetic over the positions, which LLVM
-    vectorizes, instead of one hash chain per draw."""
-    jo = base + BANK_HEADER
+def _fill_table(memo, base, tag, pair, n, key):
+    """Pair `pair`'s scrambled points at every position of the bank's block,
+    packed (u bits << 32 | v bits): one loop of integer arithmetic over the
+    positions, which LLVM vectorizes, instead of one hash chain per draw."""
+    jo = base + 1 + TABLE_PAIRS
     to = _table_start(base, pair, n)
     s1 = hash32(key, 1)
     s2 = key >> U32
-    i0, m = _window(memo, base, b, spp, n)
-    t0 = 0 if m >= n else _rotated(i0, pair, n)
-    t1 = min(t0 + m, n)
-    _fill_range(memo[jo + t0:jo + t1], memo[jo + n + t0:jo + n + t1], memo[to + t0:to + t1],
-                s1, s2)
-    if t0 + m > n:  # the window wraps around the block
-        t1 = t0 + m - n
-        _fill_range(memo[jo:jo + t1], memo[jo + n:jo + n + t1], memo[to:to + t1], s1, s2)
+    # slices, not offsets into memo: indices LLVM can tell are in bounds and
+    # non-negative, or the loop stays scalar
+    seq, dim1, out = memo[jo:jo + n], memo[jo + n:jo + 2 * n], memo[to:to + n]
+    for t in range(n):
+        u = reverse_bits32(_scramble_reversed(np.uint64(seq[t]), s1))
+        v = reverse_bits32(_scramble_reversed(np.uint64(dim1[t]), s2))
+        out[t] = np.int64((u << U32) | v)
     memo[base + 1 + pair] = tag
 
 
@@ -451,23 +390,18 @@ def sample_pair_memo(seed, pixel, index, spp, pair, memo):
 
     - entries (width 2 spp): each position's tag and permuted index, filled
       as draws need them;
-    - tables (memo_width(spp, True), for kernels that draw only the
-      samples of the window [lo, hi) in the banks' headers (`memo_window`),
-      each pixel's in order, the film pair first: the tile kernels over
-      their unit's sample range, integrators/tile.py): a pixel's first
-      film pair (pair 0) claims the bank and computes the sequence index
-      and Sobol' dimension 1 of the positions the window reads
-      (`_claim_bank`); the first draw of a pair below TABLE_PAIRS then
-      computes the pair's points at the window's positions in one
-      vectorized loop (`_fill_table`), and each draw reads its packed
-      point. A table holds the window's positions only, so a draw outside
-      the window would read a stale point: drawing inside it is the
-      layout's contract, which the inline draw does not check (the check
-      cost one pass 3 to 5 %). A draw whose pixel lost the bank to a later
-      one (packets run a few pixels at once) computes its point itself. A
-      pair's draw was a chain of about a hundred scalar integer operations
-      (pair key, memo tag, two scrambles, bit reversals); from a table it
-      is a load and two conversions."""
+    - tables (memo_bank_width(spp, True), for kernels that draw a pixel's
+      samples in order, the film pair first, and every sample of the
+      block: the tile kernels, integrators/tile.py): a
+      pixel's first film pair (pair 0) claims the bank and computes every
+      position's sequence index and its Sobol' dimension 1 (`_claim_bank`);
+      the first draw of a pair below TABLE_PAIRS then computes the pair's
+      points at every position in one vectorized loop (`_fill_table`), and
+      each draw reads its packed point. A draw whose pixel lost the bank to
+      a later one (packets run a few pixels at once) computes its point
+      itself. A pair's draw was a chain of about a hundred scalar integer
+      operations (pair key, memo tag, two scrambles, bit reversals); from a
+      table it is a load and two conversions."""
     b, i, n = split_block(index, spp, spp)
     if pair < n and b < 1 << 20:  # (tags stay unique)
         w = memo.shape[0]
@@ -503,29 +437,20 @@ def _sample_pair_memo_slow(seed, pixel, index, spp, pair, memo):
         bw = _table_bank_width(n)
         if w == MEMO_BANKS * bw:
             base = bw * (pixel & (MEMO_BANKS - 1))
-            t = _rotated(i, pair, n)
-            if pair < TABLE_PAIRS:
-                # the tables hold the window's samples only
-                if memo[base + WINDOW] <= index < memo[base + WINDOW + 1]:
-                    if pair == 0 and memo[base] != tag:
-                        _claim_bank(memo, base, tag, seed, pixel, b, n, spp)
-                    if memo[base] == tag:
-                        if memo[base + 1 + pair] != tag:
-                            _fill_table(memo, base, tag, pair, n, pair_key(seed, pixel, pair, 7),
-                                        b, spp)
-                        x = np.uint64(memo[_table_start(base, pair, n) + t])
-                        return float(x >> U32) * INV_2_32, float(x & MASK32) * INV_2_32
-            elif memo[base] == tag:
-                # a deeper pair reads the claim's positions, if it computed t
-                first = memo[base + CLAIMED]
-                if (t - first if t >= first else t + n - first) < memo[base + CLAIMED + 1]:
-                    jo = base + BANK_HEADER
-                    key = pair_key(seed, pixel, pair, 7)
-                    u = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + t]),
-                                                          hash32(key, 1)))
-                    v = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + n + t]),
-                                                          key >> U32))
-                    return float(u) * INV_2_32, float(v) * INV_2_32
+            if pair == 0 and memo[base] != tag:
+                _claim_bank(memo, base, tag, seed, pixel, b, n, spp)
+            if memo[base] == tag:
+                t = _rotated(i, pair, n)
+                jo = base + 1 + TABLE_PAIRS
+                if pair < TABLE_PAIRS:
+                    if memo[base + 1 + pair] != tag:
+                        _fill_table(memo, base, tag, pair, n, pair_key(seed, pixel, pair, 7))
+                    x = np.uint64(memo[_table_start(base, pair, n) + t])
+                    return float(x >> U32) * INV_2_32, float(x & MASK32) * INV_2_32
+                key = pair_key(seed, pixel, pair, 7)
+                u = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + t]), hash32(key, 1)))
+                v = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + n + t]), key >> U32))
+                return float(u) * INV_2_32, float(v) * INV_2_32
     key = pair_key(seed, pixel, pair, 7)
     p = _sample_order(seed, pixel, b, i, n, pair, key)
     return _pair_values(np.uint64(b * (spp if spp > 0 else 1) + p) & MASK32, key)
