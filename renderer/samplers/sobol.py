@@ -73,16 +73,17 @@ table cover the window's positions only, with the same values (tested).
 Progressive jobs ran 5 % faster (one thread, 176 spp; 5.5 % in a pool of
 2 at 589 spp: +7.5 % over one pass instead of +17 %), but one pass ran
 +3.6 +- 1.5 % slower at 64 spp (five pairs of processes; at 176 spp
-+0.4 +- 2.7 % on one thread, +3.5 % in the pool at 589 spp), although a draw's inline code, the claim and the
-fills measured the same in micro-benchmarks. The same binary varies by
-+-3 % from one process to the next, so this took pairs of processes to
-see. Not kept, since one pass is what the efficiency against Mitsuba is
-measured on; the cause of that 3 % was not found. What a pass would still
-pay with windows is the padding permutation per pixel: Kensler's cycle
-walk costs about 14 ns a position when spp is not a power of two (1.5 ns
-when it is, in `permute_all`'s vector loop), and a pass of 8 samples
-claims 24 positions a pixel, about 65 ns a sample of setup against 19 ns
-in one pass. A first version kept the window at each row's end and checked
++0.4 +- 2.7 % on one thread, +3.5 % in the pool at 589 spp), although a
+draw's inline code, the claim and the fills measured the same in
+micro-benchmarks. The same binary varies by +-3 % from one process to
+the next, so this took pairs of processes to see. Not kept, since one
+pass is what the efficiency against Mitsuba is measured on; the cause of
+that 3 % was not found. What a pass would still pay with windows is the
+padding permutation per pixel: Kensler's cycle walk costs about 14 ns a
+position when spp is not a power of two (1.5 ns when it is, in
+`permute_all`'s vector loop), and a pass of 8 samples claims 24
+positions a pixel, about 65 ns a sample of setup against 19 ns in one
+pass. A first version kept the window at each row's end and checked
 it in the inline draw; it measured one pass +3 to +5 % slower too.
 
 Measured and not kept (2026-11-25): a permutation from the nested family
