@@ -122,15 +122,15 @@ def sample_passes(spp: int, progressive: bool, tile_pixels: int = 0) -> list[tup
 # so fair share (service.fairshare) still switches jobs often.
 #
 # A progressive job costs more than a one-pass job with the same tiles:
-# +6.2 +- 1.6 % in a pool of 2 on Zen 3 (2026-11-28, 176 spp, 10 pairs);
-# on Zen 5 +13 to +19 % on one thread and +10 to +19 % in a pool of 2 (176
-# and 589 spp). The cause is the `sobol` sampler's memo: its pair tables
-# take whole blocks of spp samples, so a pass's units (part of each pixel's
-# samples) go with the entries layout (integrators/tile.py, samplers/
-# sobol.py "Windows"); with `random` a progressive job costs what one pass
-# does (-1 to +0 % on one thread). Not the row queues' drain either: these
-# units' rows hold 2048 samples or more, where the path kernel's note
-# measures it at about 1 %.
+# +6.2 +- 1.6 % in a pool of 2 on Zen 3 (2026-11-28, 176 spp, 10 pairs),
+# on Zen 5 +13 to +19 % on one thread, on an Intel Xeon +14 %. The cause was
+# the `sobol` sampler's memo: its pair tables took whole blocks of spp
+# samples, so a pass's units went with the slower entries layout; with
+# `random` a progressive job cost what one pass does (-1 to +0 %). Since the
+# tables take the unit's window of samples (samplers/sobol.py "Windows"),
+# the Intel Xeon measures +4 % on one thread (176 spp, five pairs of
+# processes). Not the row queues' drain either: these units' rows hold 2048
+# samples or more, where the path kernel's note measures it at about 1 %.
 MIN_UNIT_SAMPLES = 1 << 19
 
 

@@ -121,32 +121,60 @@ def _sobol_memo_draws(seed, spp, visits, memo, out):
                                    spp, visits[k, 2], memo)
 
 
-@pytest.mark.parametrize("tables", [False, True])
-@pytest.mark.parametrize("spp", [1, 16, 10, 64])
-def test02_sobol_memo_gives_the_same_values(spp, tables):
+@njit
+def _sobol_plain_draws(seed, spp, visits, out):
+    """The plain kernel (sample_2d, no memo) over the same visits."""
+    for k in range(visits.shape[0]):
+        out[k, 0], out[k, 1] = sample_2d(SAMPLER_SOBOL, seed, visits[k, 0], visits[k, 1], spp,
+                                         visits[k, 2])
+
+
+# The windows of samples a tile kernel may draw (memo_rows): none (the
+# entries layout), every sample, and parts of the block (progressive passes):
+# its head, its tail, a middle part whose span wraps around the block.
+_WINDOWS = {"entries": None, "whole": (0, 1), "head": (0, 0.25), "tail": (0.75, 1),
+            "middle": (0.37, 0.83)}
+
+
+@pytest.mark.parametrize("window", list(_WINDOWS))
+@pytest.mark.parametrize("spp", [1, 16, 10, 64, 100])
+def test02_sobol_memo_gives_the_same_values(spp, window):
     # The tile kernels keep one pixel's sample order (and, in the tables
-    # layout, its pairs' points) in a per-row memo (samplers/dispatch.py
-    # memo_rows); the values must be those of the plain kernel whatever the
-    # order of the visits: pixel-major as a tile walks, pixels interleaved
-    # (one row's memo shared by all of them, banks claimed back and forth,
-    # draws of a pixel that lost its bank), indices past spp (later blocks,
-    # other tags), pairs past the tables (sobol.TABLE_PAIRS) and past spp
-    # (their own permutations).
+    # layout, its pairs' points over the samples of the unit) in a per-row
+    # memo (samplers/dispatch.py memo_rows); the values must be those of the
+    # plain kernel whatever the order of the visits inside the window:
+    # pixel-major as a tile walks, pixels interleaved (one row's memo shared
+    # by all of them, banks claimed back and forth, draws of a pixel that
+    # lost its bank), shuffled; without a window also indices past spp
+    # (later blocks, other tags); pairs past the tables (sobol.TABLE_PAIRS)
+    # and past spp (their own permutations).
     pixels, dims = [0, 1, 4096, 5, 4], range(0, 2 * (max(spp, sobol.TABLE_PAIRS) + 3), 2)
-    walk = [(px, i, d) for px in pixels for i in range(2 * spp) for d in dims]
+    frac = _WINDOWS[window]
+    lo, hi = (0, 2 * spp) if frac is None else (int(frac[0] * spp), max(1, int(frac[1] * spp)))
+    walk = [(px, i, d) for px in pixels for i in range(lo, hi) for d in dims]
+    interleaved = [(px, i, d) for i in range(lo, hi) for px in pixels for d in dims]
     rng = np.random.default_rng(2)
-    for order in (walk, [walk[k] for k in rng.permutation(len(walk))]):
+    for order in (walk, interleaved, [walk[k] for k in rng.permutation(len(walk))]):
         visits = np.asarray(order, np.int64)
-        memo = memo_rows(SAMPLER_SOBOL, spp, 1, tables)[0]
-        assert memo.shape == (sobol.memo_bank_width(spp, tables) * sobol.MEMO_BANKS,)
+        memo = memo_rows(SAMPLER_SOBOL, spp, 1, None if frac is None else (lo, hi))[0]
+        assert memo.shape == (sobol.memo_bank_width(spp, frac is not None) * sobol.MEMO_BANKS,)
         out = np.empty((len(visits), 2))
         _sobol_memo_draws(SEED, spp, visits, memo, out)
-        plain = [sample_2d(SAMPLER_SOBOL, SEED, px, i, spp, d) for px, i, d in order]
-        assert [tuple(o) for o in out] == plain
+        plain = np.empty_like(out)
+        _sobol_plain_draws(SEED, spp, visits, plain)
+        assert np.array_equal(out, plain)
+        if order is walk and frac is not None:
+            # claimed in order, every bank computed the window's span only
+            # and kept the marks of the other positions (sobol.mark_window)
+            span = sobol.window_span(spp, lo, hi)
+            banks = memo.reshape(sobol.MEMO_BANKS, -1)
+            seq = banks[:, 1 + sobol.TABLE_PAIRS:1 + sobol.TABLE_PAIRS + spp]
+            assert ((seq < 0).sum(axis=1) == spp - span).all()
+            assert span < spp or window == "whole" or spp < 64
     assert memo_rows(SAMPLER_RANDOM, spp, 3).shape == (3, 0)  # other samplers keep none
-    assert memo_rows(SAMPLER_SOBOL, 4096, 8192, tables).shape == (8192, 0)  # nor a huge unit
+    assert memo_rows(SAMPLER_SOBOL, 4096, 8192, (0, 4096)).shape == (8192, 0)  # nor a huge unit
     # over the budget with tables, a unit keeps the entries layout
-    assert memo_rows(SAMPLER_SOBOL, 4096, 32, True).shape == (32, 2 * 4096 * sobol.MEMO_BANKS)
+    assert memo_rows(SAMPLER_SOBOL, 4096, 32, (0, 4096)).shape == (32, 2 * 4096 * sobol.MEMO_BANKS)
 
 
 def _point_set(p):

@@ -97,14 +97,14 @@ class TileRun(NamedTuple):
 def start_tile(scene, spec, unit, aov: bool = False) -> TileRun:
     """The unit's TileRun; with `aov`, its film sums the AOVs (film.py) too.
     The tile kernels draw each pixel's samples in order, the film pair
-    first, so the sampler's memo takes the layout with pair tables
-    (samplers.memo_rows) when the unit renders whole blocks of spp samples
-    (a part of a block would pay for the whole block's tables)."""
+    first, and none outside the unit's samples, so the sampler's memo
+    takes the layout with pair tables over the unit's window of samples
+    (samplers.memo_rows)."""
     w, h = unit.x1 - unit.x0, unit.y1 - unit.y0
     return TileRun(PartialFilm.zeros(unit.x0, unit.y0, w, h, aov=aov),
                    unit_blocks(spec.spp, unit.sample_start, unit.sample_end),
                    camera_array(scene.camera, spec.width, spec.height),
                    np.zeros(h, np.int64), np.empty((h, STACK_SIZE), np.int64),
                    memo_rows(SAMPLERS[spec.sampler].id, spec.spp, h,
-                             unit.sample_end - unit.sample_start >= spec.spp),
+                             (unit.sample_start, unit.sample_end)),
                    np.zeros((h, 2 * AOV_CHANNELS)))

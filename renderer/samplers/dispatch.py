@@ -140,17 +140,23 @@ def u2d(smp, key, seed, pixel, index, spp, dim, memo):
 MEMO_MAX_BYTES = 64 << 20
 
 
-def memo_rows(sampler_id: int, spp: int, rows: int, tables: bool = False) -> np.ndarray:
+def memo_rows(sampler_id: int, spp: int, rows: int,
+              window: tuple[int, int] | None = None) -> np.ndarray:
     """Per-row scratch for u1d/u2d's memo: (rows, sobol.MEMO_BANKS banks of
     sobol.memo_bank_width(spp, tables)) for `sobol` with spp up to
     sobol.MEMO_MAX_SPP and within MEMO_MAX_BYTES (tags start at 0, which no
-    entry uses), else (rows, 0), no memo. `tables` (for a kernel that draws
-    each pixel's samples in order, the film pair first, every sample of its
-    blocks: the tile kernels) asks for the layout with pair tables, which
-    falls back to the entries layout above the budget. The memo changes no
-    value, only the time."""
+    entry uses), else (rows, 0), no memo. `window` (lo, hi), for a kernel
+    that draws only the samples [lo, hi) of each pixel, each pixel's in
+    order, the film pair first (the tile kernels), asks for the layout with
+    pair tables (over the window's positions only: sobol.mark_window),
+    which falls back to the entries layout above the budget. The memo
+    changes no value, only the time."""
+    tables = window is not None
     layouts = ((True, False) if tables else (False,)) \
         if sampler_id == SAMPLER_SOBOL and spp <= sobol.MEMO_MAX_SPP else ()
     widths = [sobol.MEMO_BANKS * sobol.memo_bank_width(spp, layout) for layout in layouts]
     width = next((w for w in widths if rows * w * 8 <= MEMO_MAX_BYTES), 0)
-    return np.zeros((rows, width), np.int64)
+    memos = np.zeros((rows, width), np.int64)
+    if tables and width and width == widths[0]:
+        sobol.mark_window(memos, spp, *window)
+    return memos

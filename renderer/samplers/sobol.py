@@ -49,7 +49,7 @@ without all three as fast as `random`: the cost is the sum of the links,
 not one of them (nor their latency, 2026-11-27's fourth session). So the
 path tracer's memo now takes the tables layout (`sample_pair_memo`): a
 pixel's first film pair claims a bank and computes every position's
-sequence index (`permute_all`: for a power-of-two spp one branch-free,
+sequence index (`permute_run`: for a power-of-two spp one branch-free,
 vectorized loop) and Sobol' dimension 1; a pair's first draw fills its
 whole table of packed points in one vectorized loop (`_fill_table`, about
 1 ns a point); every draw after that is a load and two conversions, inline,
@@ -63,28 +63,28 @@ intrinsic for `reverse_bits32` (no change: LLVM already recognizes the
 pattern), a 64-bit division less per vertex (the lanes keep their pixel
 and sample index; within the noise, kept since it costs nothing).
 
-Windows, measured and not kept (2026-11-28, Zen 5): the tables cover every
-position of a block of spp samples, so a unit that renders part of a
-pixel's samples (a progressive pass) would pay for all of them and takes
-the entries layout instead; that is most of what a progressive job costs
-over one pass (plan.py). Commit a5c74c3 gave the memo the window of
-samples its unit renders (in each bank's header) and made a claim and a
-table cover the window's positions only, with the same values (tested).
-Progressive jobs ran 5 % faster (one thread, 176 spp; 5.5 % in a pool of
-2 at 589 spp: +7.5 % over one pass instead of +17 %), but one pass ran
-+3.6 +- 1.5 % slower at 64 spp (five pairs of processes; at 176 spp
-+0.4 +- 2.7 % on one thread, +3.5 % in the pool at 589 spp), although a
-draw's inline code, the claim and the fills measured the same in
-micro-benchmarks. The same binary varies by +-3 % from one process to
-the next, so this took pairs of processes to see. Not kept, since one
-pass is what the efficiency against Mitsuba is measured on; the cause of
-that 3 % was not found. What a pass would still pay with windows is the
-padding permutation per pixel: Kensler's cycle walk costs about 14 ns a
-position when spp is not a power of two (1.5 ns when it is, in
-`permute_all`'s vector loop), and a pass of 8 samples claims 24
-positions a pixel, about 65 ns a sample of setup against 19 ns in one
-pass. A first version kept the window at each row's end and checked
-it in the inline draw; it measured one pass +3 to +5 % slower too.
+Windows (2026-11-28): the tables covered every position of a block of spp
+samples, so a unit that renders part of a pixel's samples (a progressive
+pass) would have paid for all of them, and went with the entries layout:
+that was most of what a progressive job cost over one pass (plan.py). A
+tables-layout memo now takes the unit's window of samples (`mark_window`:
+marks in the positions the window does not read, so the bank's header,
+its layout and the inline draw are those of one pass), and a claim and a
+table cover the window's positions only; the claim's permutation goes
+through `permute_run`, which computes Kensler's permutation for a run of
+positions without `permute`'s division per call (6.7 ns a position at
+spp 176 instead of 13, 1.7 ns at 256 instead of 4.5). The same values
+(tests/test_renderer_samplers.py test02, over windows). Measured on an
+Intel Xeon with AVX-512, cornell-box 256x256, one thread, five pairs of
+processes against the code before: progressive 176 spp -8.4 +- 0.3 %
+(+4 % over one pass instead of +14 %), one pass 176 spp -1.9 +- 0.7 %,
+one pass 64 spp -1.1 +- 0.7 %. A first try (a5c74c3, Zen 5) kept the
+window in a longer bank header and checked it on the deeper pairs' path:
+progressive -5 %, but one pass +3.6 +- 1.5 % at 64 spp, cause not found;
+this version leaves one pass's layout and hot code as they were. What a
+pass still pays: a claim computes TABLE_PAIRS - 1 positions more than its
+samples (the pairs' rotations), and each table is filled from the
+out-of-line draw once per pass instead of once per pixel.
 
 Measured and not kept (2026-11-25): a permutation from the nested family
 (i's bits scrambled top-down by the Laine-Karras hash on reversed bits, the
@@ -174,8 +174,7 @@ import numpy as np
 from ..kernels import kernel, kernel_inline
 from ..registry import Sampler, register_sampler
 from .common import (INV_2_32, MASK32, U1, U8, U16, U32, block_key, hash32, pair_key, permute,
-                     permute_all,
-                     reverse_bits32, split_block)
+                     permute_run, reverse_bits32, split_block)
 
 SAMPLER_SOBOL = 7
 _H1 = np.uint64(0x3D20ADEA)
@@ -341,18 +340,77 @@ def memo_bank_width(spp: int, tables: bool) -> int:
     return _table_bank_width(spp) if tables else 2 * spp
 
 
+# A window (`mark_window`): a unit that renders the samples [lo, hi) of a
+# pixel's block, part of them, needs the positions lo + k + pair mod n of
+# its m = hi - lo samples for the pairs below TABLE_PAIRS, a span of
+# m + TABLE_PAIRS - 1 positions from lo. Such a memo marks every position
+# outside the span, in every bank, with -(hi + 1) in the sequence indices
+# (which are never negative), and a claim then computes the span only.
+# Position lo - 1 mod n lies outside the span, and a pixel's first draw is
+# its sample lo, so a claim finds the window at the position before its
+# sample; the claim hands it to the pair tables in their tags (negative:
+# `_window_code`), and a deeper pair that meets a mark computes its point
+# itself. Nothing of this is on the inline draw (`sample_pair_memo`).
+_WINDOW_BITS = 13  # MEMO_MAX_SPP < 2 ** _WINDOW_BITS
+
+
+def window_span(spp: int, lo: int, hi: int) -> int:
+    """Positions a tables-layout claim computes for the window [lo, hi) of a
+    block of spp samples: the window's span, or spp if the span would take
+    every position (then the memo keeps no marks: a whole claim)."""
+    span = hi - lo + TABLE_PAIRS - 1
+    return span if 0 <= lo < hi <= spp and span < spp else spp
+
+
+def mark_window(memos: np.ndarray, spp: int, lo: int, hi: int) -> None:
+    """Give tables-layout memo rows the window [lo, hi): the samples their
+    kernel draws, each pixel's in order from lo (see the comment above)."""
+    span = window_span(spp, lo, hi)
+    if span == spp:
+        return
+    bw = memo_bank_width(spp, True)
+    banks = memos.reshape(memos.shape[0], MEMO_BANKS, bw)
+    outside = (np.arange(spp) - lo) % spp >= span
+    seq = banks[:, :, 1 + TABLE_PAIRS:1 + TABLE_PAIRS + spp]
+    seq[:, :, outside] = -(hi + 1)
+
+
+@kernel_inline
+def _window_code(lo, hi):
+    """A pair-table tag that is no tag: the table's window to fill (< 0)."""
+    return -1 - (lo + (hi << _WINDOW_BITS))
+
+
 @kernel
-def _claim_bank(memo, base, tag, seed, pixel, b, n, spp):
-    """Bank `base` now holds pixel `pixel`'s block b: every position's
-    sequence index J[t] = b spp + perm(t) and its reversed Sobol' dimension
-    1, no pair table yet. Out of line: once per pixel and block."""
+def _claim_bank(memo, base, tag, seed, pixel, b, n, spp, i):
+    """Bank `base` now holds pixel `pixel`'s block b: the sequence index
+    J[t] = b spp + perm(t) and its reversed Sobol' dimension 1 at every
+    position t, or, for a memo with a window (`mark_window`) claimed at its
+    first sample i, at the window's span only; no pair table yet. Out of
+    line: once per pixel and block."""
     memo[base] = tag
-    for k in range(TABLE_PAIRS):
-        memo[base + 1 + k] = 0
     jo = base + 1 + TABLE_PAIRS
-    seq, dim1 = memo[jo:jo + n], memo[jo + n:jo + 2 * n]
-    permute_all(n, _order_key(seed, pixel, b), seq)
-    for t in range(n):
+    key = _order_key(seed, pixel, b)
+    first, span, code = 0, n, 0
+    mark = memo[jo + _rotated(i, n - 1, n)]  # position i - 1 mod n
+    if mark < 0 and b == 0:
+        hi = -mark - 1
+        if i < hi <= n and hi - i + TABLE_PAIRS - 1 < n:
+            first, span, code = i, hi - i + TABLE_PAIRS - 1, _window_code(i, hi)
+    for k in range(TABLE_PAIRS):
+        memo[base + 1 + k] = code
+    _claim_run(memo[jo:jo + n], memo[jo + n:jo + 2 * n], first, min(span, n - first),
+               n, key, b, spp)
+    if first + span > n:  # the span wraps around the block
+        _claim_run(memo[jo:jo + n], memo[jo + n:jo + 2 * n], 0, first + span - n,
+                   n, key, b, spp)
+
+
+@kernel_inline
+def _claim_run(seq, dim1, t0, m, n, key, b, spp):
+    """`_claim_bank` at the positions [t0, t0 + m)."""
+    permute_run(n, key, t0, seq[t0:t0 + m])
+    for t in range(t0, t0 + m):
         j = np.uint64(b * spp + seq[t]) & MASK32
         seq[t] = np.int64(j)
         dim1[t] = np.int64(_reversed_sobol1(j))
@@ -361,20 +419,35 @@ def _claim_bank(memo, base, tag, seed, pixel, b, n, spp):
 @kernel
 def _fill_table(memo, base, tag, pair, n, key):
     """Pair `pair`'s scrambled points at every position of the bank's block,
-    packed (u bits << 32 | v bits): one loop of integer arithmetic over the
-    positions, which LLVM vectorizes, instead of one hash chain per draw."""
-    jo = base + 1 + TABLE_PAIRS
-    to = _table_start(base, pair, n)
+    or at the positions its window reads (lo + pair + k mod n, k < hi - lo)
+    if its tag holds one (`_window_code`), packed (u bits << 32 | v bits):
+    one loop of integer arithmetic over the positions, which LLVM
+    vectorizes, instead of one hash chain per draw."""
+    t0, m = 0, n
+    code = memo[base + 1 + pair]
+    if code < 0:
+        lo = (-code - 1) & ((1 << _WINDOW_BITS) - 1)
+        t0, m = _rotated(lo, pair, n), ((-code - 1) >> _WINDOW_BITS) - lo
+    _fill_run(memo, base, pair, n, key, t0, min(m, n - t0))
+    if t0 + m > n:  # the window wraps around the block
+        _fill_run(memo, base, pair, n, key, 0, t0 + m - n)
+    memo[base + 1 + pair] = tag
+
+
+@kernel_inline
+def _fill_run(memo, base, pair, n, key, t0, m):
+    """`_fill_table` at the positions [t0, t0 + m)."""
+    jo = base + 1 + TABLE_PAIRS + t0
+    to = _table_start(base, pair, n) + t0
     s1 = hash32(key, 1)
     s2 = key >> U32
     # slices, not offsets into memo: indices LLVM can tell are in bounds and
     # non-negative, or the loop stays scalar
-    seq, dim1, out = memo[jo:jo + n], memo[jo + n:jo + 2 * n], memo[to:to + n]
-    for t in range(n):
+    seq, dim1, out = memo[jo:jo + m], memo[jo + n:jo + n + m], memo[to:to + m]
+    for t in range(m):
         u = reverse_bits32(_scramble_reversed(np.uint64(seq[t]), s1))
         v = reverse_bits32(_scramble_reversed(np.uint64(dim1[t]), s2))
         out[t] = np.int64((u << U32) | v)
-    memo[base + 1 + pair] = tag
 
 
 @kernel_inline
@@ -392,17 +465,18 @@ def sample_pair_memo(seed, pixel, index, spp, pair, memo):
     - entries (width 2 spp): each position's tag and permuted index, filled
       as draws need them;
     - tables (memo_bank_width(spp, True), for kernels that draw a pixel's
-      samples in order, the film pair first, and every sample of the
-      block: the tile kernels, integrators/tile.py): a
-      pixel's first film pair (pair 0) claims the bank and computes every
-      position's sequence index and its Sobol' dimension 1 (`_claim_bank`);
-      the first draw of a pair below TABLE_PAIRS then computes the pair's
-      points at every position in one vectorized loop (`_fill_table`), and
-      each draw reads its packed point. A draw whose pixel lost the bank to
-      a later one (packets run a few pixels at once) computes its point
-      itself. A pair's draw was a chain of about a hundred scalar integer
-      operations (pair key, memo tag, two scrambles, bit reversals); from a
-      table it is a load and two conversions."""
+      samples in order, the film pair first, and only the samples of
+      their window (`mark_window`): the tile kernels, integrators/tile.py):
+      a pixel's first film pair (pair 0) claims the bank and computes the
+      sequence index and Sobol' dimension 1 of every position its window
+      reads (`_claim_bank`); the first draw of a pair below TABLE_PAIRS
+      then computes the pair's points at those positions in one vectorized
+      loop (`_fill_table`), and each draw reads its packed point. A draw
+      whose pixel lost the bank to a later one (packets run a few pixels
+      at once) computes its point itself. A pair's draw was a chain of
+      about a hundred scalar integer operations (pair key, memo tag, two
+      scrambles, bit reversals); from a table it is a load and two
+      conversions."""
     b, i, n = split_block(index, spp, spp)
     if pair < n and b < 1 << 20:  # (tags stay unique)
         w = memo.shape[0]
@@ -439,7 +513,7 @@ def _sample_pair_memo_slow(seed, pixel, index, spp, pair, memo):
         if w == MEMO_BANKS * bw:
             base = bw * (pixel & (MEMO_BANKS - 1))
             if pair == 0 and memo[base] != tag:
-                _claim_bank(memo, base, tag, seed, pixel, b, n, spp)
+                _claim_bank(memo, base, tag, seed, pixel, b, n, spp, i)
             if memo[base] == tag:
                 t = _rotated(i, pair, n)
                 jo = base + 1 + TABLE_PAIRS
@@ -448,10 +522,13 @@ def _sample_pair_memo_slow(seed, pixel, index, spp, pair, memo):
                         _fill_table(memo, base, tag, pair, n, pair_key(seed, pixel, pair, 7))
                     x = np.uint64(memo[_table_start(base, pair, n) + t])
                     return float(x >> U32) * INV_2_32, float(x & MASK32) * INV_2_32
-                key = pair_key(seed, pixel, pair, 7)
-                u = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + t]), hash32(key, 1)))
-                v = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + n + t]), key >> U32))
-                return float(u) * INV_2_32, float(v) * INV_2_32
+                if memo[jo + t] >= 0:  # (not a window's mark: mark_window)
+                    key = pair_key(seed, pixel, pair, 7)
+                    u = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + t]),
+                                                          hash32(key, 1)))
+                    v = reverse_bits32(_scramble_reversed(np.uint64(memo[jo + n + t]),
+                                                          key >> U32))
+                    return float(u) * INV_2_32, float(v) * INV_2_32
     key = pair_key(seed, pixel, pair, 7)
     p = _sample_order(seed, pixel, b, i, n, pair, key)
     return _pair_values(np.uint64(b * (spp if spp > 0 else 1) + p) & MASK32, key)
