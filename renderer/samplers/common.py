@@ -112,6 +112,19 @@ def _permute_round(x, p, w):
     return x
 
 
+@kernel_inline
+def _bit_mask(n):
+    """2^k - 1 for the bits k of n - 1 (uint64 n >= 1, n <= 2^32): the domain
+    of Kensler's rounds for a permutation of [0, n)."""
+    w = n - U1
+    w |= w >> U1
+    w |= w >> U2
+    w |= w >> U4
+    w |= w >> U8
+    w |= w >> U16
+    return w
+
+
 @kernel
 def permute(i, n, key):
     """Element `i` of the random permutation of [0, n) chosen by `key`.
@@ -123,12 +136,7 @@ def permute(i, n, key):
     ln = np.uint64(n)
     p = np.uint64(key) & MASK32
     x = np.uint64(i)
-    w = ln - U1
-    w |= w >> U1
-    w |= w >> U2
-    w |= w >> U4
-    w |= w >> U8
-    w |= w >> U16
+    w = _bit_mask(ln)
     while True:
         x = _permute_round(x, p, w)
         if x < ln:
@@ -156,12 +164,7 @@ def permute_run(n, key, first, out):
     where `permute` divides per call (vectorized)."""
     p = np.uint64(key) & MASK32
     ln = np.uint64(n)
-    w = ln - U1
-    w |= w >> U1
-    w |= w >> U2
-    w |= w >> U4
-    w |= w >> U8
-    w |= w >> U16
+    w = _bit_mask(ln)
     f = np.uint64(first)
     if w + U1 == ln:
         for k in range(out.shape[0]):
