@@ -318,7 +318,11 @@ def sample_pair(seed, pixel, index, spp, pair):
 # layout (`sample_pair_memo`): the film pair and the pairs of the first
 # four vertices (pairs 1 + 4 b + 0..3, samplers/dispatch.py). Deeper pairs
 # are drawn by fewer paths (Russian roulette); 13 and 29 measured within
-# a few percent of this on cornell-box.
+# a few percent of this on cornell-box. 29 again with the survival scale
+# 2 (2026-11-28, Intel Xeon, cornell-box, one thread, five pairs of
+# processes): 64 spp -0.3 +- 0.5 %, 256 spp -2.2 +- 0.6 %, for 1.6x the
+# memo's memory and tables filled at every position for the few paths
+# that reach the fifth vertex; not kept.
 TABLE_PAIRS = 17
 
 
