@@ -14,6 +14,8 @@ import pytest
 
 from renderer import RenderSpec, build_scene, load_scene, merge, plan, render, resolve_document, run_unit
 from renderer.plan import MIN_PASS_SAMPLES
+from renderer.integrators.tile import start_tile
+from renderer.samplers import sobol
 
 Z = 4.5
 CORNELL_LIGHT = (18.387, 13.9873, 6.75357)
@@ -134,6 +136,24 @@ def test06_progressive_passes_merge_to_the_same_bits(cornell):
     # a quarter of spp caps it): the bytes are the same whatever the passes
     assert sorted({(u.sample_start, u.sample_end) for u in plan(spec, progressive=True)}) == [
         (0, 2), (2, 4), (4, 8), (8, 11)]
+
+
+def test06_progressive_passes_with_sobol_windows_merge_to_the_same_bits(cornell):
+    # At 40 spp a pass's samples plus the pairs' rotations no longer cover a
+    # pixel's block, so the `sobol` memo computes each unit's window only
+    # (samplers/sobol.py mark_window), the last pass's span wrapping around
+    # the block: the image's bytes are still those of one pass.
+    spec = RenderSpec(spp=40, depth=3, width=24, height=24, tile_size=8, seed=5)
+    units = plan(spec, progressive=True)
+    windows = sorted({(u.sample_start, u.sample_end) for u in units})
+    assert [w for w in windows if sobol.window_span(40, *w) < 40] == [(0, 8), (8, 16), (16, 32),
+                                                                      (32, 40)]
+    assert (start_tile(cornell, spec, units[-1]).memos < 0).any()  # the unit's memo is marked
+    whole = render_inline(cornell, spec)
+    passes = merge(24, 24, [run_unit(cornell, spec, u) for u in units])
+    assert np.array_equal(whole.sum, passes.sum)
+    assert np.array_equal(whole.sum_sq, passes.sum_sq)
+    assert np.array_equal(whole.aov, passes.aov)
 
 
 def test06_a_progressive_first_pass_renders_enough_to_outweigh_a_units_cost():
