@@ -147,12 +147,6 @@ def permute(i, n, key):
 
 
 @kernel
-def permute_all(n, key, out):
-    """out[i] = permute(i, n, key) for every i < n (`permute_run`)."""
-    permute_run(n, key, 0, out[:n])
-
-
-@kernel
 def permute_run(n, key, first, out):
     """out[k] = permute(first + k, n, key) for k < len(out), first + len(out)
     <= n, the same values as `permute` for a fraction of its cost. For a

@@ -358,10 +358,12 @@ def memo_bank_width(spp: int, tables: bool) -> int:
 _WINDOW_BITS = 13  # MEMO_MAX_SPP < 2 ** _WINDOW_BITS
 
 
-def window_span(spp: int, lo: int, hi: int) -> int:
+@kernel_inline
+def window_span(spp, lo, hi):
     """Positions a tables-layout claim computes for the window [lo, hi) of a
     block of spp samples: the window's span, or spp if the span would take
-    every position (then the memo keeps no marks: a whole claim)."""
+    every position (then the memo keeps no marks: a whole claim). The rule
+    of both `mark_window` and `_claim_bank`."""
     span = hi - lo + TABLE_PAIRS - 1
     return span if 0 <= lo < hi <= spp and span < spp else spp
 
@@ -399,8 +401,8 @@ def _claim_bank(memo, base, tag, seed, pixel, b, n, spp, i):
     mark = memo[jo + _rotated(i, n - 1, n)]  # position i - 1 mod n
     if mark < 0 and b == 0:
         hi = -mark - 1
-        if i < hi <= n and hi - i + TABLE_PAIRS - 1 < n:
-            first, span, code = i, hi - i + TABLE_PAIRS - 1, _window_code(i, hi)
+        if window_span(n, i, hi) < n:
+            first, span, code = i, window_span(n, i, hi), _window_code(i, hi)
     for k in range(TABLE_PAIRS):
         memo[base + 1 + k] = code
     _claim_run(memo[jo:jo + n], memo[jo + n:jo + 2 * n], first, min(span, n - first),
