@@ -151,6 +151,42 @@ Owen-scrambled Sobol' has little left to gain (an inference from these two
 experiments, not a measurement of it), and its higher dimensions' 2D
 projections are weaker than the (0, 2)-sequence every pair uses here.
 
+Measured and not kept (2026-11-28, third session, AMD EPYC Zen 4):
+which pair gives `hammersley` its lower MSE at 64 spp. In the full
+bench run `hammersley` has RMSE 0.00847 on cornell-box at 64 spp,
+against 0.00879 for this sampler: 7 % less MSE, at a third less speed.
+Method: cornell-box 256x256, path-mis, depth 7, MSE against the bench's
+8192-spp reference, mean over 6 seeds (standard error 0.5-1.4 %) unless
+a count is given. One pair of this sampler was replaced at a time, in
+/tmp copies; none of this code is in the tree. The results:
+- `sobol` itself: 7.65e-5 (7.63e-5 over 20 seeds). `hammersley`: 7.19e-5.
+- No change:
+  - the film pair from `hammersley` (7.71e-5), biased or shifted;
+  - the first vertex's light pair from `hammersley` (7.67e-5);
+  - each pair with its own permutation instead of the rotated one (7.65e-5).
+- All pairs after the film pair from `hammersley`: 7.15e-5.
+- **Only the first vertex's BSDF pair (pair 2) from `hammersley`: 7.10e-5
+  over 20 seeds, -6.9 +- 1.2 %.** At 16 spp -4.6 %, at 256 spp -3.8 %
+  (6 seeds each, about 2 standard errors).
+- What makes the difference is the net and its randomization together:
+  - the Hammersley net Owen-scrambled in pair 2: no change (7.66e-5);
+  - the Sobol' net with `hammersley`'s randomization in pair 2 (y
+    digitally shifted, x its stratum plus one common offset): -2.4 %
+    (7.44e-5);
+  - every pair from pair 1 on digitally shifted instead of Owen-scrambled:
+    -2.4 % at 64 spp, 0 at 16 and 256.
+So on cornell-box, a Hammersley set with a random shift (x = (k + delta)
+/ N, y = RI(k) xor r; each point is uniform, so it is unbiased) beats
+Owen-scrambled Sobol' for the first bounce direction. At this sampler's
+speed that would be about +7 % efficiency at 64 spp there.
+The same change (pair 2 from `hammersley`) on other scenes at 64 spp
+does not carry over, so it is not a change to make:
+- door-ajar (128x128, 16 seeds): -1.4 +- 0.9 %;
+- cornell-caustic (128x128, 16 seeds): +5.5 +- 3.5 %, worse;
+- both against a 4096-spp `random` reference;
+- veach-mis against such a reference: +-20 % over 8 seeds (heavy tails),
+  no answer.
+
 Measured and not kept (2026-11-27, fourth session, AVX-512 machine, Zen 5,
 path-mis at 64 spp, 2 threads, interleaved pairs of processes): the pairs
 drawn ahead of the shading. A pair is a chain of dependent multiplies
