@@ -161,7 +161,9 @@ a count is given. One pair of this sampler was replaced at a time, in
 /tmp copies; none of this code is in the tree. The results:
 - `sobol` itself: 7.65e-5 (7.63e-5 over 20 seeds). `hammersley`: 7.19e-5.
 - No change:
-  - the film pair from `hammersley` (7.71e-5), biased or shifted;
+  - the film pair from `hammersley`, biased as it is (7.71e-5) or
+    shifted like its other pairs (7.63e-5), or from `multijitter`
+    (7.74e-5);
   - the first vertex's light pair from `hammersley` (7.67e-5);
   - each pair with its own permutation instead of the rotated one (7.65e-5).
 - All pairs after the film pair from `hammersley`: 7.15e-5.
