@@ -218,7 +218,7 @@ def parse_sse(lines: Iterable[str]) -> Iterator[ServerSentEvent | int]:
             if "\0" not in value:
                 last_id = value
         elif name == "retry":
-            if value.isdigit():
+            if value.isascii() and value.isdigit():
                 yield int(value)
     # A stream that ends without a blank line drops its unfinished event (as browsers do).
 

@@ -179,7 +179,7 @@ class Store:
         directory = self.unit_log_dir(job_id, index)
         found = []
         for path in directory.glob("*.json") if directory.is_dir() else ():
-            if path.stem.isdigit():
+            if path.stem.isascii() and path.stem.isdigit():
                 try:
                     found.append((int(path.stem), json.loads(path.read_text())))
                 except (OSError, ValueError):  # removed meanwhile (requeued), or cut short

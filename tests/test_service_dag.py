@@ -55,6 +55,7 @@ def test01_dag_units_wait_for_their_needs_and_the_image_matches_the_renderer(
     ("radiosity", {"ff_rays": 0}, "ff_rays"),
     ("radiosity", {"hemicube_res": 7}, "hemicube_res"),
     ("bdpt", {"strategy": "s=two"}, "strategy"),
+    ("bdpt", {"strategy": "s=\u00b9"}, "strategy"),  # "¹".isdigit(), but int() refuses it
 ])
 def test02_bad_method_options_are_refused_at_submission(method, options, field, local_client):
     """Rule 5: a job whose options its method cannot run is a 422 naming the

@@ -295,6 +295,10 @@ def test06_form_shape_errors_are_422(local_client):
     extra = [("colour", (None, b"red"))]
     assert_422(upload(local_client, doc, extra=extra), ["body", "colour"],
                "unknown form field", "scene, files")
+    # A part named by a digit int() refuses (str.isdigit("¹") is True): found by
+    # test_service_fuzz as a 500.
+    assert_422(upload(local_client, doc, extra=[("¹", (None, b"x"))]), ["body", "¹"],
+               "unknown form field")
     twice = [("scene", ("again.json", doc, "application/json"))]
     assert_422(upload(local_client, doc, extra=twice), ["body", "scene"], "at most 1")
     assert_422(local_client.post("/scenes", json=room("bad")), ["body", "scene"],

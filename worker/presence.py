@@ -202,7 +202,7 @@ def forget_dead_processes(client: redis.Redis, name: str, payload: dict | None) 
     if payload and "job_id" in payload and "index" in payload:
         pipe.delete(heartbeat_key(payload["job_id"], int(payload["index"])))
     for pid in client.hkeys(worker_running_key(name)):
-        if pid.isdigit() and not _process_alive(int(pid)):
+        if pid.isascii() and pid.isdigit() and not _process_alive(int(pid)):
             pipe.hdel(worker_running_key(name), pid)
     pipe.execute()
 

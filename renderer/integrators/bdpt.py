@@ -134,9 +134,14 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     return rays
 
 
+def _whole_number(text: str) -> bool:
+    """ASCII digits only: str.isdigit() also accepts '¹' and '²', which int() refuses."""
+    return text.isascii() and text.isdigit()
+
+
 def _check_strategy(value) -> str | None:
     name, _, k = str(value).partition("=")
-    if value == "all" or (name == "s" and k.isdigit()):
+    if value == "all" or (name == "s" and _whole_number(k)):
         return None
     return f"must be 'all' or 's=K' with K a whole number, got {value!r}"
 
@@ -148,7 +153,7 @@ def _options(options: dict):
         only_s = ALL_STRATEGIES
     else:
         name, _, value = strategy.partition("=")
-        if name != "s" or not value.isdigit():
+        if name != "s" or not _whole_number(value):
             from ..errors import SpecError
             raise SpecError("options.strategy", f"must be 'all' or 's=K', got {strategy!r}")
         only_s = int(value)

@@ -66,8 +66,10 @@ def _invalid(loc: list, msg: str) -> list[dict]:
 
 
 def _field_loc(field: str) -> list:
-    """``files[2].name`` -> ["files", 2, "name"] (FastAPI's loc for list items)."""
-    return [int(part) if part.isdigit() else part
+    """``files[2].name`` -> ["files", 2, "name"] (FastAPI's loc for list items).
+    Field names can be a client's (an unknown form field): ASCII digits only,
+    since str.isdigit() also takes '¹', which int() refuses."""
+    return [int(part) if part.isascii() and part.isdigit() else part
             for part in re.split(r"[.\[\]]+", field) if part]
 
 
