@@ -370,44 +370,53 @@ def _display_tile(sc, pt, hist, vert_b, patch_vert, jk_hist, jk_vert, cam, x0, y
                   out_aov, out_jk, row_rays, stacks, memos, aov_rows, jk_rows):
     """The tile loop (integrators/tile.py) over `li_radiosity`, with the AOVs'
     and the jackknife changes' folds beside the radiance's; rows in parallel."""
+    for row in prange(y1 - y0):
+        row_rays[row] = _display_row(sc, pt, hist, vert_b, patch_vert, jk_hist, jk_vert, cam, x0,
+                                     y0, x1, width, height, blocks, seed, depth, smp, spp, gather,
+                                     out_sum, out_sq, out_w, out_aov, out_jk, np.int64(row),
+                                     stacks[row], memos[row], aov_rows[row], jk_rows[row])
+
+
+@kernel
+def _display_row(sc, pt, hist, vert_b, patch_vert, jk_hist, jk_vert, cam, x0, y0, x1,
+                 width, height, blocks, seed, depth, smp, spp, gather, out_sum, out_sq, out_w,
+                 out_aov, out_jk, row, stack, memo, scr, jk):
+    """Row `row` of `_display_tile`, its rays traced; a kernel of its own
+    (integrators/tile.py, "Compile time"). `jk`: [0] the block's sums of the
+    jackknife changes, [1] the pixel's (module doc of film.py)."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     n = n_samples(blocks)
-    for row in prange(y1 - y0):
-        stack = stacks[row]
-        memo = memos[row]
-        scr = aov_rows[row]
-        jk = jk_rows[row]  # [0] the block's sums, [1] the pixel's (module doc of film.py)
-        y = y0 + row
-        rays = 0
-        for x in range(x0, x1):
-            pixel = y * width + x
-            ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            for bi in range(blocks.shape[0]):
-                sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-                for s in range(blocks[bi, 0], blocks[bi, 1]):
-                    key = sample_key(seed, pixel, s)
-                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
-                    dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-                    (r, g, b, nr, alr, alg, alb, anx, any_, anz, dist, lk, lp, lsm, wa, wb,
-                     wc, thr, thg, thb) = li_radiosity(
-                        sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key,
-                        depth, gather, smp, seed, pixel, s, spp, memo)
-                    rays += nr
-                    sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
-                    add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
-                    _jackknife_sample(jk_hist, jk_vert, patch_vert, lsm, lk, lp, wa, wb, wc,
-                                      thr, thg, thb, jk[0])
-                ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
-                                                   sr, sg, sb, tr, tg, tb)
-                add_aov_block(scr)
-                _jackknife_fold(jk, 1)
-            store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n)
-            store_aov(out_aov, row, x - x0, scr)
-            for j in range(jk.shape[1]):
-                for c in range(3):
-                    out_jk[row, x - x0, j, c] = jk[1, j, c]
-                    jk[1, j, c] = 0.0
-        row_rays[row] = rays
+    y = y0 + row
+    rays = 0
+    for x in range(x0, x1):
+        pixel = y * width + x
+        ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        for bi in range(blocks.shape[0]):
+            sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            for s in range(blocks[bi, 0], blocks[bi, 1]):
+                key = sample_key(seed, pixel, s)
+                fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
+                dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+                (r, g, b, nr, alr, alg, alb, anx, any_, anz, dist, lk, lp, lsm, wa, wb,
+                 wc, thr, thg, thb) = li_radiosity(
+                    sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key,
+                    depth, gather, smp, seed, pixel, s, spp, memo)
+                rays += nr
+                sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, r, g, b)
+                add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
+                _jackknife_sample(jk_hist, jk_vert, patch_vert, lsm, lk, lp, wa, wb, wc,
+                                  thr, thg, thb, jk[0])
+            ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
+                                               sr, sg, sb, tr, tg, tb)
+            add_aov_block(scr)
+            _jackknife_fold(jk, 1)
+        store_pixel(out_sum, out_sq, out_w, row, x - x0, ar, ag, ab, qr, qg, qb, n)
+        store_aov(out_aov, row, x - x0, scr)
+        for j in range(jk.shape[1]):
+            for c in range(3):
+                out_jk[row, x - x0, j, c] = jk[1, j, c]
+                jk[1, j, c] = 0.0
+    return rays
 
 
 # ---------------------------------------------------------------- the method

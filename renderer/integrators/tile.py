@@ -40,6 +40,24 @@ or 4, or rows dealt out across the image (row = i x stride mod h, the
 same film bytes): no difference beyond the noise of 3 %. What two threads
 lose against two processes (1.91x against 1.98x in bench/throughput.py's
 scaling) is not the rows' shares.
+
+Compile time. Numba's parfor passes (fusion, prelowering, the gufunc's
+lowering) run over everything inside a `prange` body, inlined helpers
+included: for radiosity's display they were 28 of the 47 s its kernel took
+to compile (Zen 5, cold cache; type inference and inlining most of the
+rest). So radiosity's display and photon mapping's camera and k-NN passes
+keep only the `prange` shell and call a row kernel of their own
+(`_display_row`, `_camera_row`, `_knn_row`; the row passed as np.int64:
+the parfor types its index uint64 in one compile and int64 in another,
+which compiled the row kernel twice). Measured 2026-11-28 (AMD EPYC Zen 5,
+every method warmed in one process on a cold cache): photon 45.4 -> 30.7 s,
+radiosity 50.8 -> 36.8 s, all methods 198 -> 172 s; the films the same
+bytes; photon maps 2-3 % faster, radiosity's display with final gather
+29 % faster (0.110 -> 0.078 s, cornell-box 128x128, 16 spp, one thread).
+Not done for the path tracer: as a row kernel it compiled in 44 s instead
+of 58, but cornell-box at 64 spp rendered 10.6 % slower (2.23 s against
+2.02 s, the same bytes) and veach-mis 5 % slower; the cause is in what
+LLVM makes of the two contexts and was not found.
 """
 
 from __future__ import annotations

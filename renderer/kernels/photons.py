@@ -235,37 +235,46 @@ def camera_pass(sc, cam, x0, y0, x1, y1, width, height, seed, index, spp, smp, d
     """One camera sample (`index`) per pixel of the tile: its visible point,
     Ld and AOVs (`vp_aov`, added to: the sums over iterations). One sample of
     each pixel, so no sampler memo (`no_memo`)."""
-    ox, oy, oz = cam[0], cam[1], cam[2]
     for row in prange(y1 - y0):
-        stack = stacks[row]
-        y = y0 + row
-        rays = 0
-        for x in range(x0, x1):
-            c = x - x0
-            pixel = y * width + x
-            key = sample_key(seed, pixel, index)
-            fu, fv = u2d(smp, key, seed, pixel, index, spp, 0, no_memo)
-            dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-            (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
-             nr, alr, alg, alb, anx, any_, anz, dist) = visible_point(
-                sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, index, spp,
-                no_memo)
-            rays += nr
-            vp_aov[row, c, 0] += alr
-            vp_aov[row, c, 1] += alg
-            vp_aov[row, c, 2] += alb
-            vp_aov[row, c, 3] += anx
-            vp_aov[row, c, 4] += any_
-            vp_aov[row, c, 5] += anz
-            vp_aov[row, c, 6] += dist
-            vp_kmax[row, c] = kmax
-            vp_p[row, c, 0], vp_p[row, c, 1], vp_p[row, c, 2] = px, py, pz
-            vp_n[row, c, 0], vp_n[row, c, 1], vp_n[row, c, 2] = nx, ny, nz
-            vp_wo[row, c, 0], vp_wo[row, c, 1], vp_wo[row, c, 2] = wx, wy, wz
-            vp_beta[row, c, 0], vp_beta[row, c, 1], vp_beta[row, c, 2] = br, bg, bb
-            vp_mat[row, c] = mat
-            ld[row, c, 0], ld[row, c, 1], ld[row, c, 2] = lr, lg, lb
-        row_rays[row] = rays
+        row_rays[row] = _camera_row(sc, cam, x0, y0, x1, width, height, seed, index, spp, smp,
+                                    depth, vp_kmax, vp_p, vp_n, vp_wo, vp_beta, vp_mat, ld,
+                                    vp_aov, np.int64(row), stacks[row], no_memo)
+
+
+@kernel
+def _camera_row(sc, cam, x0, y0, x1, width, height, seed, index, spp, smp, depth, vp_kmax, vp_p,
+                vp_n, vp_wo, vp_beta, vp_mat, ld, vp_aov, row, stack, no_memo):
+    """Row `row` of `camera_pass`, its rays traced; a kernel of its own
+    (integrators/tile.py, "Compile time")."""
+    ox, oy, oz = cam[0], cam[1], cam[2]
+    y = y0 + row
+    rays = 0
+    for x in range(x0, x1):
+        c = x - x0
+        pixel = y * width + x
+        key = sample_key(seed, pixel, index)
+        fu, fv = u2d(smp, key, seed, pixel, index, spp, 0, no_memo)
+        dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+        (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
+         nr, alr, alg, alb, anx, any_, anz, dist) = visible_point(
+            sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, index, spp,
+            no_memo)
+        rays += nr
+        vp_aov[row, c, 0] += alr
+        vp_aov[row, c, 1] += alg
+        vp_aov[row, c, 2] += alb
+        vp_aov[row, c, 3] += anx
+        vp_aov[row, c, 4] += any_
+        vp_aov[row, c, 5] += anz
+        vp_aov[row, c, 6] += dist
+        vp_kmax[row, c] = kmax
+        vp_p[row, c, 0], vp_p[row, c, 1], vp_p[row, c, 2] = px, py, pz
+        vp_n[row, c, 0], vp_n[row, c, 1], vp_n[row, c, 2] = nx, ny, nz
+        vp_wo[row, c, 0], vp_wo[row, c, 1], vp_wo[row, c, 2] = wx, wy, wz
+        vp_beta[row, c, 0], vp_beta[row, c, 1], vp_beta[row, c, 2] = br, bg, bb
+        vp_mat[row, c] = mat
+        ld[row, c, 0], ld[row, c, 1], ld[row, c, 2] = lr, lg, lb
+    return rays
 
 
 # ------------------------------------------------------------ hash grid
@@ -403,91 +412,99 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, d
     the k-nearest-neighbour estimate sum f power / (n_emitted pi r_k^2). The
     tile loop of renderer/integrators/tile.py over the sample blocks, the
     AOVs' fold beside the radiance's."""
+    for row in prange(y1 - y0):
+        row_rays[row] = _knn_row(sc, cam, x0, y0, x1, width, height, seed, spp, blocks, smp,
+                                 depth, ppos, pdir, ppow, phit, cell, start, order, inv_h,
+                                 big_r2, k, n_emitted, out_sum, out_sq, out_w, out_aov,
+                                 np.int64(row), stacks[row], memos[row], aov_rows[row],
+                                 best_d[row], best_i[row])
+
+
+@kernel
+def _knn_row(sc, cam, x0, y0, x1, width, height, seed, spp, blocks, smp, depth, ppos, pdir,
+             ppow, phit, cell, start, order, inv_h, big_r2, k, n_emitted, out_sum, out_sq,
+             out_w, out_aov, row, stack, memo, scr, bd, bi):
+    """Row `row` of `knn_render`, its rays traced; a kernel of its own
+    (integrators/tile.py, "Compile time")."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     mat_type, mat_rgb, mat_param = sc.mat_type, sc.mat_rgb, sc.mat_param
     mask = start.shape[0] - 2
     big_r = math.sqrt(big_r2)
     n_blk = n_samples(blocks)
-    for row in prange(y1 - y0):
-        stack = stacks[row]
-        memo = memos[row]
-        scr = aov_rows[row]
-        bd = best_d[row]
-        bi = best_i[row]
-        y = y0 + row
-        rays = 0
-        for x in range(x0, x1):
-            c = x - x0
-            pixel = y * width + x
-            ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-            for blk in range(blocks.shape[0]):
-                sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-                for s in range(blocks[blk, 0], blocks[blk, 1]):
-                    key = sample_key(seed, pixel, s)
-                    fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
-                    dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
-                    (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
-                     nr, alr, alg, alb, anx, any_, anz, dist) = visible_point(
-                        sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, s, spp,
-                        memo)
-                    rays += nr
-                    add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
-                    if kmax >= 2 and ppos.shape[0] > 0:
-                        cnt = 0
-                        worst = big_r2
-                        lx, ly, lz, hx, hy, hz = cell_range(px, py, pz, big_r, inv_h)
-                        for ix in range(lx, hx + 1):
-                            for iy in range(ly, hy + 1):
-                                for iz in range(lz, hz + 1):
-                                    b = _hash(ix, iy, iz, mask)
-                                    for j in range(start[b], start[b + 1]):
-                                        q = order[j]
-                                        if cell[q, 0] != ix or cell[q, 1] != iy or cell[q, 2] != iz:
-                                            continue
-                                        if phit[q] > kmax:
-                                            continue
-                                        ex = ppos[q, 0] - px
-                                        ey = ppos[q, 1] - py
-                                        ez = ppos[q, 2] - pz
-                                        d2 = ex * ex + ey * ey + ez * ez
-                                        if d2 >= worst:
-                                            continue
-                                        facing = -(pdir[q, 0] * nx + pdir[q, 1] * ny
-                                                   + pdir[q, 2] * nz)
-                                        if facing <= 0.0:
-                                            continue  # from behind the surface
-                                        # insert into the sorted list (stable: after equals)
-                                        pos_ = cnt if cnt < k else k - 1
-                                        while pos_ > 0 and bd[pos_ - 1] > d2:
-                                            if pos_ < k:
-                                                bd[pos_] = bd[pos_ - 1]
-                                                bi[pos_] = bi[pos_ - 1]
-                                            pos_ -= 1
-                                        bd[pos_] = d2
-                                        bi[pos_] = q
-                                        if cnt < k:
-                                            cnt += 1
-                                        if cnt == k:
-                                            worst = bd[k - 1]
-                        rk2 = bd[k - 1] if cnt == k else big_r2
-                        sr_, sg_, sb_ = 0.0, 0.0, 0.0
-                        for j in range(cnt):
-                            q = bi[j]
-                            fr, fg, fb = _photon_f(mat_type, mat_rgb, mat_param, mat, nx, ny,
-                                                   nz, wx, wy, wz, -pdir[q, 0], -pdir[q, 1],
-                                                   -pdir[q, 2])
-                            sr_ += fr * ppow[q, 0]
-                            sg_ += fg * ppow[q, 1]
-                            sb_ += fb * ppow[q, 2]
-                        if rk2 > 0.0:
-                            scale = 1.0 / (n_emitted * math.pi * rk2)
-                            lr += br * sr_ * scale
-                            lg += bg * sg_ * scale
-                            lb += bb * sb_ * scale
-                    sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, lr, lg, lb)
-                ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
-                                                   sr, sg, sb, tr, tg, tb)
-                add_aov_block(scr)
-            store_pixel(out_sum, out_sq, out_w, row, c, ar, ag, ab, qr, qg, qb, n_blk)
-            store_aov(out_aov, row, c, scr)
-        row_rays[row] = rays
+    y = y0 + row
+    rays = 0
+    for x in range(x0, x1):
+        c = x - x0
+        pixel = y * width + x
+        ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        for blk in range(blocks.shape[0]):
+            sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+            for s in range(blocks[blk, 0], blocks[blk, 1]):
+                key = sample_key(seed, pixel, s)
+                fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
+                dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+                (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
+                 nr, alr, alg, alb, anx, any_, anz, dist) = visible_point(
+                    sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, s, spp,
+                    memo)
+                rays += nr
+                add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
+                if kmax >= 2 and ppos.shape[0] > 0:
+                    cnt = 0
+                    worst = big_r2
+                    lx, ly, lz, hx, hy, hz = cell_range(px, py, pz, big_r, inv_h)
+                    for ix in range(lx, hx + 1):
+                        for iy in range(ly, hy + 1):
+                            for iz in range(lz, hz + 1):
+                                b = _hash(ix, iy, iz, mask)
+                                for j in range(start[b], start[b + 1]):
+                                    q = order[j]
+                                    if cell[q, 0] != ix or cell[q, 1] != iy or cell[q, 2] != iz:
+                                        continue
+                                    if phit[q] > kmax:
+                                        continue
+                                    ex = ppos[q, 0] - px
+                                    ey = ppos[q, 1] - py
+                                    ez = ppos[q, 2] - pz
+                                    d2 = ex * ex + ey * ey + ez * ez
+                                    if d2 >= worst:
+                                        continue
+                                    facing = -(pdir[q, 0] * nx + pdir[q, 1] * ny
+                                               + pdir[q, 2] * nz)
+                                    if facing <= 0.0:
+                                        continue  # from behind the surface
+                                    # insert into the sorted list (stable: after equals)
+                                    pos_ = cnt if cnt < k else k - 1
+                                    while pos_ > 0 and bd[pos_ - 1] > d2:
+                                        if pos_ < k:
+                                            bd[pos_] = bd[pos_ - 1]
+                                            bi[pos_] = bi[pos_ - 1]
+                                        pos_ -= 1
+                                    bd[pos_] = d2
+                                    bi[pos_] = q
+                                    if cnt < k:
+                                        cnt += 1
+                                    if cnt == k:
+                                        worst = bd[k - 1]
+                    rk2 = bd[k - 1] if cnt == k else big_r2
+                    sr_, sg_, sb_ = 0.0, 0.0, 0.0
+                    for j in range(cnt):
+                        q = bi[j]
+                        fr, fg, fb = _photon_f(mat_type, mat_rgb, mat_param, mat, nx, ny,
+                                               nz, wx, wy, wz, -pdir[q, 0], -pdir[q, 1],
+                                               -pdir[q, 2])
+                        sr_ += fr * ppow[q, 0]
+                        sg_ += fg * ppow[q, 1]
+                        sb_ += fb * ppow[q, 2]
+                    if rk2 > 0.0:
+                        scale = 1.0 / (n_emitted * math.pi * rk2)
+                        lr += br * sr_ * scale
+                        lg += bg * sg_ * scale
+                        lb += bb * sb_ * scale
+                sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb, lr, lg, lb)
+            ar, ag, ab, qr, qg, qb = add_block(ar, ag, ab, qr, qg, qb,
+                                               sr, sg, sb, tr, tg, tb)
+            add_aov_block(scr)
+        store_pixel(out_sum, out_sq, out_w, row, c, ar, ag, ab, qr, qg, qb, n_blk)
+        store_aov(out_aov, row, c, scr)
+    return rays
