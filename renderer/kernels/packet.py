@@ -113,6 +113,18 @@ without any of the exactness below, as an upper bound of the speed: 0.88-
 float64 lanes are two registers per value, and the whole render is not
 bound by them here (on the AVX2 machine above the traversal alone was
 1.5x).
+Measured and kept (2026-11-28, AMD EPYC Zen 5, one thread, six
+interleaved pairs of processes, the same film bytes): the inverse
+directions' loop and the any-hit loop over `lanes`, a count known only at
+run time, so that LLVM's loop vectorizer takes them (the comment in the
+kernel; the kernel's asm went from 60 scalar and 2 vector divisions to 27
+and 5, the scalar ones now the fallback when the overlap check fails).
+The first loop: cornell-box 64 spp 2.073 -> 2.015 s (-2.8 %, faster in
+all six pairs), veach-mis 16 spp -1.1 %; the any-hit loop on top:
+cornell-box -0.3 %, veach-mis -3.3 %. The reverse lesson, also measured:
+this kernel inlined into the path tracer (kernel_inline) made cornell-box
+3.4x slower and veach-mis 1.7x (the same bytes; the asm of that build
+was not read).
 What would make float32 triangles exact enough (not built):
 - each lane keeps the smallest (t32, prim) pair, primitive id as the tie
   break, so the answer does not depend on the order leaves are visited in
@@ -175,7 +187,16 @@ def packet_intersect(boxes, kids, prims, tri, sph, stack, ox, oy, oz, dx, dy, dz
                         if any_hit:
                             act[r] = 0
             return
-    for r in range(PACKET):
+    # The lane arrays' length (PACKET), read at run time on purpose: a loop
+    # that stores into one lane array while it loads another, over a trip
+    # count LLVM knows (16), is fully unrolled before the loop vectorizer
+    # runs, and the SLP vectorizer then cannot vectorize it (the arrays may
+    # alias): these 48 divisions ran one at a time. Over an unknown count the
+    # loop vectorizer takes it, with one overlap check per call (as it does
+    # the triangle loop below, too big to unroll). Loops that only load (the
+    # box test) vectorize either way. Measured in the module doc.
+    lanes = ix.shape[0]
+    for r in range(lanes):
         ix[r] = 1.0 / dx[r]
         iy[r] = 1.0 / dy[r]
         iz[r] = 1.0 / dz[r]
@@ -224,7 +245,7 @@ def packet_intersect(boxes, kids, prims, tri, sph, stack, ox, oy, oz, dx, dy, dz
                                 found = True
                 if any_hit and found:
                     left = 0
-                    for r in range(PACKET):
+                    for r in range(lanes):  # (why `lanes`: above)
                         done = bp[r] >= 0
                         act[r] = 0 if done else act[r]
                         left += act[r] != 0
