@@ -124,7 +124,10 @@ all six pairs), veach-mis 16 spp -1.1 %; the any-hit loop on top:
 cornell-box -0.3 %, veach-mis -3.3 %. The reverse lesson, also measured:
 this kernel inlined into the path tracer (kernel_inline) made cornell-box
 3.4x slower and veach-mis 1.7x (the same bytes; the asm of that build
-was not read).
+was not read). Nor does the trick carry over to integrators/path.py's
+loops: its shadow rays' sum made branch-free over `lanes` (a select per
+channel) made cornell-box 16 % slower and veach-mis 7 %, cause not
+examined; not kept.
 What would make float32 triangles exact enough (not built):
 - each lane keeps the smallest (t32, prim) pair, primitive id as the tie
   break, so the answer does not depend on the order leaves are visited in
@@ -187,14 +190,14 @@ def packet_intersect(boxes, kids, prims, tri, sph, stack, ox, oy, oz, dx, dy, dz
                         if any_hit:
                             act[r] = 0
             return
-    # The lane arrays' length (PACKET), read at run time on purpose: a loop
-    # that stores into one lane array while it loads another, over a trip
-    # count LLVM knows (16), is fully unrolled before the loop vectorizer
-    # runs, and the SLP vectorizer then cannot vectorize it (the arrays may
-    # alias): these 48 divisions ran one at a time. Over an unknown count the
-    # loop vectorizer takes it, with one overlap check per call (as it does
-    # the triangle loop below, too big to unroll). Loops that only load (the
-    # box test) vectorize either way. Measured in the module doc.
+    # The lane arrays' length (PACKET), read at run time on purpose: a short
+    # loop over a trip count LLVM knows (16) is fully unrolled before the
+    # loop vectorizer runs, and Numba runs LLVM without the SLP vectorizer
+    # that could pack the unrolled copies (NUMBA_SLP_VECTORIZE is 0 by
+    # default): these 48 divisions ran one at a time. Over a count known only
+    # at run time the loop vectorizer takes the loop, with one check per call
+    # that the arrays do not overlap. (The triangle and box loops below are
+    # too big to unroll: it takes them either way.) Measured in the module doc.
     lanes = ix.shape[0]
     for r in range(lanes):
         ix[r] = 1.0 / dx[r]
