@@ -150,6 +150,7 @@ def test01_sse_parser_follows_the_event_stream_rules():
              "id: 7", "event: job", "data: {\"a\":", "data:  1}", "",  # one space stripped
              "data:no-space", "", "event: empty", "",  # no data: never dispatched
              "event: x", "data", "data: ", "", "unknown: field", "retry: soon",
+             "retry: \u00b2",  # "²".isdigit(), but not a number: ignored like "soon"
              "data: tail-without-blank-line"]
     assert list(parse_sse(lines)) == [
         2000,

@@ -134,14 +134,10 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     return rays
 
 
-def _whole_number(text: str) -> bool:
-    """ASCII digits only: str.isdigit() also accepts '¹' and '²', which int() refuses."""
-    return text.isascii() and text.isdigit()
-
-
 def _check_strategy(value) -> str | None:
     name, _, k = str(value).partition("=")
-    if value == "all" or (name == "s" and _whole_number(k)):
+    # ASCII digits only: str.isdigit() also accepts '¹' and '²', which int() refuses
+    if value == "all" or (name == "s" and k.isascii() and k.isdigit()):
         return None
     return f"must be 'all' or 's=K' with K a whole number, got {value!r}"
 
@@ -152,11 +148,11 @@ def _options(options: dict):
     if strategy == "all":
         only_s = ALL_STRATEGIES
     else:
-        name, _, value = strategy.partition("=")
-        if name != "s" or not _whole_number(value):
+        problem = _check_strategy(strategy)
+        if problem is not None:
             from ..errors import SpecError
-            raise SpecError("options.strategy", f"must be 'all' or 's=K', got {strategy!r}")
-        only_s = int(value)
+            raise SpecError("options.strategy", problem)
+        only_s = int(strategy.partition("=")[2])
     return heuristic, only_s
 
 
