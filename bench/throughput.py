@@ -141,7 +141,10 @@ NOTES = """## Reading the table
   processes) that made cornell-box 9 % faster and veach-mis about 3 %, with
   the same bytes. The project does not rely on it: the switch is
   process-wide, Numba's disk cache does not key on it, and LLVM's SLP pass
-  keeps having miscompilation reports.
+  keeps having miscompilation reports. Measured again on 2026-11-28 (Zen 4,
+  one thread, 64 spp, six interleaved pairs of processes), after the
+  packet traversal's lane loops were written for the loop vectorizer:
+  cornell-box -1.8 %, veach-mis -2.1 %, within the noise.
 - Since 2026-11-27 the path tracer traces packets of 16 paths
   (renderer/kernels/packet.py, integrators/path.py): each bounce's rays,
   then its shadow rays, go through the BVH together, each node's and each

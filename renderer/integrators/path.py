@@ -323,7 +323,20 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     Measured 2026-11-28 (Zen 3, one thread, cornell-box 64 spp, the same
     image as tiles of 256 / 64 / 32 / 16 / 8 pixels, 3 rounds): rows of
     16384 / 4096 / 2048 / 1024 / 512 samples took 5.95 / 5.95 / 6.04 /
-    6.08 / 6.59 s. Below about 1000 samples a row the drain starts to count."""
+    6.08 / 6.59 s. Below about 1000 samples a row the drain starts to count.
+
+    Measured and not kept (2026-11-28, AMD EPYC Zen 4, 128x128, 64 spp, one
+    thread, six to eight interleaved pairs of processes, the same film bytes):
+    - the light sample moved out of `_shade_lane` into a loop of its own
+      over the lanes, after the shading. The light sample's chain (triangle
+      pick, its division, the square root and division of the direction,
+      the pdf's division) is the kernel's hottest code (bench/
+      kernel_profile.py), and in a short loop the lanes' chains could
+      overlap. cornell-box +3.1 %, veach-mis +5.3 % time: the lane rows it
+      writes and reads back cost more;
+    - the lane rows as one flat array per row (fl[OX + r] with OX a
+      multiple of PACKET instead of fl[OX, r], no row stride to keep):
+      cornell-box -0.7 %, veach-mis -1.7 %, inside the runs' noise."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n = n_samples(blocks)

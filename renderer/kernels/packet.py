@@ -128,6 +128,23 @@ was not read). Nor does the trick carry over to integrators/path.py's
 loops: its shadow rays' sum made branch-free over `lanes` (a select per
 channel) made cornell-box 16 % slower and veach-mis 7 %, cause not
 examined; not kept.
+Measured and not kept (2026-11-28, fifth session, AMD EPYC Zen 4, whose
+AVX-512 runs a 512-bit instruction as two 256-bit halves; cornell-box
+and veach-mis 128x128, 64 spp, one thread, six interleaved pairs of
+processes):
+- the float32 triangle tests of the Zen 5 upper bound above (no
+  exactness, hits kept beyond 1e-4): cornell-box +0.4 %, veach-mis
+  +0.8 %. Half the vector instructions per triangle buy nothing here
+  either, so float32 is not what the traversal waits for.
+- two triangles of a leaf per pass over the lanes, the lane's best hit
+  kept in a register between them. The idea: the loop's result is a
+  masked store (bt[r] = t if ok else bt[r]) that the next triangle's
+  compare loads back, and x86 does not forward a masked store's value to
+  a load. The same bytes, +1.6 % and +1.5 % time: that wait is not what
+  the traversal pays for.
+bench/kernel_profile.py measured where the time goes on that machine:
+`packet_intersect` 41 % of a cornell-box render (closest hit 26.5 %,
+shadow rays 14.7 %), the rest shading.
 What would make float32 triangles exact enough (not built):
 - each lane keeps the smallest (t32, prim) pair, primitive id as the tie
   break, so the answer does not depend on the order leaves are visited in
