@@ -26,7 +26,7 @@ Measured on 2026-11-28 (AMD EPYC Zen 4, cornell-box 128x128, 64 spp,
 `sobol`): the path tracer's kernel (`_render_tile`'s parfor body: the
 shading of the lanes, the sampler's inline draws, the lane bookkeeping)
 49 %, `packet_intersect` 41 % (closest hit 26.5 %, shadow rays 14.7 %),
-`concentric_disk` 4.9 %, the `sobol` sampler's out-of-line code 4.4 %.
+`concentric_disk` 4.9 %, the `sobol` sampler's out-of-line code 4.5 %.
 In the kernel, a third of the instructions read or write the stack: the
 loop keeps more values live than the registers hold.
 """
