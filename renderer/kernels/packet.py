@@ -139,12 +139,12 @@ processes):
 - two triangles of a leaf per pass over the lanes, the lane's best hit
   kept in a register between them. The idea: the loop's result is a
   masked store (bt[r] = t if ok else bt[r]) that the next triangle's
-  compare loads back, and x86 does not forward a masked store's value to
-  a load. The same bytes, +1.6 % and +1.5 % time: that wait is not what
-  the traversal pays for.
+  compare loads back, and x86 cores forward a masked store's value to a
+  later load poorly if at all. The same bytes, +1.6 % and +1.5 % time:
+  that wait is not what the traversal pays for.
 bench/kernel_profile.py measured where the time goes on that machine:
 `packet_intersect` 41 % of a cornell-box render (closest hit 26.5 %,
-shadow rays 14.7 %), the rest shading.
+shadow rays 14.7 %), the rest the shading and the sampler.
 What would make float32 triangles exact enough (not built):
 - each lane keeps the smallest (t32, prim) pair, primitive id as the tie
   break, so the answer does not depend on the order leaves are visited in
