@@ -154,9 +154,15 @@ def main(argv: list[str] | None = None) -> int:
                    "--depth", str(args.depth), "--size", str(args.size),
                    "--repeat", str(args.repeat)]
         print("compiling and rendering under perf (about two minutes) ...", flush=True)
-        subprocess.run(["perf", "record", "-q", "-k", "monotonic", "-e", "cpu-clock",
-                        "-F", "2000", "-o", str(work / "perf.data"), "--", *command],
-                       env=env, check=True, stdout=subprocess.DEVNULL)
+        record = subprocess.run(["perf", "record", "-q", "-k", "monotonic", "-e", "cpu-clock",
+                                 "-F", "2000", "-o", str(work / "perf.data"), "--", *command],
+                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                text=True)
+        if record.returncode != 0 or not (work / "child.json").exists():
+            # perf refused (kernel.perf_event_paranoid, a container) or the render failed
+            print(f"perf record failed ({record.returncode}):\n{record.stderr[-2000:]}",
+                  file=sys.stderr)
+            return 1
         info = json.loads((work / "child.json").read_text())
         script = subprocess.run(["perf", "script", "-i", str(work / "perf.data"), "-F",
                                  "time,ip"], capture_output=True, text=True, check=True).stdout
