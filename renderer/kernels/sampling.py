@@ -59,17 +59,27 @@ def to_world(lx, ly, lz, nx, ny, nz):
 
 @kernel
 def concentric_disk(u1, u2):
-    """Shirley-Chiu concentric map of [0,1)^2 to the unit disk."""
+    """Shirley-Chiu concentric map of [0,1)^2 to the unit disk.
+
+    Which of |a| and |b| is larger is a coin flip for every sample, so a
+    branch on it is mispredicted half the time. The octant's numerator and
+    denominator are picked with selects instead (LLVM emits blends), and
+    one ratio goes through the polynomials: phi = pi/4 b/a when |a| > |b|,
+    else phi = pi/2 - th with th = pi/4 a/b (cos phi = sin th, sin phi =
+    cos th). The same arithmetic as the two branches, so the same bits.
+    Measured on 2026-11-28 (AMD EPYC Zen 4, 128x128, 64 spp, one thread,
+    eight interleaved pairs of processes), with `_pick_triangle`'s search
+    made branch-free as well (kernels/lights.py): cornell-box -2.6 %,
+    veach-mis -1.5 % time, the same film bytes."""
     a = 2.0 * u1 - 1.0
     b = 2.0 * u2 - 1.0
     if a == 0.0 and b == 0.0:
         return 0.0, 0.0
-    if abs(a) > abs(b):  # phi = pi/4 b/a
-        c, s = sincos_quarter((math.pi / 4) * (b / a))
-        return a * c, a * s
-    # phi = pi/2 - th with th = pi/4 a/b: cos phi = sin th, sin phi = cos th
-    c, s = sincos_quarter((math.pi / 4) * (a / b))
-    return b * s, b * c
+    wide = abs(a) > abs(b)
+    num = b if wide else a
+    den = a if wide else b
+    c, s = sincos_quarter((math.pi / 4) * (num / den))
+    return den * (c if wide else s), den * (s if wide else c)
 
 
 @kernel
