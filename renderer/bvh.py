@@ -30,6 +30,11 @@ traces packets of 16 (kernels/packet.py), the other methods single rays.
 TRAVERSAL_COST is 2, not pbrt's 1/8: in these scalar Numba kernels a node's
 slab test costs about as much as a triangle test, and on cornell-box the
 shallower tree (31 nodes instead of 43) rendered ~20 % more samples/s.
+Measured again with the path tracer's packets (2026-11-28, AMD EPYC Zen 4,
+128x128, 64 spp, one thread, six interleaved pairs of processes, the same
+film bytes): TRAVERSAL_COST 1, cornell-box -1.3 %, veach-mis +0.1 % time;
+0.5, -0.4 % and -0.8 %; MAX_LEAF 2, cornell-box -0.5 %. All within about
+the noise, so the costs stay as they are.
 """
 
 from __future__ import annotations

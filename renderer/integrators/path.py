@@ -345,7 +345,20 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
       writes and reads back cost more;
     - the lane rows as one flat array per row (fl[OX + r] with OX a
       multiple of PACKET instead of fl[OX, r], no row stride to keep):
-      cornell-box -0.7 %, veach-mis -1.7 %, inside the runs' noise."""
+      cornell-box -0.7 %, veach-mis -1.7 %, inside the runs' noise.
+    Measured and not kept (2026-11-28, the next session, the same machine
+    and method; cornell-box unless said):
+    - the shadow rays' sums as selects (no branch on the lane's shadow
+      flag) and FIRST_T stored through a select: +1.7 % (an earlier
+      session measured the first alone at +16 %, packet.py); FIRST_T's
+      select alone 0.0 %; the sums moved into the refill pass: the
+      paragraph above;
+    - RING 64 instead of 256 (a ring that stays in L1): -0.7 %, noise;
+    - the fold's twelve sums kept in the lane rows instead of registers,
+      so that the loop keeps fewer values live: 0.0 %;
+    - the row's loop as a kernel of its own, called with the default's
+      strategy, sampler, heuristic and hemisphere as literals so that
+      Numba compiles a specialization without the other cases: +2.4 %."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n = n_samples(blocks)

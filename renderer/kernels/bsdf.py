@@ -37,7 +37,8 @@ def diffuse_sample(nx, ny, nz, u1, u2):
 
     Inlined at Numba IR level: LLVM kept it out of line in the path
     tracer's kernel, where a call makes the caller save its live floating
-    point values around it (no xmm register survives a call on x86-64).
+    point values around it (the System V ABI keeps no xmm register across
+    a call).
     Measured on 2026-11-28 (AMD EPYC Zen 4, cornell-box 128x128, 64 spp,
     one thread, eight interleaved pairs of processes): -1.4 % time, the
     same film bytes; bench/kernel_profile.py had put 8 % of the samples in

@@ -88,11 +88,16 @@ def _pick_light(n_lights, u):
 @kernel_inline
 def _pick_triangle(sc, light, u):
     """A triangle of the light by area (binary search of its area CDF), and
-    u rescaled to [0, 1) within the triangle's share. The search's steps
-    and the CDF's lower end are selects, not branches: u is uniform, so
-    each step (the only one for a quad light's two triangles) is a coin
-    flip a branch predictor misses half the time (sampling.concentric_disk
-    has the measurement)."""
+    u rescaled to [0, 1) within the triangle's share. The CDF's lower end
+    is a select (a masked load), not a branch. The search's steps are
+    written as selects too, but LLVM's x86 backend turns a select that
+    carries a loop's state back into a branch (its cmov converter; the
+    asm shows it), so each step, the only one for a quad light's two
+    triangles, is still a coin flip for the branch predictor.
+    sampling.concentric_disk has the measurement of both changes.
+    Measured and not kept (2026-11-28, Zen 4, cornell-box, six pairs of
+    processes): the last eight entries counted (k += cdf[j] <= u, no
+    branch) instead of searched, +1.3 % time."""
     first = sc.light_start[light]
     lo = first
     hi = lo + sc.light_count[light] - 1

@@ -31,7 +31,11 @@ def sincos_quarter(th):
     quarter turn, where a polynomial is exact to about an ulp (tested
     against libm). Measured on 2026-11-27 (Intel AVX-512, cornell-box,
     32 spp, one thread, interleaved runs): +3 to +6 % samples/s; the films
-    differ from libm's in the last bits."""
+    differ from libm's in the last bits. Measured and not kept
+    (2026-11-28, AMD EPYC Zen 4, cornell-box 128x128, 64 spp, one thread,
+    six interleaved pairs of processes): the polynomials by Estrin's
+    scheme, half the dependent steps of Horner's and within an ulp of libm
+    too, -0.4 % time, inside the noise, and other last bits."""
     z = th * th
     s = th + th * z * (_S1 + z * (_S2 + z * (_S3 + z * (_S4 + z * (_S5 + z * _S6)))))
     r = z * z * (_C1 + z * (_C2 + z * (_C3 + z * (_C4 + z * (_C5 + z * _C6)))))
@@ -68,9 +72,9 @@ def concentric_disk(u1, u2):
     else phi = pi/2 - th with th = pi/4 a/b (cos phi = sin th, sin phi =
     cos th). The same arithmetic as the two branches, so the same bits.
     Measured on 2026-11-28 (AMD EPYC Zen 4, 128x128, 64 spp, one thread,
-    eight interleaved pairs of processes), with `_pick_triangle`'s search
-    made branch-free as well (kernels/lights.py): cornell-box -2.6 %,
-    veach-mis -1.5 % time, the same film bytes."""
+    eight interleaved pairs of processes), with `_pick_triangle`'s selects
+    as well (kernels/lights.py): cornell-box -2.6 %, veach-mis -1.5 %
+    time, the same film bytes."""
     a = 2.0 * u1 - 1.0
     b = 2.0 * u2 - 1.0
     if a == 0.0 and b == 0.0:
