@@ -166,7 +166,7 @@ processes):
   rewritten with the triangle's normal (det = -d.n, t = (o - a).n / det,
   u and v from c = (o - a) x d; a third fewer multiplies, other last
   bits) +0.6 %; each lane's o / d computed once per call instead of at
-  every box, 0.4 % (in a loop of its own; stored in the first loop, the
+  every box, +0.4 % (in a loop of its own; stored in the first loop, the
   three more stores took that loop past LLVM's limit of run-time
   overlap checks and it ran scalar again, +2.5 %).
 Measured and kept (the same session and method): a leaf's spheres tested
