@@ -323,10 +323,13 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     live?) per lane and step where there were two. Measured on 2026-11-28
     (AMD EPYC Zen 4, 128x128, 64 spp, one thread, six interleaved pairs of
     processes), together with the items' column and sample kept as
-    counters instead of a 64-bit division and remainder per item (that
-    alone: -0.6 %, in the noise): cornell-box -4.1 %, veach-mis -4.3 %
-    time, the same film bytes. The shadow rays' sums moved into that same
-    pass as well: cornell-box -0.7 %, veach-mis +0.6 %, not kept.
+    counters instead of a 64-bit division and remainder per item:
+    cornell-box -4.1 %, veach-mis -4.3 % time, the same film bytes. The
+    counters alone measured -0.6 % there; the next session took them out
+    again (AMD EPYC Zen 1, the same method: +0.4 % / +0.3 %, noise, the
+    same bytes), so the division stays, one state fewer to keep in step.
+    The shadow rays' sums moved into that same pass as well: cornell-box
+    -0.7 %, veach-mis +0.6 %, not kept.
 
     Each row's queue drains at its end: its last packets run part-empty.
     Measured 2026-11-28 (Zen 3, one thread, cornell-box 64 spp, the same
@@ -358,7 +361,18 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
       so that the loop keeps fewer values live: 0.0 %;
     - the row's loop as a kernel of its own, called with the default's
       strategy, sampler, heuristic and hemisphere as literals so that
-      Numba compiles a specialization without the other cases: +2.4 %."""
+      Numba compiles a specialization without the other cases: +2.4 %.
+    Measured and not kept (2026-11-28, AMD EPYC Zen 1, the same method):
+    - camera rays traced ahead, PACKET items at a time, as one coherent
+      packet (a camera buffer in the lane rows), a starting lane taking
+      its hit from there, so that the step's packet holds only the rays
+      of paths that go on: cornell-box +4.8 %, veach-mis +5.7 % time, the
+      same bytes. A packet's cost is the nodes and leaves it opens, nearly
+      the same for the dozen live lanes left as for sixteen, and the
+      camera packets came on top: full packets mattered more than
+      coherent ones (bench/traversal.py's packets of sixteen camera rays
+      trace about twice the rays/s of packets of bounce rays, and that
+      did not pay for the part-empty packets)."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n = n_samples(blocks)
@@ -384,8 +398,6 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
         for k in range(RING):
             done[k] = 0
         k_next = 0  # the next item to start
-        nx_c, nx_j = 0, 0  # its column in the tile and sample in the pixel (no division)
-        f_c, f_j = 0, 0  # the same of the next item to fold
         k_fold = 0  # the next item to fold
         # the fold's state: the pixel's sums, the block's, the block index
         ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
@@ -406,8 +418,8 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     rays += il[RAYS, r]
                     il[ITEM, r] = -1
                 if k_next < total and k_next < k_fold + RING:
-                    x = x0 + nx_c
-                    s = s_lo + nx_j
+                    x = x0 + k_next // n
+                    s = s_lo + k_next % n
                     pixel = y * width + x
                     key = sample_key(seed, pixel, s)
                     keys[r] = key
@@ -417,10 +429,6 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     il[PIXEL, r] = pixel
                     il[INDEX, r] = s
                     k_next += 1
-                    nx_j += 1
-                    if nx_j == n:
-                        nx_j = 0
-                        nx_c += 1
                     live += 1
             if live > 0:
                 packet_intersect(nodes, info, prims, tri, sph, stack,
@@ -448,7 +456,7 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
             while k_fold < k_next and done[k_fold % RING] != 0:
                 slot = k_fold % RING
                 done[slot] = 0
-                j = f_j
+                j = k_fold % n
                 s = s_lo + j
                 sr, sg, sb, tr, tg, tb = add_sample(sr, sg, sb, tr, tg, tb,
                                                     ring[slot, 0], ring[slot, 1], ring[slot, 2])
@@ -460,14 +468,12 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     add_aov_block(scr)
                     sr, sg, sb, tr, tg, tb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                     bi += 1
-                f_j += 1
-                if f_j == n:  # the pixel's last sample
-                    store_pixel(out_sum, out_sq, out_w, row, f_c, ar, ag, ab, qr, qg, qb, n)
-                    store_aov(out_aov, row, f_c, scr)
+                if j == n - 1:  # the pixel's last sample
+                    c = k_fold // n
+                    store_pixel(out_sum, out_sq, out_w, row, c, ar, ag, ab, qr, qg, qb, n)
+                    store_aov(out_aov, row, c, scr)
                     ar, ag, ab, qr, qg, qb = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
                     bi = 0
-                    f_j = 0
-                    f_c += 1
                 k_fold += 1
         row_rays[row] = rays
 

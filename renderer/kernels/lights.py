@@ -89,12 +89,15 @@ def _pick_light(n_lights, u):
 def _pick_triangle(sc, light, u):
     """A triangle of the light by area (binary search of its area CDF), and
     u rescaled to [0, 1) within the triangle's share. The CDF's lower end
-    is a select (a masked load), not a branch. The search's steps are
-    written as selects too, but LLVM's x86 backend turns a select that
-    carries a loop's state back into a branch (its cmov converter; the
-    asm shows it), so each step, the only one for a quad light's two
-    triangles, is still a coin flip for the branch predictor.
-    sampling.concentric_disk has the measurement of both changes.
+    is a select (a masked load), not a branch (sampling.concentric_disk
+    has the measurement). The search's steps stay branches: written as
+    selects, LLVM's x86 backend turned them back into a branch (its cmov
+    converter does so for a select that carries a loop's state; the asm
+    showed it), so each step, the only one for a quad light's two
+    triangles, is a coin flip for the branch predictor either way. The
+    if/else steps restored: +0.4 % cornell-box, +0.3 % veach-mis time
+    together with path.py's counters taken out (AMD EPYC Zen 1, 2026-11-28,
+    six pairs of processes), noise, the same film bytes.
     Measured and not kept (2026-11-28, Zen 4, cornell-box, six pairs of
     processes): the last eight entries counted (k += cdf[j] <= u, no
     branch) instead of searched, +1.3 % time."""
@@ -103,9 +106,10 @@ def _pick_triangle(sc, light, u):
     hi = lo + sc.light_count[light] - 1
     while lo < hi:
         mid = (lo + hi) // 2
-        go = sc.light_tri_cdf[mid] <= u
-        lo = mid + 1 if go else lo
-        hi = hi if go else mid
+        if sc.light_tri_cdf[mid] <= u:
+            lo = mid + 1
+        else:
+            hi = mid
     prev = sc.light_tri_cdf[max(lo - 1, first)]
     c0 = prev if lo > first else 0.0
     return sc.light_tris[lo], min((u - c0) / (sc.light_tri_cdf[lo] - c0), ONE_MINUS_EPS)

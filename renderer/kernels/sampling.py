@@ -73,8 +73,9 @@ def concentric_disk(u1, u2):
     cos th). The same arithmetic as the two branches, so the same bits.
     Measured on 2026-11-28 (AMD EPYC Zen 4, 128x128, 64 spp, one thread,
     eight interleaved pairs of processes), with `_pick_triangle`'s selects
-    as well (kernels/lights.py): cornell-box -2.6 %, veach-mis -1.5 %
-    time, the same film bytes."""
+    as well (kernels/lights.py; of those only the CDF's lower end compiled
+    branch-free, and only it is kept): cornell-box -2.6 %, veach-mis
+    -1.5 % time, the same film bytes."""
     a = 2.0 * u1 - 1.0
     b = 2.0 * u2 - 1.0
     if a == 0.0 and b == 0.0:
