@@ -51,19 +51,39 @@ def tri_hit(tri, i, ox, oy, oz, dx, dy, dz, tmax):
     return t
 
 
-@kernel
-def sphere_hit(sph, i, ox, oy, oz, dx, dy, dz, tmax):
-    """Nearest t in (0, tmax) where the ray meets sphere i, or -1.
-    Uses the stable form b' = d.(o-c), discriminant from |o-c - (d.(o-c))d|."""
-    cx, cy, cz, r = sph[i, 0], sph[i, 1], sph[i, 2], sph[i, 3]
+@kernel_inline
+def sphere_t(cx, cy, cz, r, ox, oy, oz, dx, dy, dz, tmax):
+    """(t, hit): the nearest t in (0, tmax) where the ray meets the sphere
+    with centre c and radius r, and whether it does. Uses the stable form
+    b' = d.(o-c), discriminant from |o-c - (d.(o-c))d|.
+
+    Without a branch (the early miss and the choice of the two distances
+    are selects), so that the packet's loop over its lanes, which calls it
+    for every lane (kernels/packet.py), vectorizes; `sphere_hit` is this
+    for one ray. The square root of a negative discriminant is taken of 0
+    instead, and the lane's `hit` says it missed."""
     fx, fy, fz = ox - cx, oy - cy, oz - cz
     a = dx * dx + dy * dy + dz * dz
     b = fx * dx + fy * dy + fz * dz
     # |f - (b/a) d|^2 is accurate even far from the sphere (Ray Tracing Gems ch. 7)
     lx, ly, lz = fx - b / a * dx, fy - b / a * dy, fz - b / a * dz
     disc = a * (r * r - (lx * lx + ly * ly + lz * lz))
-    if disc < 0.0:
-        return -1.0
+    sq = math.sqrt(disc if disc >= 0.0 else 0.0)
+    q = -(b + math.copysign(sq, b))
+    c = fx * fx + fy * fy + fz * fz - r * r
+    t0 = c / q if q != 0.0 else 0.0
+    t1 = q / a
+    lo = t1 if t0 > t1 else t0
+    hi = t0 if t0 > t1 else t1
+    t = lo if (0.0 < lo) & (lo < tmax) else hi
+    return t, (disc >= 0.0) & (0.0 < t) & (t < tmax)
+
+
+@kernel
+def sphere_hit(sph, i, ox, oy, oz, dx, dy, dz, tmax):
+    """Nearest t in (0, tmax) where the ray meets sphere i, or -1 (`sphere_t`)."""
+    t, hit = sphere_t(sph[i, 0], sph[i, 1], sph[i, 2], sph[i, 3], ox, oy, oz, dx, dy, dz, tmax)
+    return t if hit else -1.0
     sq = math.sqrt(disc)
     q = -(b + math.copysign(sq, b))
     c = fx * fx + fy * fy + fz * fz - r * r

@@ -170,22 +170,20 @@ processes):
   three more stores took that loop past LLVM's limit of run-time
   overlap checks and it ran scalar again, +2.5 %).
 Measured and kept (the same session and method): a leaf's spheres tested
-the way its triangles are, one branch-free loop over the lanes with the
-same arithmetic as geometry.sphere_hit (its early return and its two
-candidate distances become masks and selects), where each live lane
-called sphere_hit out of line: veach-mis (four sphere lights) -10.9 %,
+the way its triangles are, one branch-free loop over the lanes
+(geometry.sphere_t: sphere_hit's arithmetic, its early return and its two
+candidate distances as masks and selects), where each live lane called
+sphere_hit out of line: veach-mis (four sphere lights) -10.9 %,
 cornell-caustic (a glass and a mirror sphere) -4.3 %, cornell-box (no
 spheres) -0.3 %, the same film bytes on all three.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from . import kernel
-from .geometry import BARY_EPS, _fmax, _fmin, intersect_arrays
+from .geometry import BARY_EPS, _fmax, _fmin, intersect_arrays, sphere_t
 
 # Lanes per packet: 16 float64 lanes are two AVX-512 registers per value
 # (four with AVX2), enough to keep the vector units busy through a node's
@@ -281,25 +279,13 @@ def packet_intersect(boxes, kids, prims, tri, sph, stack, ox, oy, oz, dx, dy, dz
                     s = prim - n_tri
                     cx, cy, cz, rad = sph[s, 0], sph[s, 1], sph[s, 2], sph[s, 3]
                     for r in range(PACKET):
-                        # geometry.sphere_hit, every test as a mask instead of a
-                        # return, so that this loop vectorizes like the triangles'
-                        # (it called sphere_hit lane by lane: veach-mis -10.9 %,
-                        # cornell-caustic -4.3 % time, the same bytes; module doc)
-                        fx, fy, fz = ox[r] - cx, oy[r] - cy, oz[r] - cz
-                        a = dx[r] * dx[r] + dy[r] * dy[r] + dz[r] * dz[r]
-                        b = fx * dx[r] + fy * dy[r] + fz * dz[r]
-                        lx, ly, lz = fx - b / a * dx[r], fy - b / a * dy[r], fz - b / a * dz[r]
-                        disc = a * (rad * rad - (lx * lx + ly * ly + lz * lz))
-                        sq = math.sqrt(disc if disc >= 0.0 else 0.0)
-                        q = -(b + math.copysign(sq, b))
-                        c = fx * fx + fy * fy + fz * fz - rad * rad
-                        t0 = c / q if q != 0.0 else 0.0
-                        t1 = q / a
-                        lo = t1 if t0 > t1 else t0
-                        hi = t0 if t0 > t1 else t1
-                        tm = bt[r]
-                        t = lo if (0.0 < lo) & (lo < tm) else hi
-                        ok = ((act[r] != 0) & (disc >= 0.0) & (0.0 < t) & (t < tm))
+                        # geometry.sphere_t: branch-free, so that this loop
+                        # vectorizes like the triangles' (it called sphere_hit
+                        # lane by lane: veach-mis -10.9 %, cornell-caustic
+                        # -4.3 % time, the same bytes; module doc)
+                        t, hit = sphere_t(cx, cy, cz, rad, ox[r], oy[r], oz[r],
+                                          dx[r], dy[r], dz[r], bt[r])
+                        ok = (act[r] != 0) & hit
                         bt[r] = t if ok else bt[r]
                         bp[r] = prim if ok else bp[r]
                         found |= ok
