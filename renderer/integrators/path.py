@@ -372,7 +372,21 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
       camera packets came on top: full packets mattered more than
       coherent ones (bench/traversal.py's packets of sixteen camera rays
       trace about twice the rays/s of packets of bounce rays, and that
-      did not pay for the part-empty packets)."""
+      did not pay for the part-empty packets).
+    Measured and not kept (2026-11-29, AMD EPYC Zen 5, the same method):
+    - the row's loop as a plain kernel of its own, called from a prange
+      shell of three lines, for a shorter compile: Numba's parfor passes
+      copy-propagate over the whole body with every helper inlined into it,
+      and the parfor's body is typed and lowered a second time as its
+      gufunc. The path family's cold compile took 43 s instead of 62 s
+      (`runtime._warm_methods(["path-bsdf"])` on an empty cache), but
+      rendering cornell-box +6.8 % and veach-mis +5.8 % time, the same
+      bytes. Numba compiles a parfor body with `noalias` array arguments
+      and a plain kernel cannot ask for them: with that flag forced on
+      every kernel (an experiment, not an option Numba offers) the loss was
+      +2.6 %. (The shell has to pass the row as an int64: the parfor's
+      index is a uint64 in its body, and the row kernel was compiled three
+      times, once for each type its arguments had in the passes.)"""
     ox, oy, oz = cam[0], cam[1], cam[2]
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n = n_samples(blocks)
