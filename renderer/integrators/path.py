@@ -38,7 +38,7 @@ from __future__ import annotations
 from functools import partial
 
 import numpy as np
-from numba import prange
+from numba import get_thread_id, prange
 
 from ..film import PartialFilm
 from ..kernels import kernel_inline, kernel_parallel
@@ -394,7 +394,7 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     total = (x1 - x0) * n
     for row in prange(y1 - y0):
         stack = stacks[row]
-        memo = memos[row]
+        memo = memos[get_thread_id()]  # one memo per thread (integrators/tile.py)
         scr = aov_rows[row]
         fl = lane_floats[row]
         il = lane_ints[row]

@@ -111,7 +111,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from numba import prange
+from numba import get_thread_id, prange
 
 from ..errors import SpecError
 from ..film import PartialFilm
@@ -374,7 +374,8 @@ def _display_tile(sc, pt, hist, vert_b, patch_vert, jk_hist, jk_vert, cam, x0, y
         row_rays[row] = _display_row(sc, pt, hist, vert_b, patch_vert, jk_hist, jk_vert, cam, x0,
                                      y0, x1, width, height, blocks, seed, depth, smp, spp, gather,
                                      out_sum, out_sq, out_w, out_aov, out_jk, np.int64(row),
-                                     stacks[row], memos[row], aov_rows[row], jk_rows[row])
+                                     stacks[row], memos[get_thread_id()], aov_rows[row],
+                                     jk_rows[row])
 
 
 @kernel

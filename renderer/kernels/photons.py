@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import prange
+from numba import get_thread_id, prange
 
 from ..samplers import DIM_GLASS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
 from . import kernel, kernel_inline, kernel_parallel
@@ -416,7 +416,7 @@ def knn_render(sc, cam, x0, y0, x1, y1, width, height, seed, spp, blocks, smp, d
         row_rays[row] = _knn_row(sc, cam, x0, y0, x1, width, height, seed, spp, blocks, smp,
                                  depth, ppos, pdir, ppow, phit, cell, start, order, inv_h,
                                  big_r2, k, n_emitted, out_sum, out_sq, out_w, out_aov,
-                                 np.int64(row), stacks[row], memos[row], aov_rows[row],
+                                 np.int64(row), stacks[row], memos[get_thread_id()], aov_rows[row],
                                  best_d[row], best_i[row])
 
 
