@@ -133,10 +133,13 @@ def u2d(smp, key, seed, pixel, index, spp, dim, memo):
 
 
 # A unit's memo stays under this. The entries layout takes 64 KiB per row at
-# 1024 spp (a 64-row tile at 4096 spp: 16 MiB; a whole 8192-row frame in one
-# unit would take 2 GiB: it goes without); the tables layout 19 entries per
-# sample instead of 2, 156 KiB per row at 256 spp (a 256-row frame in one
-# unit: 40 MiB), and falls back to the entries layout above this.
+# 1024 spp, the tables layout 19 entries per sample instead of 2 (156 KiB per
+# row at 256 spp, 2.4 MiB at MEMO_MAX_SPP) and falls back to the entries
+# layout above this. The tile kernels keep one row per Numba thread
+# (integrators/tile.py), so their units fit up to 26 threads even at
+# MEMO_MAX_SPP; with one row per image row, as before 2026-11-29, a 256-row
+# unit at 635 spp or a 64-row tile at 2048 spp went over and took the slower
+# entries layout (+17 % time).
 MEMO_MAX_BYTES = 64 << 20
 
 
