@@ -313,3 +313,46 @@ def test14_registries_scenes_docs_and_dashboard(local_client):
     assert assets and all(a.startswith("/") and not a.startswith("//") for a in assets), assets
     for asset in assets:
         assert local_client.get(asset).status_code == 200, asset
+
+
+def test15_a_preview_replaced_while_it_is_sent_arrives_whole(local_client, local_app):
+    """The store replaces a running job's preview.png and noise.png by renaming
+    a new file over the old one while clients fetch them. Each response must be
+    one whole file with a Content-Length that matches its body: a FileResponse
+    took the length from one stat and the bytes from a later open, and a
+    rename between the two sent a body the length did not match (the
+    browser's ERR_CONTENT_LENGTH_MISMATCH, seen in a dashboard test)."""
+    import os
+    import threading
+
+    job = poll_job(get_json(local_client), submit(local_client, TINY)["id"])
+    store = local_app.state.farm.store
+    for kind, path in (("preview.png", store.preview_path(job["id"])),
+                       ("noise.png", store.noise_path(job["id"]))):
+        small = path.read_bytes()
+        buffer = io.BytesIO()
+        Image.open(io.BytesIO(small)).resize((97, 89)).save(buffer, format="PNG")
+        versions = (small, buffer.getvalue())
+        assert len(versions[0]) != len(versions[1])
+        stop = threading.Event()
+
+        def replace_over_and_over():
+            k = 0
+            while not stop.is_set():
+                tmp = path.with_name(f".{path.name}.test")
+                tmp.write_bytes(versions[k % 2])
+                os.replace(tmp, path)  # as Store._write_atomic does
+                k += 1
+
+        writer = threading.Thread(target=replace_over_and_over)
+        writer.start()
+        try:
+            for _ in range(200):
+                response = local_client.get(f"/jobs/{job['id']}/{kind}")
+                assert response.status_code == 200, response.text
+                assert int(response.headers["content-length"]) == len(response.content), kind
+                assert response.content in versions, kind
+        finally:
+            stop.set()
+            writer.join()
+            path.write_bytes(small)

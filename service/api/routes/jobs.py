@@ -10,6 +10,7 @@ from fastapi.responses import FileResponse
 
 from ... import admission, blocklist, jobs
 from ... import pixels as pixel_data
+from ...errors import NotFound
 from ...models import utcnow
 from ...schemas import JobCreate, JobPublic, JobUpdate, UnitLogPublic, UnitPublic, WorkerBlockPublic
 from ..auth import ActorDep
@@ -20,6 +21,21 @@ router = APIRouter(prefix="/jobs", tags=["jobs"])
 _NO_STORE = {"Cache-Control": "no-store"}  # previews change while the job runs
 _CHANGE = responses(403, 404, 409)  # a viewer may not; no such job; not in that state
 MAX_OFFSET = 2**31 - 1  # the database's integers end somewhere (SQLite: 2**63 - 1)
+
+
+def _changing_png(path, job_id: str) -> Response:
+    """A PNG the service may replace while it is sent: a running job's preview
+    and noise map, which the store writes to a temporary name and renames over
+    the old one. Read whole from one open file. A FileResponse takes the size
+    from one stat and the bytes from a later open, so a rename between the two
+    sent a Content-Length the body did not match (the browser's
+    ERR_CONTENT_LENGTH_MISMATCH and uvicorn's "Too little data for declared
+    Content-Length", seen once in tests/test_dashboard_browser.py test07)."""
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:  # its job was deleted meanwhile
+        raise NotFound(f"job '{job_id}' has no {path.name}") from None
+    return Response(data, media_type="image/png", headers=_NO_STORE)
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobPublic,
@@ -182,14 +198,14 @@ def result_exr(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep)
     return FileResponse(path, media_type="image/x-exr", filename=f"{job_id}.exr")
 
 
-@router.get("/{job_id}/preview.png", response_class=FileResponse,
+@router.get("/{job_id}/preview.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}, **responses(404)})
-def preview_png(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> FileResponse:
+def preview_png(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> Response:
     """A tonemapped sRGB preview (404 until the first unit has landed). It is
     refreshed as units land while it is being fetched: a job nobody looks at
     keeps its first preview until its final one (service.previews)."""
-    path = jobs.result_file(session, farm.store, actor, job_id, "preview.png")
-    return FileResponse(path, media_type="image/png", headers=_NO_STORE)
+    return _changing_png(jobs.result_file(session, farm.store, actor, job_id, "preview.png"),
+                         job_id)
 
 
 @router.get("/{job_id}/denoised.png", response_class=FileResponse,
@@ -223,12 +239,12 @@ def job_pixels(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep,
         "X-Image-Source": pixels.source})
 
 
-@router.get("/{job_id}/noise.png", response_class=FileResponse,
+@router.get("/{job_id}/noise.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}}, **responses(404)})
-def noise_png(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> FileResponse:
+def noise_png(job_id: str, session: SessionDep, farm: FarmDep, actor: ActorDep) -> Response:
     """The noise heatmap: each pixel's relative standard error (from the variance
     channels) on a log scale from 0.1 % (dark) to 100 % (bright) through an
     inferno colormap; grey where fewer than two samples landed. Refreshed like
     the preview, while it is being fetched (404 until the first unit is done)."""
-    path = jobs.result_file(session, farm.store, actor, job_id, "noise.png")
-    return FileResponse(path, media_type="image/png", headers=_NO_STORE)
+    return _changing_png(jobs.result_file(session, farm.store, actor, job_id, "noise.png"),
+                         job_id)
