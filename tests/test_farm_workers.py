@@ -97,8 +97,11 @@ def test02_a_unit_longer_than_the_lease_is_never_rendered_again(redis_url, spawn
     spawn_worker(concurrency=1, **BEAT)
     # One unit of about three seconds or more against a lease of 1.5 s (a Numba
     # kernel holds the render process's GIL: its own heartbeat thread cannot
-    # beat). 2048 samples took 1.36 s on a fast machine: too close to the lease.
-    body = dict(TINY, spp=4096, tile_size=32, progressive=False)
+    # beat). 2048 spp on 32 x 32 pixels took 1.36 s on a fast machine, and
+    # 4096 spp 1.45 s on an AMD EPYC Zen 5 once the sampler's memo kept its
+    # pair tables for such a unit (integrators/tile.py): too close to the
+    # lease. 48 x 48 pixels at 4096 spp are 2.25 times that.
+    body = dict(TINY, width=48, height=48, spp=4096, tile_size=48, progressive=False)
     with TestClient(create_app(_settings(tmp_path, redis_url, unit_lease_seconds=1.5)),
                     headers=ADMIN_HEADERS) as client:
         get = get_json(client)
