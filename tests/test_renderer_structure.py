@@ -220,3 +220,39 @@ def test10_warm_up_leaves_no_option_to_compile_in_a_unit(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     grown = json.loads(out.stdout.strip().splitlines()[-1])
     assert grown == {}, f"kernels first specialised after warm_up: {grown}"
+
+
+_FEATURES_CHECK = '''
+import json
+import renderer  # noqa: F401 (sets Numba's code generator up)
+from numba.core import codegen, config
+print(json.dumps({"host": codegen.get_host_cpu_features(), "chosen": config.CPU_FEATURES}))
+'''
+
+
+def test11_avx512_code_uses_the_whole_register_unless_the_user_chose(tmp_path):
+    """On a CPU with AVX-512 the renderer turns off LLVM's `prefer-256-bit`
+    (set for Intel's cores, not AMD's), so the packet kernels' lane loops
+    take zmm registers (renderer/kernels/__init__.py); elsewhere it changes
+    nothing. A NUMBA_CPU_FEATURES the user set is left as it is. In fresh
+    processes: the setting has to be made before anything compiles."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    def chosen(extra_env: dict) -> dict:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("NUMBA_CPU_")}
+        out = subprocess.run([sys.executable, "-c", _FEATURES_CHECK], cwd=ROOT,
+                             capture_output=True, text=True, timeout=300,
+                             env={**env, **extra_env})
+        assert out.returncode == 0, out.stderr[-3000:]
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    got = chosen({})
+    if "+avx512f" in got["host"].split(","):
+        assert got["chosen"] == got["host"] + ",-prefer-256-bit"
+    else:
+        assert got["chosen"] is None  # Numba's own choice: the host's features
+    mine = got["host"] + ",+prefer-256-bit"
+    assert chosen({"NUMBA_CPU_FEATURES": mine})["chosen"] == mine
