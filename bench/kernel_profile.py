@@ -15,7 +15,8 @@ symbols, resolved through Numba's own loader) and a copy of the executable
 memory the code lives in. The parent counts each sample against those
 ranges and prints every function's share of the samples taken in the
 renders. With --hot N it also prints the N hottest instructions of the
-hottest function, with objdump's disassembly of the dumped code (sampling
+hottest function (or of the hottest one whose name contains --function),
+with objdump's disassembly of the dumped code (sampling
 skid puts a sample on the instruction after the one that stalled).
 
 Compiling takes one to two minutes; the renders are one thread, so the
@@ -137,6 +138,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=3, help="measured renders")
     parser.add_argument("--hot", type=int, default=0,
                         help="also print the hottest instructions of the hottest function")
+    parser.add_argument("--function", default="",
+                        help="with --hot: the hottest function whose name contains this "
+                             "(e.g. 'intersect (True)' for the shadow rays' packets)")
     parser.add_argument("--out", default=None, help=argparse.SUPPRESS)  # the child's
     args = parser.parse_args(argv)
     if args.out:
@@ -194,7 +198,11 @@ def main(argv: list[str] | None = None) -> int:
                 short_name(info["symbols"][i][2])
             print(f"| {100 * n / max(total, 1):5.1f} % | {name} |")
         if args.hot and counts:
-            top = next(i for i, _ in counts.most_common() if i >= 0)
+            top = next((i for i, _ in counts.most_common() if i >= 0
+                        and args.function in short_name(info["symbols"][i][2])), None)
+            if top is None:
+                print(f"\nno function named like {args.function!r} took samples")
+                return 0
             address, size, _ = info["symbols"][top]
             region = next((lo, hi) for lo, hi in info["regions"] if lo <= address < hi)
             asm = subprocess.run(["objdump", "-D", "-b", "binary", "-mi386:x86-64",
