@@ -62,6 +62,13 @@ def _full_width_vectors() -> None:
     - one thread, 128 x 128 at 256 spp, six interleaved pairs of
       processes: cornell-box -3.0 %, veach-mis +1.8 % time.
     The packet kernel went from 1818 ymm and no zmm operands to 922 zmm.
+    The full bench after it (docs/throughput.md) gave cornell-box 3.20 /
+    3.38 / 3.49 M samples/s against 2.86 / 3.14 / 3.29 M an hour before,
+    with Mitsuba 4-8 % faster in the second run too: the machine drifts, the
+    alternated runs above are the comparison. Only that one Intel machine
+    was measured: on the older Skylake-SP cores, whose clock drops further
+    under 512-bit arithmetic, measure before trusting it
+    (NUMBA_CPU_FEATURES, below, overrides it).
 
     A user who sets NUMBA_CPU_NAME or NUMBA_CPU_FEATURES keeps their choice;
     a process that compiled with Numba before importing the renderer keeps
