@@ -31,7 +31,7 @@ front side.
 import math
 
 from . import kernel
-from .sampling import INV_PI, onb
+from .sampling import INV_PI, onb, sincos_turn
 
 __all__ = ["ggx_D", "ggx_lambda", "ggx_G1", "ggx_G2", "schlick", "glossy_eval", "glossy_sample"]
 
@@ -129,9 +129,9 @@ def glossy_sample(nx, ny, nz, wox, woy, woz, alpha, sr, sg, sb, u1, u2):
     t2x, t2y, t2z = vy * t1z - vz * t1y, vz * t1x - vx * t1z, vx * t1y - vy * t1x
     # ... sample the projected area of the visible half of the hemisphere ...
     r = math.sqrt(u1)
-    phi = 2.0 * math.pi * u2
-    p1 = r * math.cos(phi)
-    p2 = r * math.sin(phi)
+    cos_p, sin_p = sincos_turn(u2)
+    p1 = r * cos_p
+    p2 = r * sin_p
     s = 0.5 * (1.0 + vz)
     p2 = (1.0 - s) * math.sqrt(max(0.0, 1.0 - p1 * p1)) + s * p2
     p3 = math.sqrt(max(0.0, 1.0 - p1 * p1 - p2 * p2))

@@ -26,8 +26,8 @@ veach-mis (four sphere lights) the RMSE at 16 / 64 / 256 spp fell from
 import math
 
 from . import kernel, kernel_inline
-from .sampling import (ONE_MINUS_EPS, cosine_hemisphere, onb, to_world, uniform_sphere,
-                       uniform_triangle)
+from .sampling import (ONE_MINUS_EPS, cosine_hemisphere, onb, sincos_turn, to_world,
+                       uniform_sphere, uniform_triangle)
 
 LIGHT_MESH, LIGHT_SPHERE, LIGHT_POINT = 0, 1, 2
 
@@ -58,9 +58,9 @@ def _sample_sphere(sph, sph_flip, s, area, px, py, pz, u1, u2):
         sin2_t = max(0.0, 1.0 - cos_t * cos_t)
         # distance to the nearest intersection along the sampled direction
         dist = dc * cos_t - math.sqrt(max(0.0, r * r - dc2 * sin2_t))
-        phi = 2.0 * math.pi * u2
         sin_t = math.sqrt(sin2_t)
-        wx_l, wy_l = sin_t * math.cos(phi), sin_t * math.sin(phi)
+        cos_p, sin_p = sincos_turn(u2)
+        wx_l, wy_l = sin_t * cos_p, sin_t * sin_p
         ax, ay, az = fx / dc, fy / dc, fz / dc
         sx, sy, sz, tx, ty, tz = onb(ax, ay, az)
         wx = wx_l * sx + wy_l * tx + cos_t * ax
