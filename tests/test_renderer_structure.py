@@ -230,7 +230,7 @@ print(json.dumps({"host": codegen.get_host_cpu_features(), "chosen": config.CPU_
 '''
 
 
-def test11_avx512_code_uses_the_whole_register_unless_the_user_chose(tmp_path):
+def test11_avx512_code_uses_the_whole_register_unless_the_user_chose():
     """On a CPU with AVX-512 the renderer turns off LLVM's `prefer-256-bit`
     (set for Intel's cores, not AMD's), so the packet kernels' lane loops
     take zmm registers (renderer/kernels/__init__.py); elsewhere it changes
