@@ -386,7 +386,20 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
       every kernel (an experiment, not an option Numba offers) the loss was
       +2.6 %. (The shell has to pass the row as an int64: the parfor's
       index is a uint64 in its body, and the row kernel was compiled three
-      times, once for each type its arguments had in the passes.)"""
+      times, once for each type its arguments had in the passes.)
+    Measured and not kept (2026-11-29, third session, AMD EPYC Zen 5, the
+    same method, the same film bytes):
+    - the cosine-sampled bounce (`diffuse_sample`: the concentric map's
+      polynomials and division, the square root, the frame, the offset
+      origin) taken out of `_shade_lane` into one branch-free loop over
+      the lanes after the shading, the lane's numbers and normal left in
+      five more lane rows. LLVM vectorized that loop (zmm throughout, packed
+      divisions and square roots), yet cornell-box took +17.7 % time with
+      the loop inlined here and +4.4 % as a kernel of its own. Lane by
+      lane, that chain overlaps with the other lanes' work in the
+      out-of-order core; the rows written and read back and the extra pass
+      cost more than the vector arithmetic saves. The light sample's loop
+      above (+3.1 %) had said the same."""
     ox, oy, oz = cam[0], cam[1], cam[2]
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n = n_samples(blocks)
