@@ -139,15 +139,18 @@ def test06_progressive_passes_merge_to_the_same_bits(cornell):
 
 
 def test06_progressive_passes_with_sobol_windows_merge_to_the_same_bits(cornell):
-    # At 40 spp a pass's samples plus the pairs' rotations no longer cover a
-    # pixel's block, so the `sobol` memo computes each unit's window only
-    # (samplers/sobol.py mark_window), the last pass's span wrapping around
-    # the block: the image's bytes are still those of one pass.
+    # At 40 spp the eight-sample passes' samples plus the pairs' rotations
+    # (sobol.TABLE_PAIRS - 1 positions) no longer cover a pixel's block, so
+    # the `sobol` memo computes each such unit's window only (samplers/
+    # sobol.py mark_window), the last pass's span wrapping around the block;
+    # the pass of 16 covers it (a whole claim): the image's bytes are still
+    # those of one pass.
     spec = RenderSpec(spp=40, depth=3, width=24, height=24, tile_size=8, seed=5)
     units = plan(spec, progressive=True)
     windows = sorted({(u.sample_start, u.sample_end) for u in units})
-    assert [w for w in windows if sobol.window_span(40, *w) < 40] == [(0, 8), (8, 16), (16, 32),
-                                                                      (32, 40)]
+    assert windows == [(0, 8), (8, 16), (16, 32), (32, 40)]
+    assert [w for w in windows if sobol.window_span(40, *w) < 40] == [(0, 8), (8, 16), (32, 40)]
+    assert 32 + sobol.window_span(40, 32, 40) > 40  # the last window wraps around
     assert (start_tile(cornell, spec, units[-1]).memos < 0).any()  # the unit's memo is marked
     whole = render_inline(cornell, spec)
     passes = merge(24, 24, [run_unit(cornell, spec, u) for u in units])

@@ -354,14 +354,23 @@ def sample_pair(seed, pixel, index, spp, pair):
 
 # Pairs below this get a table per pixel and block in the memo's table
 # layout (`sample_pair_memo`): the film pair and the pairs of the first
-# four vertices (pairs 1 + 4 b + 0..3, samplers/dispatch.py). Deeper pairs
-# are drawn by fewer paths (Russian roulette); 13 and 29 measured within
-# a few percent of this on cornell-box. 29 again with the survival scale
-# 2 (2026-11-28, Intel Xeon, cornell-box, one thread, five pairs of
-# processes): 64 spp -0.3 +- 0.5 %, 256 spp -2.2 +- 0.6 %, for 1.6x the
-# memo's memory and tables filled at every position for the few paths
-# that reach the fifth vertex; not kept.
-TABLE_PAIRS = 17
+# seven vertices (pairs 1 + 4 b + 0..3 for b <= 6, samplers/dispatch.py),
+# every pair a path of the benchmarks' depth 7 draws. Deeper pairs go
+# through the out-of-line draw. Until 2026-11-29 this was 17 (four
+# vertices): deeper pairs are drawn by fewer paths, and 13 and 29 had
+# measured within a few percent of 17 on cornell-box (on an Intel Xeon,
+# 2026-11-28, with the survival scale 2: 64 spp -0.3 +- 0.5 %, 256 spp
+# -2.2 +- 0.6 %), not worth the memo's 1.6x memory then, when it was one
+# memo per image row. It is one per Numba thread since (integrators/
+# tile.py), a bank of 64 spp is 16 kB with 29 tables. Measured with 29
+# (2026-11-29, AMD EPYC Zen 5, 128x128, one thread, interleaved pairs of
+# processes, the same film bytes): cornell-box 64 spp -3.3 % time (ten
+# pairs), 256 spp -4.0 % (six), veach-mis 64 spp -2.3 % (eight); the
+# windows of a progressive 507-spp job (eight pairs) [0, 8) -1.9 %,
+# [8, 16) -0.5 %, [64, 128) -7.4 %. A path that reaches the fifth vertex
+# draws about ten pairs past the fourth, each some 10 ns out of line
+# against a load from a table filled at a fraction of a nanosecond a point.
+TABLE_PAIRS = 29
 
 
 @kernel_inline
