@@ -174,7 +174,7 @@ def test02_sobol_memo_gives_the_same_values(spp, window):
     assert memo_rows(SAMPLER_RANDOM, spp, 3).shape == (3, 0)  # other samplers keep none
     assert memo_rows(SAMPLER_SOBOL, 4096, 8192, (0, 4096)).shape == (8192, 0)  # nor a huge unit
     # over the budget with tables, a unit keeps the entries layout
-    assert memo_rows(SAMPLER_SOBOL, 4096, 32, (0, 4096)).shape == (32, 2 * 4096 * sobol.MEMO_BANKS)
+    assert memo_rows(SAMPLER_SOBOL, 4096, 64, (0, 4096)).shape == (64, 2 * 4096 * sobol.MEMO_BANKS)
 
 
 def _point_set(p):

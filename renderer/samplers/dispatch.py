@@ -133,14 +133,17 @@ def u2d(smp, key, seed, pixel, index, spp, dim, memo):
 
 
 # A unit's memo stays under this. The entries layout takes 64 KiB per row at
-# 1024 spp, the tables layout 19 entries per sample instead of 2 (156 KiB per
-# row at 256 spp, 2.4 MiB at MEMO_MAX_SPP) and falls back to the entries
-# layout above this. The tile kernels keep one row per Numba thread
-# (integrators/tile.py), so their units fit up to 26 threads even at
-# MEMO_MAX_SPP; with one row per image row, as before 2026-11-29, a 256-row
-# unit at 635 spp or a 64-row tile at 2048 spp went over and took the slower
-# entries layout (+17 % time).
-MEMO_MAX_BYTES = 64 << 20
+# 1024 spp, the tables layout 31 entries per sample instead of 2 (249 KiB
+# per row at 256 spp, 3.9 MiB at MEMO_MAX_SPP, with sobol.TABLE_PAIRS 29)
+# and falls back to the entries layout above this. The tile kernels keep one
+# row per Numba thread (integrators/tile.py), so their units fit up to 33
+# threads even at MEMO_MAX_SPP (26 with 17 pair tables and half this
+# budget, before 2026-11-29's third session); with one row per image row,
+# as before 2026-11-29, a 256-row unit at 635 spp or a 64-row tile at 2048
+# spp went over and took the slower entries layout (+17 % time). np.zeros
+# takes such a block from the kernel as untouched zero pages: the memory a
+# render uses is the banks it reaches, not the budget.
+MEMO_MAX_BYTES = 128 << 20
 
 
 def memo_rows(sampler_id: int, spp: int, rows: int,
