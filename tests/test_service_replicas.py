@@ -213,18 +213,26 @@ def test05_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
     over, renders again only the units A had in flight, and the result is
     bit-identical to an undisturbed render."""
     (leader, a), (_, b) = _replica_pair(spawn_replica, postgres_url)
-    # 64 units, long enough (8192 samples each) that some are in flight at the kill
-    body = dict(TINY, width=64, height=64, tile_size=8, spp=128, progressive=False)
+    # 64 units, long enough (32768 samples each: about a second in all) that
+    # some are in flight at the kill. At 8192 samples a unit the first 16 were
+    # done in a few tens of milliseconds, sooner than the stream below had
+    # connected when another test process kept the cores busy.
+    body = dict(TINY, width=64, height=64, tile_size=8, spp=512, progressive=False)
     job = api(a, "POST", "/jobs", json=body)
     stream = EventReader(f"{b}/jobs/{job['id']}/events")
     stream.start()
-    wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["progress"]["units_done"] >= 16, 120,
-             "a quarter of the units to be done")
+    wait_for(lambda: stream.seen, 60, "the standby's stream to open with the job's snapshot")
+    assert stream.seen[0][0] == "job" and stream.seen[0][1]["status"] != "done", stream.seen[:1]
+
+    def relayed() -> list[dict]:
+        """What B's stream had from A's scheduler: it came through the relay."""
+        return [data for kind, data in stream.seen if kind == "unit" and data["state"] == "done"]
+
+    wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["progress"]["units_done"] >= 16
+             and relayed(), 120, "a quarter of the units to be done, and a unit event from the "
+             "leader on the standby's stream")
     leader.kill_group(signal.SIGKILL)  # the service and its render process
     killed = time.monotonic()
-    # What B's stream had from A's scheduler: it came through the relay.
-    relayed = [data for kind, data in stream.seen if kind == "unit" and data["state"] == "done"]
-    assert relayed, f"no unit event from the leader reached the standby's stream: {stream.kinds()}"
     # The ledger at the kill (the dead leader writes nothing more): what was
     # done must never be rendered again; what was in flight may be, once.
     at_kill = {u["index"]: u for u in api(b, "GET", f"/jobs/{job['id']}/units")}
@@ -244,7 +252,7 @@ def test05_the_leader_killed_mid_job_the_standby_finishes_it_bit_identical(
     assert not rendered_again, f"units done before the kill ran again: {rendered_again}"
     retried = [i for i, u in units.items() if u["tasks"] > 1]
     assert set(retried) <= set(in_flight), (retried, in_flight)
-    assert done["progress"]["samples_done"] == 64 * 64 * 128, "a unit was counted twice"
+    assert done["progress"]["samples_done"] == 64 * 64 * body["spp"], "a unit was counted twice"
     print(f"\nfailover (SIGKILL of the leader -> the standby's first tick): {failover:.2f} s "
           f"with a 2 s lease; {len(finished_before)} units done before the kill, "
           f"{len(in_flight)} in flight, {len(retried)} rendered again; states at the kill: "
