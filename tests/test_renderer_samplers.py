@@ -19,6 +19,7 @@ from renderer.registry import SAMPLERS
 from renderer.samplers import (SAMPLER_RANDOM, SAMPLER_SOBOL, bluenoise, fill_2d, halton,
                                memo_rows, naive, points, sample_1d, sample_2d, sobol, u2d)
 from renderer.samplers.common import permute
+from renderer.samplers.dispatch import MEMO_MAX_BYTES
 
 SEED = 20261122
 NAMES = ["random", "uniform", "jittered", "nrooks", "multijitter", "hammersley", "halton",
@@ -173,8 +174,12 @@ def test02_sobol_memo_gives_the_same_values(spp, window):
             assert span < spp or window == "whole" or spp < 64
     assert memo_rows(SAMPLER_RANDOM, spp, 3).shape == (3, 0)  # other samplers keep none
     assert memo_rows(SAMPLER_SOBOL, 4096, 8192, (0, 4096)).shape == (8192, 0)  # nor a huge unit
+    # within the budget at the largest spp, a unit on 32 threads keeps the tables
+    tables = sobol.MEMO_BANKS * sobol.memo_bank_width(4096, True)
+    assert memo_rows(SAMPLER_SOBOL, 4096, 32, (0, 4096)).shape == (32, tables)
     # over the budget with tables, a unit keeps the entries layout
-    assert memo_rows(SAMPLER_SOBOL, 4096, 64, (0, 4096)).shape == (64, 2 * 4096 * sobol.MEMO_BANKS)
+    over = MEMO_MAX_BYTES // (8 * tables) + 1
+    assert memo_rows(SAMPLER_SOBOL, 4096, over, (0, 4096)).shape == (over, 2 * 4096 * sobol.MEMO_BANKS)
 
 
 def _point_set(p):
