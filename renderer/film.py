@@ -286,9 +286,9 @@ class Film(PartialFilm):
     def mean(self) -> np.ndarray:
         """Per-pixel mean radiance (h, w, 3): the camera samples' mean plus
         the splat estimate (module doc)."""
-        n = self.weight[..., None]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            out = np.where(n > 0, self.sum / np.maximum(n, 1e-300), 0.0)
+        n = _per_channel(self.weight, self.sum.shape)
+        out = self.sum / np.maximum(n, 1e-300)
+        np.copyto(out, 0.0, where=~(n > 0))
         if self.splat is not None and self.splat_paths > 0:
             out = out + self.splat / self.splat_paths
         return out
@@ -299,14 +299,25 @@ class Film(PartialFilm):
         estimate's batch variance. Undefined with fewer than two samples (or
         batches); reported as +inf there. A frame made of splats only has no
         camera-sample part."""
-        n = self.weight[..., None]
+        # In place, over the count repeated per channel: max(sum_sq - n mean^2,
+        # 0) / (n - 1) / n, the same operations in the same order as written
+        # out, in a third of the time (every new array of a frame is fresh
+        # pages to fault in, and an operand broadcast over the channel axis
+        # makes numpy loop over three elements at a time).
+        n = _per_channel(self.weight, self.sum.shape)
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = self.sum / n
-            sample_var = np.maximum(self.sum_sq - n * mean * mean, 0.0) / (n - 1.0)
-            out = sample_var / n
+            out = n * mean
+            out *= mean
+            np.subtract(self.sum_sq, out, out=out)
+            np.maximum(out, 0.0, out=out)
+            out /= n - 1.0
+            out /= n
         splats = self.splat is not None and self.splat_paths > 0
-        out = np.where(n >= 2, out, 0.0 if splats else np.inf)
-        out = np.where((n > 0) & (n < 2), np.inf, out)
+        few = n < 2  # (a weight is a count, never nan)
+        np.copyto(out, 0.0 if splats else np.inf, where=few)
+        if splats:  # (without them every pixel of fewer than two samples is inf already)
+            out = np.where((n > 0) & few, np.inf, out)
         if splats:
             k, paths = self.splat_batches, self.splat_paths
             if k >= 2:
@@ -455,10 +466,27 @@ def relative_error(mean: np.ndarray, variance_of_mean: np.ndarray) -> np.ndarray
     sqrt(mean_c var_c) / max(mean_c mu_c, ERROR_FLOOR). +inf where the
     variance is unknown. (Channels are treated as independent here; they are
     correlated, so this is a display measure, not a confidence interval.)"""
-    var = np.mean(variance_of_mean, axis=-1)
-    level = np.maximum(np.mean(mean, axis=-1), ERROR_FLOOR)
+    var = _channel_mean(variance_of_mean)
+    level = np.maximum(_channel_mean(mean), ERROR_FLOOR)
     with np.errstate(invalid="ignore"):
         return np.where(np.isfinite(var), np.sqrt(np.maximum(var, 0.0)) / level, np.inf)
+
+
+def _per_channel(weight: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """The per-pixel `weight` (h, w) repeated over the channels of `shape`
+    (h, w, c), contiguous (see `Film.variance_of_mean`)."""
+    return np.repeat(weight[..., None], shape[-1], axis=-1)
+
+
+def _channel_mean(x: np.ndarray) -> np.ndarray:
+    """`np.mean(x, axis=-1)` of RGB pixels, the same bits (the sum of a row of
+    three adds them in order, then divides by 3) at a tenth of its time: a
+    reduction over an axis of three pays numpy's per-row overhead (0.76 ms
+    against 0.06 ms for 256 x 256 pixels; `image_error` of such a frame, run
+    on every pass of a progressive job by the service, took 5 to 8 ms)."""
+    if x.shape[-1] != 3:
+        return np.mean(x, axis=-1)
+    return (x[..., 0] + x[..., 1] + x[..., 2]) / 3.0
 
 
 # The image's error statistic (`image_error`): the ERROR_PERCENTILE-th
@@ -485,7 +513,7 @@ def image_error(mean: np.ndarray, variance_of_mean: np.ndarray,
     variance is unknown (fewer than two samples); nan for an image with no
     counted pixel. `floor` (default: `error_floor(mean)`) is the brightness a
     counted pixel exceeds: a region of an image is judged with the image's."""
-    level = np.mean(mean, axis=-1)
+    level = _channel_mean(mean)
     counted = level > (error_floor(mean) if floor is None else floor)
     if not counted.any():
         return float("nan")
