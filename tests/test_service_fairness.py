@@ -426,6 +426,16 @@ def test13_ticks_are_paced_only_while_every_process_has_work_waiting(tmp_path):
         waited = pause(lambda: (scheduler._wake.set(), late.start()))
         late.join()
         assert 0.1 <= waited < 0.45
+
+        # however long the last tick took, the pace waits at most PACE_SPAN
+        # poll intervals (here 0.1 x 5 s)
+        executor.ahead = True
+        scheduler.PACE_SPAN = 0.1
+        started = time.monotonic()
+        scheduler._wake.set()
+        scheduler._pause(1000.0)
+        waited = time.monotonic() - started
+        assert 0.5 <= waited < 0.9
     finally:
         engine.dispose()
 

@@ -232,8 +232,9 @@ class LocalExecutor(Executor):
 
     def limit(self) -> int:
         """Units to keep in flight: enough that every process still has a unit
-        waiting when the scheduler, pacing its ticks, notices what landed (at
-        most `poll_interval` later): two each for long units, more for short
+        waiting when the scheduler, pacing its ticks, notices what landed (a
+        poll interval later, or at once when a landing leaves fewer units
+        waiting than processes: `work_ahead`): two each for long units, more for short
         ones (a progressive job's first passes take milliseconds per unit), up
         to `MAX_AHEAD` each, so that the pool's queue holds about one poll
         interval of work and a newcomer, a higher priority or a cancel never
