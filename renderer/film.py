@@ -287,7 +287,8 @@ class Film(PartialFilm):
         """Per-pixel mean radiance (h, w, 3): the camera samples' mean plus
         the splat estimate (module doc)."""
         n = _per_channel(self.weight, self.sum.shape)
-        out = self.sum / np.maximum(n, 1e-300)
+        with np.errstate(invalid="ignore", divide="ignore"):  # (1e-300 is 0 in float32)
+            out = self.sum / np.maximum(n, 1e-300)
         np.copyto(out, 0.0, where=~(n > 0))
         if self.splat is not None and self.splat_paths > 0:
             out = out + self.splat / self.splat_paths
