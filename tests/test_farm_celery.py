@@ -107,8 +107,10 @@ def test03_sigkilled_worker_mid_job_the_job_still_finishes_bit_identical(
         redis_url, spawn_worker, tmp_path, reference_channels):
     import redis
 
-    # 36 units of ~70 ms each on one process: seconds of work, so the kill lands mid-job.
-    body = dict(TINY, width=48, height=48, spp=512, tile_size=8, progressive=False)
+    # 36 units on one process, so the kill lands mid-job: at 512 spp a unit
+    # took about 70 ms on the machine this was written on and 10 ms on an AMD
+    # EPYC Zen 5 (half a second for the job); at 2048 spp 40 ms there.
+    body = dict(TINY, width=48, height=48, spp=2048, tile_size=8, progressive=False)
     settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
                         unit_lease_seconds=5)
     broker = redis.Redis.from_url(redis_url)
@@ -133,7 +135,7 @@ def test03_sigkilled_worker_mid_job_the_job_still_finishes_bit_identical(
         second = spawn_worker(concurrency=2)
         job = poll_job(get, job_id)
         assert job["status"] == "done", job
-        assert job["samples"] == 48 * 48 * 512, "a unit was counted twice or lost"
+        assert job["samples"] == 48 * 48 * body["spp"], "a unit was counted twice or lost"
         units = get(f"/jobs/{job_id}/units")
         # The unit the dead worker was rendering came back as a new task, not as
         # a failed attempt (unless it stored its result in the instant before the kill).

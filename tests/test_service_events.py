@@ -44,8 +44,9 @@ def read_events(response, stop=lambda kind, data: kind == "end", limit: float = 
 # the POST and the GET, and the stream saw only "done") and that the scheduler
 # lands its units in several ticks. The ETA needs two landings before the last
 # (Job.note_samples: the first only starts the measurement), and a tick
-# collects every unit that landed since the one before, up to poll_interval
-# (50 ms here) apart: at 256 spp the job took about 0.2 s on one machine and
+# collects every unit that landed since the one before, a poll_interval (50 ms
+# here) apart, or up to four (Scheduler.PACE_SPAN) while both render processes
+# have a unit waiting: at 256 spp the job took about 0.2 s on one machine and
 # less on a faster one, whose ticks landed it in two batches, the second
 # finishing the job, so no running job ever showed an ETA. At 1024 spp it
 # takes about four times as many ticks.
