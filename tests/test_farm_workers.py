@@ -152,7 +152,10 @@ def test03_a_disabled_worker_takes_no_new_unit_while_another_does(redis_url, spa
         assert job["status"] == "done", (job, drained.log()[-3000:])
         takers = {u["worker"] for u in get(f"/jobs/{job['id']}/units")}
         assert takers == {name}, (takers, drained.log()[-3000:])
-        assert "enabled: consuming again" in drained.log()
+        # (its presence thread logs the flag on its next beat, which a job of
+        # a few milliseconds may beat to the finish)
+        wait_for(lambda: "enabled: consuming again" in drained.log(), 30,
+                 "the worker to log that it consumes again")
 
 
 def test04_a_worker_declines_units_of_a_job_it_is_blocklisted_for_or_while_disabled(
