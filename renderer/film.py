@@ -319,7 +319,6 @@ class Film(PartialFilm):
         np.copyto(out, 0.0 if splats else np.inf, where=few)
         if splats:  # (without them every pixel of fewer than two samples is inf already)
             out = np.where((n > 0) & few, np.inf, out)
-        if splats:
             k, paths = self.splat_batches, self.splat_paths
             if k >= 2:
                 spread = np.maximum(self.splat_sq - self.splat * self.splat / paths, 0.0)
