@@ -186,6 +186,35 @@ def _point_set(p):
     return p[np.lexsort((p[:, 1], p[:, 0]))]
 
 
+@pytest.mark.parametrize("window", [None, (16, 40)])
+def test02_sobol_claim_fills_the_tables_the_bank_last_drew(window):
+    # A pixel's claim of a bank fills, ahead of their draws, the pair tables
+    # its previous pixel drew (sobol._claim_bank), and only those; the
+    # values stay the plain kernel's. Pixels 8 and 12 share bank 0 of 4.
+    spp = 64
+    lo, hi = (0, spp) if window is None else window
+    memo = memo_rows(SAMPLER_SOBOL, spp, 1, (lo, hi))[0]
+    bank = memo.reshape(sobol.MEMO_BANKS, -1)[0]
+    drawn_pairs = (0, 2, 3, 9)
+    first = np.asarray([(8, i, 2 * p) for i in range(lo, hi) for p in drawn_pairs], np.int64)
+    _sobol_memo_draws(SEED, spp, first, memo, np.empty((len(first), 2)))
+    # the next pixel of the bank draws its film pair only: that claims the bank
+    claim = np.asarray([(12, lo, 0)], np.int64)
+    _sobol_memo_draws(SEED, spp, claim, memo, np.empty((1, 2)))
+    tag = (12 << 20) + 1
+    assert bank[0] == tag
+    filled = {k for k in range(sobol.TABLE_PAIRS) if bank[1 + k] == tag}
+    assert filled == set(drawn_pairs)
+    # every pair of the new pixel, filled ahead or at its first draw, reads
+    # the plain kernel's values
+    rest = np.asarray([(12, i, 2 * p) for i in range(lo, hi) for p in range(12)], np.int64)
+    out = np.empty((len(rest), 2))
+    _sobol_memo_draws(SEED, spp, rest, memo, out)
+    plain = np.empty_like(out)
+    _sobol_plain_draws(SEED, spp, rest, plain)
+    assert np.array_equal(out, plain)
+
+
 @pytest.mark.parametrize("name", [n for n in NAMES if n != "uniform"])
 def test02_pixels_pairs_and_seeds_differ(name):
     # As sets, not only in order: a shuffled copy of one pattern is still one pattern.
