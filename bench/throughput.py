@@ -98,7 +98,11 @@ NOTES = """## Reading the table
   Fresnel and height-correlated G2 here, no Fresnel and separable G in
   Mitsuba's `roughconductor`), so each renderer is measured against its own
   reference.
-- `sobol` costs 8-11 % of `random`'s samples/s on cornell-box at 64 spp
+- `sobol` costs 5 % of `random`'s samples/s on cornell-box at 64 and
+  256 spp, 13 % at 16 spp (4.33 / 4.30 / 3.83 M against 4.56 / 4.51 /
+  4.42 M at 64 / 256 / 16 spp, AMD EPYC Zen 5, 2026-11-29's fourth
+  session, since a bank's claim fills the pair tables its previous pixel
+  drew: renderer/samplers/sobol.py); 8-11 % before
   (3.99 M against 4.36 M, Intel AVX-512, 2026-11-27's fifth session),
   18 % before its pair tables (3.27 M against 4.01 M, same machine):
   19-22 % with packets before (4.06 M against 5.01 M, Zen 5), about 13 %
