@@ -451,25 +451,17 @@ def _claim_bank(memo, base, tag, seed, pixel, b, n, spp, i):
     in one go, the others left to their first draw. Out of line: once per
     pixel and block.
 
-    Why fill ahead (2026-11-29, fourth session, AMD EPYC Zen 5, 128x128,
-    one thread, interleaved pairs of processes, the same film bytes): a
-    table filled at its pair's first draw costs that draw an exit from the
-    inline path (a branch the predictor misses, two calls out of line) in
-    the middle of the lanes' shading, 22 times a pixel on cornell-box; the
-    same fills made here, back to back, cost less. cornell-box 16 / 64 /
-    256 spp -7.4 / -4.4 / -0.7 % time (eight, eight and six pairs; the
-    fills are a pixel's fixed cost, so the fewer its samples the more they
-    weigh), veach-mis 64 spp -3.2 %. Every table filled at the claim,
-    drawn or not: cornell-box 64 spp 1.5 +- 1.4 % faster than this, within
-    the noise, but a method that draws only a vertex or two (`direct`)
-    would pay for 29 tables a pixel. The previous pixel's tables are this
-    one's best guess: a row's pixels see the same scene, and a table
-    filled but not drawn costs only its fill. Before this, two ablations
-    put a number on what `sobol` cost (cornell-box, 64 spp): its draws
-    answered by `random`'s hash, -9.2 +- 1.1 % time; its tables computed
-    as usual but `random`'s values used, as slow as `sobol` itself. So the
-    cost was the sampler's work, not the paths its points send the
-    packets down."""
+    Why (2026-11-29, fourth session, AMD EPYC Zen 5, 128x128, one thread,
+    interleaved pairs of processes, the same film bytes): a table filled at
+    its pair's first draw makes that draw leave the inline path (a missed
+    branch, two calls) in the middle of the lanes' shading, 22 times a
+    pixel on cornell-box. Filled here: cornell-box 16 / 64 / 256 spp -7.4 /
+    -4.4 / -0.7 % time (a pixel's fixed cost, so it weighs most at low spp),
+    veach-mis 64 spp -3.2 %. Every table filled, drawn or not: 1.5 +- 1.4 %
+    faster still at 64 spp, noise, and `direct` would pay for 29 a pixel.
+    Before: `sobol`'s draws answered by `random`'s hash, -9.2 +- 1.1 %;
+    its tables computed but `random`'s values used, as slow as `sobol`: the
+    cost was the sampler's work, not where its points send the packets."""
     prev = memo[base]
     drawn = 0  # the tables the previous pixel drew: tags that are its tag
     for k in range(TABLE_PAIRS):
@@ -575,10 +567,9 @@ def sample_pair_memo(seed, pixel, index, spp, pair, memo):
         bw = _table_bank_width(n)
         if pair < TABLE_PAIRS and w == MEMO_BANKS * bw:
             base = bw * (pixel & (MEMO_BANKS - 1))
-            # (a table's tag is the pixel's tag only while the bank is the
-            # pixel's: a claim resets every table's tag before it fills any,
-            # so the bank's own tag need not be read as well; that load
-            # less alone measured -0.2 +- 1.6 % time, nothing, _claim_bank)
+            # (a claim resets every table's tag before it fills any, so a
+            # table with the pixel's tag is in the pixel's bank; one load
+            # less, alone -0.2 +- 1.6 % time, noise)
             if memo[base + 1 + pair] == tag:
                 x = np.uint64(memo[_table_start(base, pair, n) + _rotated(i, pair, n)])
                 return float(x >> U32) * INV_2_32, float(x & MASK32) * INV_2_32
