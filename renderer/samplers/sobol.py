@@ -462,10 +462,10 @@ def _claim_bank(memo, base, tag, seed, pixel, b, n, spp, i):
     Before: `sobol`'s draws answered by `random`'s hash, -9.2 +- 1.1 %;
     its tables computed but `random`'s values used, as slow as `sobol`: the
     cost was the sampler's work, not where its points send the packets."""
-    prev = memo[base]
-    drawn = 0  # the tables the previous pixel drew: tags that are its tag
-    for k in range(TABLE_PAIRS):
-        if prev > 0 and memo[base + 1 + k] == prev:
+    prev = memo[base]  # the previous pixel's tag (0: none yet)
+    drawn = 0  # the tables it drew: those that carry its tag
+    for k in range(TABLE_PAIRS if prev > 0 else 0):
+        if memo[base + 1 + k] == prev:
             drawn |= 1 << k
     memo[base] = tag
     jo = base + 1 + TABLE_PAIRS

@@ -234,11 +234,11 @@ class LocalExecutor(Executor):
         """Units to keep in flight: enough that every process still has a unit
         waiting when the scheduler, pacing its ticks, notices what landed (a
         poll interval later, or at once when a landing leaves fewer units
-        waiting than processes: `work_ahead`): two each for long units, more for short
-        ones (a progressive job's first passes take milliseconds per unit), up
-        to `MAX_AHEAD` each, so that the pool's queue holds about one poll
-        interval of work and a newcomer, a higher priority or a cancel never
-        waits long behind it."""
+        waiting than processes: `work_ahead`): two each for long units, more
+        for short ones (a progressive job's first passes take milliseconds
+        per unit), up to `MAX_AHEAD` each, so that the pool's queue holds
+        about one poll interval of work and a newcomer, a higher priority or
+        a cancel never waits long behind it."""
         per_poll = math.ceil(self.poll_interval / max(self._unit_seconds, 1e-4)) + 2
         return min(max(per_poll, 3), self.MAX_AHEAD) * self.processes
 
