@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import uuid
 from datetime import datetime
-from typing import Callable
+from typing import Callable, TypeVar
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
@@ -36,6 +36,9 @@ from .store import Store
 __all__ = ["create_job", "get_job", "list_jobs", "visible_job_ids", "list_units", "unit_logs", "cancel_job", "cancel_job_retrying",
            "pause_job", "resume_job", "retry_job", "requeue_job", "set_priority", "delete_job",
            "retrying", "result_file", "new_job_id"]
+
+
+T = TypeVar("T")
 
 
 def new_job_id() -> str:
@@ -302,16 +305,17 @@ def delete_job(session: Session, store: Store, actor: Principal, job_id: str,
 
 
 def retrying(sessions: sessionmaker[Session], job_id: str,
-             action: Callable[[Session], Job], tries: int = 5) -> Job:
+             action: Callable[[Session], T], tries: int = 5, what: str = "job") -> T:
     """`action(session)` in its own transaction, again if the scheduler changed
-    the job meanwhile (optimistic locking): the next try sees the new state."""
+    the job meanwhile (optimistic locking): the next try sees the new state.
+    After `tries` the answer is a 409 naming the `what` `job_id`, never a 500."""
     for attempt in range(tries):
         try:
             with sessions.begin() as session:
                 return action(session)
         except StaleDataError:
             if attempt == tries - 1:
-                raise Conflict(f"job '{job_id}' keeps changing; try again") from None
+                raise Conflict(f"{what} '{job_id}' keeps changing; try again") from None
     raise AssertionError("unreachable")
 
 

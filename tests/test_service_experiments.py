@@ -101,3 +101,36 @@ def test04_a_canceled_experiment_cancels_its_jobs(local_client):
     for run in canceled.json()["runs"]:
         assert local_client.get(f"/jobs/{run['job']}").json()["status"] in ("canceled", "done")
     assert local_client.post(f"/experiments/{body['id']}/cancel").status_code == 409
+
+
+def test04b_a_cancel_whose_read_went_stale_is_tried_again_not_a_500(local_app, local_client):
+    """The scheduler changes an experiment's jobs while the API cancels them
+    (it plans them, units land): the cancel's write then matches no row
+    (optimistic locking). The route must try again on the new state: a 200,
+    never a 500 (CI once failed on exactly this race)."""
+    from sqlalchemy import event, update
+
+    from service.models import Job
+
+    farm = local_app.state.farm
+    response = local_client.post("/experiments", json={**SMALL, "spp": [4096], "repeats": 2,
+                                                       "configs": [{"method": "path-mis"}]})
+    body = response.json()
+    bumped = []
+
+    def scheduler_meanwhile(session, flush_context, instances):
+        if not bumped:  # once: between the cancel's first read and its first write
+            bumped.append(body["runs"][0]["job"])
+            with farm.engine.begin() as other:
+                other.execute(update(Job).where(Job.id == bumped[0])
+                              .values(version=Job.version + 1))
+
+    event.listen(farm.sessions, "before_flush", scheduler_meanwhile)
+    try:
+        canceled = local_client.post(f"/experiments/{body['id']}/cancel")
+    finally:
+        event.remove(farm.sessions, "before_flush", scheduler_meanwhile)
+    assert bumped, "the hook never ran: the test no longer tests the race"
+    assert canceled.status_code == 200, canceled.text
+    assert canceled.json()["status"] == "canceled"
+    assert local_client.get(f"/jobs/{bumped[0]}").json()["status"] in ("canceled", "done")

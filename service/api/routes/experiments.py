@@ -9,7 +9,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response, status
 from fastapi.responses import FileResponse
 
-from ... import experiments
+from ... import experiments, jobs
 from ...models import utcnow
 from ...schemas import ExperimentCreate, ExperimentPublic
 from ..auth import ActorDep
@@ -53,13 +53,19 @@ def get_experiment(experiment_id: str, farm: FarmDep, actor: ActorDep) -> Experi
 
 @router.post("/{experiment_id}/cancel", response_model=ExperimentPublic,
              responses=responses(403, 404, 409))
-def cancel_experiment(experiment_id: str, session: SessionDep, farm: FarmDep,
-                      actor: ActorDep) -> ExperimentPublic:
-    """Cancel a running experiment and its jobs still active."""
-    experiment = experiments.cancel_experiment(session, actor, experiment_id, utcnow())
-    session.commit()
+def cancel_experiment(experiment_id: str, farm: FarmDep, actor: ActorDep) -> ExperimentPublic:
+    """Cancel a running experiment and its jobs still active. The scheduler
+    changes those jobs meanwhile (it plans them, units land), so the cancel
+    is a transaction of its own, tried again on a stale read."""
+    def cancel(session):
+        experiment = experiments.cancel_experiment(session, actor, experiment_id, utcnow())
+        session.flush()
+        return experiments.experiment_public(experiment,
+                                             experiments.job_states(session, experiment))
+
+    public = jobs.retrying(farm.sessions, experiment_id, cancel, what="experiment")
     farm.scheduler.wake()
-    return experiments.experiment_public(experiment, experiments.job_states(session, experiment))
+    return public
 
 
 @router.get("/{experiment_id}/report.csv", response_class=Response,
