@@ -103,6 +103,14 @@ def test04_a_canceled_experiment_cancels_its_jobs(local_client):
     assert local_client.post(f"/experiments/{body['id']}/cancel").status_code == 409
 
 
+def cancels(session) -> bool:
+    """Whether a flush is the cancel's (a job marked canceled), not one of
+    the scheduler's, whose thread shares the sessionmaker."""
+    from service.models import Job
+
+    return any(isinstance(row, Job) and row.status == "canceled" for row in session.dirty)
+
+
 def test04b_a_cancel_whose_read_went_stale_is_tried_again_not_a_500(local_app, local_client):
     """The scheduler changes an experiment's jobs while the API cancels them
     (it plans them, units land): the cancel's write then matches no row
@@ -119,7 +127,7 @@ def test04b_a_cancel_whose_read_went_stale_is_tried_again_not_a_500(local_app, l
     bumped = []
 
     def scheduler_meanwhile(session, flush_context, instances):
-        if not bumped:  # once: between the cancel's first read and its first write
+        if not bumped and cancels(session):  # once, before the cancel's first write
             bumped.append(body["runs"][0]["job"])
             with farm.engine.begin() as other:
                 other.execute(update(Job).where(Job.id == bumped[0])
@@ -134,3 +142,36 @@ def test04b_a_cancel_whose_read_went_stale_is_tried_again_not_a_500(local_app, l
     assert canceled.status_code == 200, canceled.text
     assert canceled.json()["status"] == "canceled"
     assert local_client.get(f"/jobs/{bumped[0]}").json()["status"] in ("canceled", "done")
+
+
+def test04c_a_cancel_that_keeps_going_stale_is_a_409(local_app, local_client):
+    """If the jobs change before every try, the cancel gives up with a 409
+    that says to try again; the experiment is left running, not half done."""
+    from sqlalchemy import event, update
+
+    from service.models import Job
+
+    farm = local_app.state.farm
+    body = local_client.post("/experiments", json={**SMALL, "spp": [4096], "repeats": 2,
+                                                   "configs": [{"method": "path-mis"}]}).json()
+    job = body["runs"][0]["job"]
+    tries = []
+
+    def scheduler_always(session, flush_context, instances):
+        # Before each try's first write: once the try has written, SQLite's
+        # lock is the try's until it ends, and another writer would wait.
+        if not cancels(session) or any(seen is session for seen in tries):
+            return
+        tries.append(session)
+        with farm.engine.begin() as other:
+            other.execute(update(Job).where(Job.id == job).values(version=Job.version + 1))
+
+    event.listen(farm.sessions, "before_flush", scheduler_always)
+    try:
+        refused = local_client.post(f"/experiments/{body['id']}/cancel")
+    finally:
+        event.remove(farm.sessions, "before_flush", scheduler_always)
+    assert refused.status_code == 409 and "keeps changing" in refused.json()["detail"]
+    assert len(tries) == 5  # jobs.retrying's tries, each raced before its first write
+    assert local_client.get(f"/experiments/{body['id']}").json()["status"] == "running"
+    assert local_client.post(f"/experiments/{body['id']}/cancel").status_code == 200

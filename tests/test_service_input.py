@@ -177,5 +177,27 @@ def test10_a_body_that_is_no_json_is_422_on_body(local_client, body, loc, words)
     assert error["msg"].startswith("body: invalid JSON") and words in error["msg"], error
 
 
+def test10b_a_write_gone_stale_in_any_route_is_a_409_not_a_500():
+    """The net under the routes' own retries (jobs.retrying): a StaleDataError
+    (optimistic locking, service.models) that reaches the app is a conflict
+    to try again, in the same error shape as every other."""
+    from fastapi import FastAPI
+    from fastapi.testclient import TestClient
+    from sqlalchemy.orm.exc import StaleDataError
+
+    from service.api.errors import install_error_handlers
+
+    app = FastAPI()
+    install_error_handlers(app)
+
+    @app.post("/stale")
+    def stale():
+        raise StaleDataError("UPDATE statement on table 'jobs' expected to update 1 row(s)")
+
+    response = TestClient(app).post("/stale")
+    assert response.status_code == 409, response.text
+    assert response.json() == {"detail": "the farm changed this meanwhile; try again"}
+
+
 def test11_the_service_still_answers(local_client):
     assert local_client.get("/healthz").json()["status"] == "ok"

@@ -32,6 +32,7 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
+from sqlalchemy.orm.exc import StaleDataError
 from starlette.exceptions import HTTPException
 
 from renderer import SceneError, SpecError
@@ -51,6 +52,11 @@ _STATUS: tuple[tuple[type[Exception], int], ...] = (
     (SpecError, 422),
     (SceneError, 422),
     (TooLarge, 413),
+    # A write based on a read the scheduler made stale meanwhile (optimistic
+    # locking, service.models). Routes that change jobs try again
+    # (jobs.retrying); this is the net under any that does not: a conflict to
+    # try again, never a 500.
+    (StaleDataError, 409),
 )
 
 
@@ -81,6 +87,8 @@ def _body(exc: Exception) -> dict:
         loc = ["body", "scene", *([exc.location] if exc.location else [])]
         where = f"scene.{exc.location}" if exc.location else "scene"
         return {"detail": _invalid(loc, f"{where}: {exc.message}")}
+    if isinstance(exc, StaleDataError):
+        return {"detail": "the farm changed this meanwhile; try again"}
     return {"detail": str(exc)}
 
 
@@ -158,7 +166,7 @@ async def _http_error(request: Request, exc: HTTPException) -> Response:
 
 
 def install_error_handlers(app: FastAPI) -> None:
-    for cls in (ServiceError, SpecError, SceneError):
+    for cls in (ServiceError, SpecError, SceneError, StaleDataError):
         app.add_exception_handler(cls, _handle)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_exception_handler(HTTPException, _http_error)
