@@ -113,7 +113,13 @@ def concentric_disk(u1, u2):
 
 @kernel
 def cosine_hemisphere(u1, u2):
-    """Local direction with pdf cos(theta)/pi (Malley's method)."""
+    """Local direction with pdf cos(theta)/pi (Malley's method).
+
+    z from the disk point's radius (max(|a|, |b|) of concentric_disk), which
+    does not wait for the angle's polynomials, instead of from x and y:
+    tried on 2026-11-29 (Zen 4, cornell-box 64 spp, one thread), +0.8 %
+    time, no gain: the profile's samples after this square root are skid,
+    not a stall on it. Not kept."""
     x, y = concentric_disk(u1, u2)
     z = math.sqrt(max(0.0, 1.0 - x * x - y * y))
     return x, y, z
