@@ -73,7 +73,10 @@ def _full_width_vectors() -> None:
     On AMD's Zen 4, whose 512-bit units are two 256-bit halves, the wide
     registers still pay: with `+prefer-256-bit` forced (ymm), cornell-box
     128 x 128 at 64 spp on one thread took 6.8 % longer (six interleaved
-    pairs of processes, 2026-11-29, the same film bytes).
+    pairs of processes, 2026-11-29, the same film bytes). Numba's SLP
+    vectorizer (NUMBA_SLP_VECTORIZE=1, off by default), which could pack the
+    shading's scalar x, y, z arithmetic, measured the same way there:
+    +0.1 % median, the same bytes; left off.
 
     A user who sets NUMBA_CPU_NAME or NUMBA_CPU_FEATURES keeps their choice;
     a process that compiled with Numba before importing the renderer keeps
