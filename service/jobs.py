@@ -304,18 +304,18 @@ def delete_job(session: Session, store: Store, actor: Principal, job_id: str,
     return owner
 
 
-def retrying(sessions: sessionmaker[Session], job_id: str,
+def retrying(sessions: sessionmaker[Session], name: str,
              action: Callable[[Session], T], tries: int = 5, what: str = "job") -> T:
     """`action(session)` in its own transaction, again if the scheduler changed
-    the job meanwhile (optimistic locking): the next try sees the new state.
-    After `tries` the answer is a 409 naming the `what` `job_id`, never a 500."""
+    the rows it writes meanwhile (optimistic locking): the next try sees the
+    new state. After `tries` a 409 naming the `what` `name`, never a 500."""
     for attempt in range(tries):
         try:
             with sessions.begin() as session:
                 return action(session)
         except StaleDataError:
             if attempt == tries - 1:
-                raise Conflict(f"{what} '{job_id}' keeps changing; try again") from None
+                raise Conflict(f"{what} '{name}' keeps changing; try again") from None
     raise AssertionError("unreachable")
 
 

@@ -16,6 +16,8 @@ from conftest import wait_for
 
 SMALL = {"scene": "cornell-box", "width": 16, "height": 16, "depth": 3, "repeats": 3,
          "spp": [2, 8], "block": 8, "configs": [{"method": "path-mis"}, {"method": "raster"}]}
+# long enough to be running still when a test cancels it
+LONG = {**SMALL, "spp": [4096], "repeats": 2, "configs": [{"method": "path-mis"}]}
 
 
 def finished(client, experiment_id: str, timeout: float = 300) -> dict:
@@ -93,9 +95,7 @@ def test03_bad_experiments_are_422s_naming_the_field(local_client):
 
 
 def test04_a_canceled_experiment_cancels_its_jobs(local_client):
-    response = local_client.post("/experiments", json={**SMALL, "spp": [4096], "repeats": 2,
-                                                       "configs": [{"method": "path-mis"}]})
-    body = response.json()
+    body = local_client.post("/experiments", json=LONG).json()
     canceled = local_client.post(f"/experiments/{body['id']}/cancel")
     assert canceled.status_code == 200 and canceled.json()["status"] == "canceled"
     for run in canceled.json()["runs"]:
@@ -111,67 +111,56 @@ def cancels(session) -> bool:
     return any(isinstance(row, Job) and row.status == "canceled" for row in session.dirty)
 
 
+def cancel_raced(farm, client, experiment_id: str, job_id: str, race) -> tuple:
+    """POST the experiment's cancel while `race(session)` says, at each of
+    its flushes, whether the scheduler changes job `job_id` first (its
+    version bumped from another connection, as the scheduler's write would).
+    Returns the response and the number of races run."""
+    from sqlalchemy import event, update
+
+    from service.models import Job
+
+    raced = []
+
+    def scheduler_meanwhile(session, flush_context, instances):
+        if cancels(session) and race(session, raced):
+            raced.append(session)
+            with farm.engine.begin() as other:
+                other.execute(update(Job).where(Job.id == job_id)
+                              .values(version=Job.version + 1))
+
+    event.listen(farm.sessions, "before_flush", scheduler_meanwhile)
+    try:
+        return client.post(f"/experiments/{experiment_id}/cancel"), len(raced)
+    finally:
+        event.remove(farm.sessions, "before_flush", scheduler_meanwhile)
+
+
 def test04b_a_cancel_whose_read_went_stale_is_tried_again_not_a_500(local_app, local_client):
     """The scheduler changes an experiment's jobs while the API cancels them
     (it plans them, units land): the cancel's write then matches no row
     (optimistic locking). The route must try again on the new state: a 200,
     never a 500 (CI once failed on exactly this race)."""
-    from sqlalchemy import event, update
-
-    from service.models import Job
-
-    farm = local_app.state.farm
-    response = local_client.post("/experiments", json={**SMALL, "spp": [4096], "repeats": 2,
-                                                       "configs": [{"method": "path-mis"}]})
-    body = response.json()
-    bumped = []
-
-    def scheduler_meanwhile(session, flush_context, instances):
-        if not bumped and cancels(session):  # once, before the cancel's first write
-            bumped.append(body["runs"][0]["job"])
-            with farm.engine.begin() as other:
-                other.execute(update(Job).where(Job.id == bumped[0])
-                              .values(version=Job.version + 1))
-
-    event.listen(farm.sessions, "before_flush", scheduler_meanwhile)
-    try:
-        canceled = local_client.post(f"/experiments/{body['id']}/cancel")
-    finally:
-        event.remove(farm.sessions, "before_flush", scheduler_meanwhile)
-    assert bumped, "the hook never ran: the test no longer tests the race"
+    body = local_client.post("/experiments", json=LONG).json()
+    job = body["runs"][0]["job"]
+    canceled, races = cancel_raced(local_app.state.farm, local_client, body["id"], job,
+                                   lambda session, raced: not raced)  # once, before a write
+    assert races == 1, "the hook never ran: the test no longer tests the race"
     assert canceled.status_code == 200, canceled.text
     assert canceled.json()["status"] == "canceled"
-    assert local_client.get(f"/jobs/{bumped[0]}").json()["status"] in ("canceled", "done")
+    assert local_client.get(f"/jobs/{job}").json()["status"] in ("canceled", "done")
 
 
 def test04c_a_cancel_that_keeps_going_stale_is_a_409(local_app, local_client):
     """If the jobs change before every try, the cancel gives up with a 409
     that says to try again; the experiment is left running, not half done."""
-    from sqlalchemy import event, update
-
-    from service.models import Job
-
-    farm = local_app.state.farm
-    body = local_client.post("/experiments", json={**SMALL, "spp": [4096], "repeats": 2,
-                                                   "configs": [{"method": "path-mis"}]}).json()
-    job = body["runs"][0]["job"]
-    tries = []
-
-    def scheduler_always(session, flush_context, instances):
-        # Before each try's first write: once the try has written, SQLite's
-        # lock is the try's until it ends, and another writer would wait.
-        if not cancels(session) or any(seen is session for seen in tries):
-            return
-        tries.append(session)
-        with farm.engine.begin() as other:
-            other.execute(update(Job).where(Job.id == job).values(version=Job.version + 1))
-
-    event.listen(farm.sessions, "before_flush", scheduler_always)
-    try:
-        refused = local_client.post(f"/experiments/{body['id']}/cancel")
-    finally:
-        event.remove(farm.sessions, "before_flush", scheduler_always)
+    body = local_client.post("/experiments", json=LONG).json()
+    # Before each try's first write: once a try has written, SQLite's lock
+    # is the try's until it ends, and another writer would wait.
+    refused, races = cancel_raced(local_app.state.farm, local_client, body["id"],
+                                  body["runs"][0]["job"],
+                                  lambda session, raced: not any(s is session for s in raced))
     assert refused.status_code == 409 and "keeps changing" in refused.json()["detail"]
-    assert len(tries) == 5  # jobs.retrying's tries, each raced before its first write
+    assert races == 5  # jobs.retrying's tries, each raced before its first write
     assert local_client.get(f"/experiments/{body['id']}").json()["status"] == "running"
     assert local_client.post(f"/experiments/{body['id']}/cancel").status_code == 200
