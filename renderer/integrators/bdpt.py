@@ -46,6 +46,7 @@ from ..kernels.tile import (add_aov_block, add_aov_sample, add_block, add_sample
                             store_aov, store_pixel)
 from ..registry import SAMPLERS, Method, Option
 from ..samplers import u2d
+from ..spec import BOUNDS
 from .tile import start_tile
 
 
@@ -134,12 +135,20 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
     return rays
 
 
+# The largest K of 's=K': a path of the deepest job has depth + 1 <= 65 light
+# vertices, so s = min(K, length + 1) is the same strategy for every larger K;
+# a K beyond an int64 failed in the kernel's typing on every attempt.
+MAX_STRATEGY = BOUNDS["depth"][1] + 1
+
+
 def _check_strategy(value) -> str | None:
     name, _, k = str(value).partition("=")
     # ASCII digits only: str.isdigit() also accepts '¹' and '²', which int() refuses
-    if value == "all" or (name == "s" and k.isascii() and k.isdigit()):
+    if value == "all" or (name == "s" and k.isascii() and k.isdigit()
+                          and len(k) <= 20 and int(k) <= MAX_STRATEGY):
         return None
-    return f"must be 'all' or 's=K' with K a whole number, got {value!r}"
+    return (f"must be 'all' or 's=K' with K a whole number from 0 to {MAX_STRATEGY}, "
+            f"got {str(value)[:40]!r}")
 
 
 def _options(options: dict):
@@ -197,8 +206,9 @@ METHODS = (Method(
     run=render_bdpt,
     options=(Option("heuristic", str, "balance", "MIS weights: balance or power (beta = 2) "
                     "heuristic", ("balance", "power")),
-             Option("strategy", str, "all", "'all' (MIS) or debug 's=K': each path length "
-                    "by the single strategy s = min(K, length + 1), unweighted",
+             Option("strategy", str, "all", "'all' (MIS) or debug 's=K' (K from 0 to "
+                    f"{MAX_STRATEGY}): each path length by the single strategy s = min(K, "
+                    "length + 1), unweighted",
                     check=_check_strategy)),
     family="splat",
     plan=plan_bdpt,

@@ -460,8 +460,11 @@ METHODS = (Method(
                "perturbation", bounds=(1e-6, 1.0)),
         Option("perturbation", str, "normal", "small steps: pbrt-v3's wrapped normal or "
                "Kelemen's exponential", ("normal", "exponential")),
+        # The bootstrap unit holds a weight per path, (depth + 1) x bootstrap of
+        # them, and sorts them: 10^7 at depth 64 was 5 GB per array. 2^18 (2.6
+        # times the automatic maximum) is at most 136 MB.
         Option("bootstrap", int, 0, "bootstrap paths per depth (0 = auto from the image "
-               "size and spp)", bounds=(0, 10_000_000)),
+               "size and spp)", bounds=(0, 1 << 18)),
         Option("chains", int, 1024, "Markov chains (grouped into at most 8 units)",
                bounds=(1, 1 << 20)),
     ),

@@ -136,6 +136,7 @@ from ..plan import Unit
 from ..registry import SAMPLERS, Method, Option
 from ..samplers import NO_MEMO
 from ..scene import camera_array
+from ..scene_format import MAX_COORDINATE
 from .tile import start_tile
 
 __all__ = ["ALPHA", "plan_photon", "run_photon", "photons_per_iteration", "initial_radius"]
@@ -390,6 +391,20 @@ def run_photon(scene, spec, unit, inputs, options) -> PartialFilm:
     return _run_gather(scene, spec, unit, inputs, options)
 
 
+# A radius the estimate pi r^2 N can divide by. Measured on cornell-box:
+# r = 1e-300 (sppm) and 1e-160 (photonmap) rendered NaN pixels (r^2 is 0), and
+# from 1e155 r^2 is inf and the k-NN search silently found nothing. Scene
+# coordinates lie within +-MAX_COORDINATE, so a radius of ten times that covers
+# any scene; 1/MAX_COORDINATE keeps r^2 (and the estimate) far from both ends.
+MIN_RADIUS, MAX_RADIUS = 1.0 / MAX_COORDINATE, 10.0 * MAX_COORDINATE
+
+
+def _check_radius(value) -> str | None:
+    if value == 0 or value >= MIN_RADIUS:
+        return None
+    return f"must be 0 (automatic) or at least {MIN_RADIUS:g}, got {value!r}"
+
+
 OPTIONS = (
     Option("mode", str, SPPM, "sppm: stochastic progressive photon mapping (spp = "
            "iterations); photonmap: one photon pass, k-NN estimate at the first diffuse "
@@ -399,7 +414,8 @@ OPTIONS = (
            "(photonmap)", bounds=(0, 1 << 26)),
     Option("radius", float, 0.0, "initial gather radius (sppm) or maximum k-NN search "
            "radius (photonmap) in scene units; 0 = auto: 1/100 (sppm) or 1/40 "
-           "(photonmap) of the scene's bounding box diagonal", bounds=(0.0, None)),
+           f"(photonmap) of the scene's bounding box diagonal; else {MIN_RADIUS:g} to "
+           f"{MAX_RADIUS:g}", bounds=(0.0, MAX_RADIUS), check=_check_radius),
     Option("k", int, 64, "photonmap: photons of the k-nearest-neighbour estimate",
            bounds=(1, 4096)),
     Option("iterations_per_unit", int, 0, "sppm: iterations per gather unit; 0 = auto "

@@ -157,6 +157,7 @@ from ..radiosity_solve import (
 )
 from ..registry import SAMPLERS, Method, Option
 from ..samplers import DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
+from ..scene_format import MAX_COORDINATE
 from .tile import start_tile
 
 # ---------------------------------------------------------------- display
@@ -545,9 +546,11 @@ METHODS = (Method(
                 "(optionally with a final gather).",
     run=run_radiosity,
     options=(
+        # Scene coordinates lie within +-MAX_COORDINATE: a larger patch is one
+        # patch per primitive already (the lower end is check_scene's count).
         Option("patch_size", float, 0.0, "patch edge length in world units; 0 = auto: the "
                "scene's bounding-box diagonal / (20 sqrt 3), 0.1 for cornell-box",
-               bounds=(0.0, None)),
+               bounds=(0.0, 10.0 * MAX_COORDINATE)),
         Option("form_factors", str, "montecarlo", "form factor estimator: Monte Carlo ray "
                "casting or a ray-cast hemicube, both with visibility", ("montecarlo", "hemicube")),
         Option("ff_rays", int, 512, "Monte Carlo form-factor rays and light samples per patch",
