@@ -24,7 +24,13 @@ Limits. Every number is finite and of a magnitude the renderer handles:
 coordinates (camera, vertices, centres, radii, point lights, transform
 entries) within +-`MAX_COORDINATE`, in local space and again in world space
 (after `to_world`); radiance and intensity at most `MAX_RADIANCE`, so sums
-of samples and of their squares stay finite in the float32 EXR. An emitting
+of samples and of their squares stay finite in the float32 EXR. Lengths the
+renderer squares or divides by are at least `MIN_LENGTH` (a sphere's radius,
+the camera's distance to its target, a rotation axis): 1e-320 squared is 0.
+A glossy roughness (the GGX alpha) is at least `MIN_ROUGHNESS` and a field of
+view at least `MIN_FOV` degrees (measured: roughness 1e-10 rendered NaN pixels
+in path-mis and bdpt, alpha^2 being 0 beside 1 - cos^2; a film of fov 1e-320
+has an area of 0, which the camera's importance divides by). An emitting
 triangle must have an area (`MIN_EMITTER_AREA`, and not be a sliver:
 `COLLINEAR`): the renderer samples lights by area, and a light whose
 triangles have none crashes the render process (measured: SIGSEGV in every
@@ -67,6 +73,11 @@ MAX_FILE_BYTES = 256 * 1024 * 1024
 SCENE_FORMAT = "rayfarm-scene/1"  # the one version this renderer reads
 MAX_COORDINATE = 1e6  # |x|, |y|, |z| of any point (local and world), transform entry, radius
 MAX_RADIANCE = 1e6  # area-light radiance and point-light intensity, per component
+MIN_LENGTH = 1.0 / MAX_COORDINATE  # a sphere's radius, camera to target, a rotation axis
+# pbrt-v4 renders a GGX lobe of alpha below 1e-3 as a perfect mirror ("effectively
+# smooth"); here the `mirror` material is that, and alpha^2 underflows far below.
+MIN_ROUGHNESS = 1e-3
+MIN_FOV = 1e-3  # degrees: a film of tan(fov/2)^2 far from underflow
 MIN_EMITTER_AREA = 1e-12  # world-space area of an emitting triangle (or sphere)
 COLLINEAR = 1e-9  # an emitting triangle's height / its longest edge, at least
 MAX_NESTING = 16  # levels of lists and objects (shapes[i].to_world[j].rotate.axis: 6)
@@ -202,8 +213,9 @@ def _transform(value: Any, loc: str) -> list[list[float]]:
                 if not isinstance(arg, dict):
                     raise SceneError("expected {'axis': [x, y, z], 'angle': degrees}", f"{oloc}.rotate")
                 axis = _vec3(_require(arg, "axis", f"{oloc}.rotate"), f"{oloc}.rotate.axis")
-                if np.linalg.norm(axis) == 0:
-                    raise SceneError("rotation axis must not be zero", f"{oloc}.rotate.axis")
+                if not np.linalg.norm(axis) >= MIN_LENGTH:
+                    raise SceneError(f"a rotation axis needs a length of at least "
+                                     f"{MIN_LENGTH:g}", f"{oloc}.rotate.axis")
                 t = _rotation(axis, _coordinate(_require(arg, "angle", f"{oloc}.rotate"),
                                                 f"{oloc}.rotate.angle"))
             else:
@@ -239,7 +251,7 @@ def _resolve_camera(cam: Any) -> dict:
         "origin": _vec3(_require(cam, "origin", loc), f"{loc}.origin"),
         "target": _vec3(_require(cam, "target", loc), f"{loc}.target"),
         "up": _vec3(cam.get("up", [0, 1, 0]), f"{loc}.up"),
-        "fov": _number(_require(cam, "fov", loc), f"{loc}.fov", lo=0.0, hi=179.0, lo_open=True),
+        "fov": _number(_require(cam, "fov", loc), f"{loc}.fov", lo=MIN_FOV, hi=179.0),
         "fov_axis": cam.get("fov_axis", "x"),
         "width": cam.get("width", 256),
         "height": cam.get("height", 256),
@@ -252,8 +264,9 @@ def _resolve_camera(cam: Any) -> dict:
         if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_IMAGE_SIDE:
             raise SceneError(f"must be an integer in [1, {MAX_IMAGE_SIDE}]", f"{loc}.{key}")
     forward = np.subtract(out["target"], out["origin"])
-    if np.linalg.norm(forward) == 0:
-        raise SceneError("target equals origin", f"{loc}.target")
+    if not np.linalg.norm(forward) >= MIN_LENGTH:
+        raise SceneError(f"target must lie at least {MIN_LENGTH:g} from origin",
+                         f"{loc}.target")
     if np.linalg.norm(np.cross(forward, out["up"])) < 1e-9 * np.linalg.norm(forward):
         raise SceneError("up is parallel to the viewing direction", f"{loc}.up")
     return out
@@ -281,7 +294,8 @@ def _resolve_material(name: str, mat: Any) -> dict:
         specular = _vec3(mat.get("specular", [1.0, 1.0, 1.0]), f"{loc}.specular", nonneg=True)
         if max(specular) > 1.0:
             raise SceneError("specular components must be <= 1", f"{loc}.specular")
-        roughness = _number(mat.get("roughness", 0.1), f"{loc}.roughness", lo=0.0, hi=1.0, lo_open=True)
+        roughness = _number(mat.get("roughness", 0.1), f"{loc}.roughness", lo=MIN_ROUGHNESS,
+                            hi=1.0)
         return {"type": "glossy", "specular": specular, "roughness": roughness}
     raise SceneError(f"unknown material type '{mtype}' (allowed: {_name_list(MATERIAL_TYPES)})",
                      f"{loc}.type")
@@ -349,8 +363,7 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
         # An analytic sphere: centre and radius in local space (default the unit
         # sphere), then to_world, which must be a similarity (no shear, uniform scale).
         out["center"] = _vec3(shape.get("center", [0, 0, 0]), f"{loc}.center")
-        out["radius"] = _coordinate(shape.get("radius", 1.0), f"{loc}.radius", lo=0.0,
-                                    lo_open=True)
+        out["radius"] = _coordinate(shape.get("radius", 1.0), f"{loc}.radius", lo=MIN_LENGTH)
         m = np.asarray(out["to_world"])[:3, :3]
         mtm = m.T @ m
         s2 = mtm[0, 0]
@@ -413,9 +426,9 @@ def _check_world_geometry(shape: dict, loc: str) -> None:
         centre = m[:3, :3] @ np.asarray(shape["center"]) + m[:3, 3]
         radius = shape["radius"] * float(np.linalg.norm(m[:3, 0]))  # a similarity
         _check_world_points(centre[None], f"{loc}.to_world", "the centre")
-        if not radius <= MAX_COORDINATE:
-            raise SceneError(f"the radius is {radius:.3g} after to_world; at most "
-                             f"{MAX_COORDINATE:g}", f"{loc}.to_world")
+        if not MIN_LENGTH <= radius <= MAX_COORDINATE:
+            raise SceneError(f"the radius is {radius:.3g} after to_world; from "
+                             f"{MIN_LENGTH:g} to {MAX_COORDINATE:g}", f"{loc}.to_world")
         if "emitter" in shape and 4 * math.pi * radius * radius < MIN_EMITTER_AREA:
             raise SceneError(f"an emitting sphere needs an area of at least {MIN_EMITTER_AREA:g} "
                              f"(radius {radius:.3g} after to_world)", f"{loc}.radius")

@@ -234,7 +234,7 @@ def test08_glossy_material_resolves_and_builds():
 
 
 @pytest.mark.parametrize("fields, location, words", [
-    ({"roughness": 0}, "materials.g.roughness", "> 0"),
+    ({"roughness": 0}, "materials.g.roughness", ">= 0.001"),
     ({"roughness": 1.5}, "materials.g.roughness", "<= 1"),
     ({"roughness": "rough"}, "materials.g.roughness", "finite number"),
     ({"specular": [1.2, 0, 0]}, "materials.g.specular", "<= 1"),

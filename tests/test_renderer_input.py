@@ -1,17 +1,25 @@
 """What the renderer refuses before any render: method options that are no
-numbers, and radiosity jobs whose patches could never be solved. (The scene
-format's limits are in test_renderer_scene.py.)"""
+numbers or beyond what a render can honour, and radiosity jobs whose patches
+could never be solved; the ends of each range render finite images. (The
+scene format's limits are in test_renderer_scene.py.)"""
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from renderer import METHODS, RenderSpec, SpecError, build_scene, builtin_scene_names, \
-    resolve_document
+    load_scene, render_serial, resolve_document
 from renderer import radiosity_solve as FEM
+from renderer.integrators import bdpt as B
+from renderer.integrators import photon as P
 from renderer.integrators import radiosity as R
+
+ROOT = Path(__file__).resolve().parents[1]
 
 NON_FINITE = [math.nan, math.inf, -math.inf]
 
@@ -109,3 +117,71 @@ def test06_exr_attributes_are_typed_and_never_silently_wrong(tmp_path):
     assert got["rays"] == str(5 << 40) and got["render_seconds"] == 1.25
     assert (got["spp"], got["depth"], got["denoised"]) == (3, 2, 0)
     assert got["method"] == "path-mis" and got["options"] == '{"heuristic": "balance"}'
+
+
+@pytest.mark.parametrize("method, options, field, words", [
+    # failed in the kernel's typing (an int64 argument), every attempt
+    ("bdpt", {"strategy": "s=" + "1" + "0" * 20}, "options.strategy", "from 0 to 65"),
+    ("bdpt", {"strategy": "s=66"}, "options.strategy", "from 0 to 65"),
+    # r^2 = 0: NaN pixels (sppm at 1e-300, photonmap at 1e-160)
+    ("photon", {"radius": 1e-320}, "options.radius", "0 (automatic) or at least 1e-06"),
+    ("photon", {"radius": 1e-160, "mode": "photonmap"}, "options.radius", "at least 1e-06"),
+    # r^2 = inf: the k-NN search found no photon
+    ("photon", {"radius": 1e308}, "options.radius", "between 0.0 and 10000000.0"),
+    ("radiosity", {"patch_size": 1e308}, "options.patch_size", "between 0.0 and 10000000.0"),
+    # (depth + 1) x bootstrap weights, sorted: 5 GB per array at depth 64
+    ("mlt", {"bootstrap": 10_000_000}, "options.bootstrap", "between 0 and 262144"),
+])
+def test07_options_a_render_cannot_honour_are_refused_naming_them(method, options, field, words):
+    """Before, each was accepted and its job failed on the farm or rendered a
+    non-finite or wrong image (the measurements beside the bounds)."""
+    with pytest.raises(SpecError) as err:
+        RenderSpec(method=method, spp=1, depth=1, options=options).validate()
+    assert err.value.field == field and words in err.value.message, err.value
+
+
+def _extreme_options():
+    """Each float option at either end of what its method accepts (photon's
+    radius also at its least non-automatic value), and BDPT's largest K."""
+    for method in dict.fromkeys(METHODS.values()):
+        for option in method.options:
+            if option.type is float:
+                ends = [b for b in option.bounds if b is not None]
+                if method.name == "photon" and option.name == "radius":
+                    ends.append(P.MIN_RADIUS)
+                for value in ends:
+                    yield pytest.param(method.name, {option.name: value},
+                                       id=f"{method.name}-{option.name}={value:g}")
+    yield pytest.param("bdpt", {"strategy": f"s={B.MAX_STRATEGY}"}, id="bdpt-strategy=max")
+
+
+@pytest.mark.parametrize("method, options", list(_extreme_options()))
+def test08_the_ends_of_each_range_render_finite_images(method, options):
+    spec = RenderSpec(method=method, spp=2, depth=3, width=8, height=8, tile_size=8,
+                      options=options)
+    film = render_serial(load_scene("cornell-box"), spec.validate(
+        scene=resolve_document("cornell-box")))
+    assert np.all(np.isfinite(film.mean().astype(np.float32))), options
+
+
+def test09_the_ends_of_the_scene_ranges_render_finite_images():
+    """The smallest roughness, field of view and sphere the scene format
+    accepts. Measured before the bounds: roughness 1e-10 rendered NaN pixels
+    in path-mis and bdpt (the GGX alpha^2 is 0 beside 1 - cos^2)."""
+    from renderer.scene_format import MIN_FOV, MIN_LENGTH, MIN_ROUGHNESS
+
+    doc = json.loads((ROOT / "renderer" / "scenes" / "cornell-box.json").read_text())
+    doc["materials"]["gloss"] = {"type": "glossy", "roughness": MIN_ROUGHNESS}
+    doc["shapes"] += [{"type": "rectangle", "material": "gloss",
+                       "to_world": [{"scale": [0.5, 0.5, 1]}, {"translate": [0, 0, -0.9]}]},
+                      {"type": "sphere", "material": "gloss", "radius": 0.3,
+                       "center": [0.3, -0.6, 0.2]},
+                      {"type": "sphere", "material": "gloss", "radius": MIN_LENGTH}]
+    narrow = json.loads(json.dumps(doc))
+    narrow["camera"]["fov"] = MIN_FOV
+    for scene_doc in (doc, narrow):
+        scene = build_scene(resolve_document(scene_doc))
+        for method in ("path-mis", "bdpt", "light", "photon", "mlt"):
+            film = render_serial(scene, RenderSpec(method=method, spp=16, depth=4, width=16,
+                                                   height=16, tile_size=16))
+            assert np.all(np.isfinite(film.mean().astype(np.float32))), method
