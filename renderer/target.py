@@ -43,8 +43,17 @@ from .plan import Unit, plan
 from .registry import METHODS
 from .spec import BOUNDS, RenderSpec
 
-__all__ = ["Target", "TargetReport", "passes", "render_to_target", "require_target_support",
-           "stop_reason", "supports_target", "target_plan", "units_to_run"]
+__all__ = ["Target", "TargetReport", "REL_ERROR_BOUNDS", "MAX_SECONDS", "passes",
+           "render_to_target", "require_target_support", "stop_reason", "supports_target",
+           "target_plan", "units_to_run"]
+
+# The relative error a target may ask for. A render of max_spp <= 2^20 samples
+# per pixel divides a pixel's relative deviation by at most 1024, so a noisy
+# image cannot go below about 1e-4 and a noiseless one meets any target:
+# 1e-6 refuses nothing reachable. Far below it the ETA's (error / target)^2
+# overflowed (1e-300 raised OverflowError in every view of the job).
+REL_ERROR_BOUNDS = (1e-6, 1.0)
+MAX_SECONDS = 366 * 24 * 3600.0  # a time budget of a year at most
 
 
 @dataclass(frozen=True)
@@ -57,18 +66,22 @@ class Target:
     max_seconds: float | None = None
 
     def validate(self) -> "Target":
-        if not (isinstance(self.rel_error, (int, float)) and 0.0 < self.rel_error <= 1.0):
-            raise SpecError("target.rel_error", f"must be in (0, 1], got {self.rel_error!r}")
+        lo, hi = REL_ERROR_BOUNDS
+        if isinstance(self.rel_error, bool) or not (
+                isinstance(self.rel_error, (int, float)) and lo <= self.rel_error <= hi):
+            raise SpecError("target.rel_error", f"must be between {lo:g} and {hi:g} (a "
+                                                f"relative error), got {self.rel_error!r}")
         lo, hi = BOUNDS["spp"]
         if isinstance(self.max_spp, bool) or not isinstance(self.max_spp, int) \
                 or not lo <= self.max_spp <= hi:
             raise SpecError("target.max_spp", f"must be an integer between {lo} and {hi}, "
                                               f"got {self.max_spp!r}")
-        if self.max_seconds is not None and not (
-                isinstance(self.max_seconds, (int, float)) and self.max_seconds > 0
-                and math.isfinite(self.max_seconds)):
-            raise SpecError("target.max_seconds", f"must be a positive number of seconds, "
-                                                  f"got {self.max_seconds!r}")
+        if self.max_seconds is not None and (isinstance(self.max_seconds, bool) or not (
+                isinstance(self.max_seconds, (int, float))
+                and 0 < self.max_seconds <= MAX_SECONDS)):
+            raise SpecError("target.max_seconds", f"must be a positive number of seconds, at "
+                                                  f"most {MAX_SECONDS:.0f} (366 days), got "
+                                                  f"{self.max_seconds!r}")
         return self
 
 

@@ -71,7 +71,11 @@ def test03_dag_and_splatting_methods_are_refused_naming_the_target(method):
 @pytest.mark.parametrize("field,target", [("target.rel_error", Target(0.0, 16)),
                                           ("target.rel_error", Target(1.5, 16)),
                                           ("target.max_spp", Target(0.1, 0)),
-                                          ("target.max_seconds", Target(0.1, 16, -1.0))])
+                                          ("target.max_seconds", Target(0.1, 16, -1.0)),
+                                          # (error / target)^2 overflowed in the ETA
+                                          ("target.rel_error", Target(1e-300, 16)),
+                                          ("target.rel_error", Target(True, 16)),
+                                          ("target.max_seconds", Target(0.1, 16, 1e308))])
 def test04_bad_targets_name_their_field(field, target):
     with pytest.raises(SpecError) as info:
         target.validate()
