@@ -25,10 +25,11 @@ from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, StrictBool, 
 from pydantic_core import PydanticCustomError
 
 from renderer import BOUNDS, METHODS, SAMPLERS, RenderSpec
+from renderer.target import MAX_SECONDS, REL_ERROR_BOUNDS
 
 from .executors import WorkerInfo
 from .models import ApiToken, Job, User, WorkUnit
-from .targets import error_eta
+from .figures import job_figures
 
 __all__ = ["RequestModel", "UnitLogPublic", "UnitAttemptLog", "JobCreate", "TargetRequest", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS",
            "Progress", "ScenePublic", "UnitPublic", "WorkerPublic", "LoginRequest", "Me", "UserCreate",
@@ -98,13 +99,22 @@ class TargetRequest(RequestModel):
     """`target` of a job: render passes until the image's error statistic
     meets `rel_error`, or a budget runs out (renderer/target.py)."""
 
+    # Documented here, enforced by Target.validate (as the job's bounds are).
     rel_error: float = Field(description="the relative standard error to reach, e.g. 0.01 for "
                                          "1 %: the 95th percentile over the pixels brighter than "
-                                         "1 % of the image mean, from the var channels (0..1]")
+                                         "1 % of the image mean, from the var channels "
+                                         f"({REL_ERROR_BOUNDS[0]:g}..{REL_ERROR_BOUNDS[1]:g})",
+                             json_schema_extra={"minimum": REL_ERROR_BOUNDS[0],
+                                                "maximum": REL_ERROR_BOUNDS[1]})
     max_spp: StrictInt | None = Field(None, description="samples per pixel at most (default: "
-                                                        "the job's spp)")
+                                                        "the job's spp)",
+                                      json_schema_extra={"minimum": BOUNDS["spp"][0],
+                                                         "maximum": BOUNDS["spp"][1]})
     max_seconds: float | None = Field(None, description="stop after this many seconds of running "
-                                                        "(checked between passes)")
+                                                        "(checked between passes; at most "
+                                                        f"{MAX_SECONDS:.0f}: 366 days)",
+                                      json_schema_extra={"exclusiveMinimum": 0,
+                                                         "maximum": MAX_SECONDS})
 
 
 class JobCreate(RequestModel):
@@ -160,7 +170,7 @@ class Progress(BaseModel):
     units_total: int
     samples_done: int = Field(description="camera samples rendered so far")
     samples_total: int = Field(description="width x height x spp")
-    fraction: float = Field(description="samples_done / samples_total")
+    fraction: float | None = Field(description="samples_done / samples_total")
     elapsed: float | None = Field(description="seconds the job has been able to run: from its "
                                               "start, pauses excluded (null before the start)")
     eta: float | None = Field(description="seconds left at the job's recent samples/s, at "
@@ -244,25 +254,12 @@ class JobPublic(BaseModel):
 
     @classmethod
     def from_job(cls, job: Job, now: datetime) -> "JobPublic":
+        """The job as shown at `now`; never raises for a figure it derives
+        (service.figures: one that cannot be computed is null)."""
         spec = job.spec
-        elapsed = job.active_seconds(now)
-        total = job.samples_total
+        figures = job_figures(job, now)
         done = job.status == "done"
         partial = job.status in ("canceled", "failed") and bool(job.units_done)
-        rate = job.samples / elapsed if elapsed and job.samples else None
-        eta = None
-        if done:
-            eta = 0.0
-        elif job.target and job.status == "running":
-            eta = error_eta(job)
-        elif job.status == "running" and job.recent_rate:
-            # Only a rate measured between landings (Job.note_samples): the
-            # mean since the start counts the wait for the first unit.
-            eta = max(total - job.samples, 0) / job.recent_rate
-            if job.units_done < job.units_total and job.unit_seconds and job.units_done:
-                # Units left (say one lost and enqueued again) take at least a
-                # mean unit's render time, whatever few samples they hold.
-                eta = max(eta, job.unit_seconds / job.units_done)
         return cls(
             id=job.id, status=job.status, owner=job.owner, scene=job.scene, scene_hash=job.scene_hash,
             method=spec["method"], spp=spec["spp"], depth=spec["depth"],
@@ -272,19 +269,18 @@ class JobPublic(BaseModel):
             denoise=bool(job.denoise), target=job.target, target_stop=job.target_stop,
             passes=job.pass_log or [],
             progress=Progress(units_done=job.units_done, units_total=job.units_total,
-                              samples_done=job.samples, samples_total=total,
-                              fraction=min(job.samples / total, 1.0) if total else 0.0,
-                              elapsed=elapsed, eta=eta, rel_error=job.rel_error,
+                              samples_done=job.samples, samples_total=job.samples_total,
+                              fraction=figures["fraction"], elapsed=figures["elapsed"],
+                              eta=figures["eta"], rel_error=figures["rel_error"],
                               target_rel_error=(job.target or {}).get("rel_error"),
                               units_skipped=job.units_skipped or 0),
-            stats=JobStats(samples_per_second=rate,
-                           recent_samples_per_second=job.recent_rate if job.status == "running"
-                           else None,
-                           rays_per_second=job.rays / elapsed if elapsed and job.rays else None,
-                           seconds_per_unit=(job.unit_seconds or 0.0) / job.units_done
-                           if job.units_done else None,
+            stats=JobStats(samples_per_second=figures["samples_per_second"],
+                           recent_samples_per_second=figures["recent_samples_per_second"],
+                           rays_per_second=figures["rays_per_second"],
+                           seconds_per_unit=figures["seconds_per_unit"],
                            units_retried=job.units_retried or 0),
-            created=job.created, started=job.started, finished=job.finished, seconds=elapsed,
+            created=job.created, started=job.started, finished=job.finished,
+            seconds=figures["elapsed"],
             error=job.error, samples=job.samples, rays=job.rays,
             result_url=f"/jobs/{job.id}/result.exr" if done or partial else None,
             partial=partial,
@@ -538,8 +534,9 @@ class LabReference(RequestModel):
 
     job: StrictStr | None = Field(None, max_length=32, description="a done job's id")
     method: str = Field("path-mis", description="the reference render's method (unless `job`)")
-    spp: StrictInt | None = Field(None, ge=1, description="its spp (default: 16 x repeats x the "
-                                                          "largest spp level, at least 1024)")
+    spp: StrictInt | None = Field(None, ge=1, le=BOUNDS["spp"][1],
+                                  description="its spp (default: 16 x repeats x the largest spp "
+                                              "level, at least 1024)")
 
 
 class ExperimentCreate(RequestModel):

@@ -83,7 +83,10 @@ def error_eta(job: Job) -> float | None:
         return None
     last = log[-1]
     spp = float(last["spp"])
-    needed = min(spp * (job.rel_error / target.rel_error) ** 2, float(target.max_spp))
+    # The growth is capped before it is squared: a large error over a small
+    # target would overflow (max_spp caps the result anyway).
+    growth = min(job.rel_error / target.rel_error, math.sqrt(target.max_spp / spp))
+    needed = min(spp * growth * growth, float(target.max_spp))
     return max(needed - spp, 0.0) * float(last["active"]) / rate
 
 

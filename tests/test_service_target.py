@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import assert_bit_identical, channels_of, get_json, poll_job, submit
+from test_service_events import read_events
 
 # Small enough for seconds, noisy enough that tiles stop at different passes.
 TARGET_JOB = {"scene": "cornell-box", "method": "path-mis", "depth": 5, "width": 32,
@@ -88,7 +89,13 @@ def test03_a_ceiling_that_comes_first_says_so(local_client):
 @pytest.mark.parametrize("change,field,words", [
     ({"method": "photon"}, "target", "cannot render to a noise target"),
     ({"method": "bdpt"}, "target", "cannot render to a noise target"),
-    ({"target": {"rel_error": 0.0, "max_spp": 64}}, "target.rel_error", "must be in (0, 1]"),
+    ({"target": {"rel_error": 0.0, "max_spp": 64}}, "target.rel_error",
+     "must be between 1e-06 and 1"),
+    # (error / target)^2 overflowed in the ETA: every GET /jobs was a 500
+    ({"target": {"rel_error": 1e-300, "max_spp": 64}}, "target.rel_error",
+     "must be between 1e-06 and 1"),
+    ({"target": {"rel_error": 0.1, "max_spp": 64, "max_seconds": 1e308}},
+     "target.max_seconds", "at most 31622400"),
     ({"target": {"rel_error": 0.1, "max_spp": 0}}, "target.max_spp", "between"),
     ({"target": {"rel_error": 0.1, "max_spp": 64, "max_seconds": -1.0}},
      "target.max_seconds", "positive"),
@@ -110,3 +117,57 @@ def test05_methods_say_whether_they_take_a_target(local_client):
     assert methods["path-mis"]["noise_target"] and methods["raster"]["noise_target"]
     assert not any(methods[name]["noise_target"] for name in ("photon", "bdpt", "mlt", "light",
                                                               "radiosity"))
+
+
+def _running_target_job(target: dict):
+    """A running target job after its first pass (error 0.5 over 1024 pixels,
+    1000 samples/s), as the ledger holds it; not added to any session."""
+    from service.models import Job, utcnow
+
+    now = utcnow()
+    return Job(id="0123456789ab", status="running", owner="admin", scene="cornell-box",
+               scene_hash="0" * 64, spec={"method": "path-mis", "spp": target["max_spp"],
+                                          "depth": 5, "tile_size": 8, "seed": 3,
+                                          "sampler": "sobol", "options": {}},
+               width=32, height=32, units_total=64, units_done=16, samples=1024, rays=4096,
+               priority=0, progressive=True, denoise=False, target=target, units_open=16,
+               pass_log=[{"pass": 0, "spp": 1, "samples": 1024, "seconds": 0.5,
+                          "rel_error": 0.5, "active": 1024}],
+               rel_error=0.5, recent_rate=1000.0, created=now, started=now,
+               paused_seconds=0.0, unit_seconds=0.5, units_retried=0, units_skipped=0), now
+
+
+def test06_the_eta_of_a_target_far_below_the_error_is_the_ceilings(local_client):
+    """A ledger may hold a target the API now refuses (1e-300: its ETA raised
+    OverflowError, and every GET /jobs answered 500): the growth is capped at
+    max_spp before it is squared."""
+    from service.schemas import JobPublic
+
+    job, now = _running_target_job({"rel_error": 1e-300, "max_spp": 1024, "max_seconds": None})
+    assert JobPublic.from_job(job, now).progress.eta == pytest.approx((1024 - 1) * 1024 / 1000)
+
+
+def test07_a_figure_that_cannot_be_computed_is_null_and_the_views_go_on(local_client,
+                                                                        monkeypatch, caplog):
+    """A job's derived figures are computed in one guarded place
+    (service.figures): one that raises is that figure's null, logged once per
+    job, and the job list, the job and its event stream carry on."""
+    from service import figures
+
+    def overflow(job, now):
+        raise OverflowError("(34, 'Numerical result out of range')")
+
+    monkeypatch.setitem(figures.FIGURES, "eta", overflow)
+    job = submit(local_client, dict(TARGET_JOB, target={"rel_error": 0.5, "max_spp": 16}))
+    with local_client.stream("GET", f"/jobs/{job['id']}/events") as response:
+        events = read_events(response)
+    assert events[-1] == ("end", {"job_id": job["id"], "status": "done"})
+    published = [data for kind, data in events if kind == "job"]
+    assert published and all(j["progress"]["eta"] is None for j in published)
+    listed = local_client.get("/jobs")
+    assert listed.status_code == 200, listed.text
+    mine = next(j for j in listed.json() if j["id"] == job["id"])
+    assert mine["progress"]["eta"] is None and mine["progress"]["elapsed"] is not None
+    assert mine["progress"]["fraction"] > 0 and mine["stats"]["seconds_per_unit"] is not None
+    logged = [r for r in caplog.records if f"job {job['id']}: its eta" in r.getMessage()]
+    assert len(logged) == 1 and "OverflowError" in logged[0].getMessage()
