@@ -8,6 +8,7 @@ Retry-After).
     check_job(settings, actor, spec, units=planned_units(spec, progressive=True),
               active_jobs=count_active_jobs(session, actor.user))
     check_submission_rate(limiter, settings, actor) # POST /jobs per token and minute
+    check_submission_rate(limiter, settings, actor, jobs=13)  # an experiment of 13 jobs
     check_upload_rate(limiter, settings, actor)     # POST /scenes per owner and hour
 
 Limits are per role (`Settings.limits_admin`, `Settings.limits_artist`;
@@ -161,23 +162,30 @@ class RateLimiter:
         self._lock = threading.Lock()
         self._hits: dict[str, tuple[float, deque[float]]] = {}  # key -> (window, hit times)
 
-    def hit(self, key: str, limit: int, window_seconds: float, now: float | None = None) -> None:
-        """Record one hit of `key` at `now` (default: `time.monotonic()`), or
-        raise `RateLimited` with the seconds until the oldest hit leaves the
-        window, when `limit` hits are in it already. A limit of 0 refuses all."""
+    def hit(self, key: str, limit: int, window_seconds: float, now: float | None = None,
+            count: int = 1) -> None:
+        """Record `count` hits of `key` at `now` (default: `time.monotonic()`),
+        or none and raise `RateLimited` with the seconds until enough hits
+        leave the window, when fewer than `count` places are left in it. A
+        limit of 0 refuses all; a `count` above the limit never fits (the
+        caller refuses it first: `check_submission_rate`)."""
         now = time.monotonic() if now is None else now
         with self._lock:
             _, hits = self._hits.get(key, (window_seconds, None))
             hits = hits if hits is not None else deque()
             while hits and hits[0] <= now - window_seconds:
                 hits.popleft()
-            if len(hits) >= limit:
-                retry_after = hits[0] + window_seconds - now if hits else window_seconds
+            if len(hits) + count > limit:
+                # the hit whose leaving makes room for `count`
+                leaving = len(hits) + count - limit - 1
+                retry_after = (hits[leaving] + window_seconds - now if leaving < len(hits)
+                               else window_seconds)
                 self._hits[key] = (window_seconds, hits)
-                raise RateLimited(f"more than {limit} requests in {_span(window_seconds)}; "
+                what = "requests" if count == 1 else f"requests ({count} asked at once)"
+                raise RateLimited(f"more than {limit} {what} in {_span(window_seconds)}; "
                                   f"retry in {math.ceil(retry_after)} s",
                                   retry_after=retry_after)
-            hits.append(now)
+            hits.extend([now] * count)
             self._hits[key] = (window_seconds, hits)
             if len(self._hits) > self.MAX_KEYS:
                 self._sweep(now)
@@ -197,12 +205,19 @@ def _span(seconds: float) -> str:
 
 
 def check_submission_rate(limiter: RateLimiter, settings: Settings, actor: Principal,
-                          now: float | None = None) -> None:
-    """One job submission by the actor's token (per token: a script and its
-    owner's dashboard count apart), at most `submissions_per_minute`."""
+                          now: float | None = None, jobs: int = 1, field: str = "jobs") -> None:
+    """`jobs` job submissions by the actor's token (per token: a script and
+    its owner's dashboard count apart), at most `submissions_per_minute`: a
+    `POST /jobs` is one, an experiment as many as the jobs it creates. More
+    than a minute's worth at once could never pass: `InvalidRequest` on
+    `field`, not a 429 that no wait would cure."""
     limits = limits_for(settings, actor)
+    if jobs > 1 and jobs > limits.submissions_per_minute:
+        raise InvalidRequest(field, f"creates {jobs} jobs at once; the {actor.role} limit is "
+                                    f"{limits.submissions_per_minute} job submissions per "
+                                    f"minute ({_setting(actor, 'submissions_per_minute')})")
     key = f"submit:{actor.token_id or 'user:' + actor.user}"
-    limiter.hit(key, limits.submissions_per_minute, 60.0, now)
+    limiter.hit(key, limits.submissions_per_minute, 60.0, now, count=jobs)
 
 
 def check_upload_rate(limiter: RateLimiter, settings: Settings, actor: Principal,

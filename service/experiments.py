@@ -43,7 +43,7 @@ from .schemas import ExperimentCreate, ExperimentPublic, JobCreate
 from .settings import Settings
 from .store import Store
 
-__all__ = ["create_experiment", "get_experiment", "list_experiments", "cancel_experiment",
+__all__ = ["create_experiment", "planned_jobs", "get_experiment", "list_experiments", "cancel_experiment",
            "experiment_public", "job_states", "report_csv", "figure_path"]
 
 TILE_SIZE = 64
@@ -81,6 +81,13 @@ def _job(session, store, settings, actor, body: ExperimentCreate, now, field: st
     return job
 
 
+def planned_jobs(body: ExperimentCreate) -> int:
+    """The jobs the experiment creates: one per configuration, spp level and
+    repeat, and its reference unless it names a done job. Each counts as a
+    submission (`admission.check_submission_rate`)."""
+    return len(body.configs) * len(body.spp) * body.repeats + (body.reference.job is None)
+
+
 def create_experiment(session: Session, store: Store, settings: Settings, actor: Principal,
                       body: ExperimentCreate, now: datetime) -> Experiment:
     """Validate the experiment, add its jobs (and its reference's) and itself."""
@@ -96,7 +103,7 @@ def create_experiment(session: Session, store: Store, settings: Settings, actor:
         raise InvalidRequest("configs", "two configurations have the same label: "
                              + ", ".join(sorted({x for x in labels if labels.count(x) > 1})))
     own_reference = body.reference.job is None
-    total = len(body.configs) * len(body.spp) * body.repeats + own_reference
+    total = planned_jobs(body)
     limits = admission.limits_for(settings, actor)
     active = admission.count_active_jobs(session, actor.user)
     if active + total > limits.max_active_jobs:

@@ -167,6 +167,27 @@ def test08_submissions_per_token_and_minute_uploads_per_owner_and_hour(settings)
         admission.check_upload_rate(limiter, settings, VERA, now=0.0)
 
 
+def test08b_an_experiment_counts_a_submission_per_job(settings):
+    """Many hits at once fit or are refused whole, with the seconds until
+    enough leave the window; more than the limit could never fit (422)."""
+    limiter = RateLimiter()
+    admission.check_submission_rate(limiter, settings, ANA, now=0.0)
+    admission.check_submission_rate(limiter, settings, ANA, now=10.0, jobs=2)
+    with pytest.raises(RateLimited) as refused:  # full: 2 places must free up
+        admission.check_submission_rate(limiter, settings, ANA, now=20.0, jobs=2)
+    assert refused.value.retry_after == pytest.approx(50.0)  # the hits at 10 leave at 70
+    admission.check_submission_rate(limiter, settings, ANA, now=60.0)  # the one at 0 left
+    with pytest.raises(InvalidRequest) as too_many:
+        admission.check_submission_rate(limiter, settings, ANA, now=0.0, jobs=4,
+                                        field="repeats")
+    assert too_many.value.field == "repeats" and "creates 4 jobs" in too_many.value.message
+    assert "RAYFARM_LIMITS_ARTIST__SUBMISSIONS_PER_MINUTE" in too_many.value.message
+    limiter.hit("k", limit=3, window_seconds=60, now=0.0, count=3)
+    with pytest.raises(RateLimited) as refused:
+        limiter.hit("k", limit=3, window_seconds=60, now=1.0)
+    assert refused.value.retry_after == pytest.approx(59.0)
+
+
 def test09_the_429_carries_retry_after_rounded_up(settings):
     from fastapi import FastAPI
     from fastapi.testclient import TestClient

@@ -164,3 +164,27 @@ def test04c_a_cancel_that_keeps_going_stale_is_a_409(local_app, local_client):
     assert races == 5  # jobs.retrying's tries, each raced before its first write
     assert local_client.get(f"/experiments/{body['id']}").json()["status"] == "running"
     assert local_client.post(f"/experiments/{body['id']}/cancel").status_code == 200
+
+
+def test05_an_experiments_jobs_count_against_the_submission_rate(local_client, local_settings,
+                                                                make_user, monkeypatch):
+    """An experiment creates as many jobs as a script posting them one by
+    one, so it spends as many submissions of its token's minute: before, it
+    bypassed the limit (294 jobs in 18 s against 60 a minute)."""
+    monkeypatch.setattr(local_settings.limits_artist, "submissions_per_minute", 4)
+    eve = make_user("eve-rates")
+    three = {**SMALL, "spp": [2], "repeats": 2, "configs": [{"method": "raster"}],
+             "reference": {"spp": 4}}  # 2 runs and a reference: 3 jobs
+    first = eve.post("/experiments", json=three)
+    assert first.status_code == 201, first.text
+    second = eve.post("/experiments", json=three)
+    assert second.status_code == 429, second.text
+    assert 0 < int(second.headers["retry-after"]) <= 60
+    job = eve.post("/jobs", json={"scene": "cornell-box", "method": "raster", "spp": 1,
+                                  "depth": 1, "width": 8, "height": 8, "tile_size": 8})
+    assert job.status_code == 201, job.text  # the minute's fourth
+    too_big = eve.post("/experiments", json={**three, "repeats": 4})  # 5 jobs
+    assert too_big.status_code == 422 and "repeats" in str(too_big.json()["detail"])
+    assert "creates 5 jobs" in too_big.text
+    cancel = eve.post(f"/experiments/{first.json()['id']}/cancel")
+    assert cancel.status_code in (200, 409)  # 409: done already

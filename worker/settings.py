@@ -34,7 +34,8 @@ class RoleLimits(BaseModel):
                                    description="work units one job may be planned into")
     max_active_jobs: int = Field(50, ge=0,
                                  description="queued, running or paused jobs of one owner")
-    submissions_per_minute: int = Field(60, ge=0, description="POST /jobs per token and minute "
+    submissions_per_minute: int = Field(60, ge=0, description="jobs submitted per token and "
+                                                               "minute, an experiment's each "
                                                                "(429 with Retry-After above)")
     uploads_per_hour: int = Field(120, ge=0, description="POST /scenes per owner and hour")
 

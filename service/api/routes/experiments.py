@@ -9,7 +9,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Response, status
 from fastapi.responses import FileResponse
 
-from ... import experiments, jobs
+from ... import admission, experiments, jobs
 from ...models import utcnow
 from ...schemas import ExperimentCreate, ExperimentPublic
 from ..auth import ActorDep
@@ -27,7 +27,11 @@ def create_experiment(body: ExperimentCreate, session: SessionDep, farm: FarmDep
     times with derived seeds, and a reference unless one is given, as jobs of
     the caller. When they are done, GET reports per configuration: bias and
     its test, variance, MSE, time, efficiency, the RMSE slope, "unbiased?" and
-    "consistent?" (renderer.lab)."""
+    "consistent?" (renderer.lab). Each of its jobs counts as a submission: 429
+    with Retry-After past the role's submissions per minute (per token), as
+    POST /jobs."""
+    admission.check_submission_rate(farm.limiter, farm.settings, actor,
+                                    jobs=experiments.planned_jobs(body), field="repeats")
     experiment = experiments.create_experiment(session, farm.store, farm.settings, actor, body,
                                                utcnow())
     session.commit()
