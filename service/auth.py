@@ -93,8 +93,19 @@ def get_user(session: Session, name: str) -> User:
 
 def set_user(session: Session, name: str, *, role: str | None = None, share: float | None = None,
              disabled: bool | None = None) -> User:
-    """Change a user's role, fair share or disabled flag (a disabled user's tokens stop working)."""
+    """Change a user's role, fair share or disabled flag (a disabled user's tokens stop working).
+
+    The last enabled admin may be neither disabled nor demoted (`Conflict`):
+    nobody could manage users any more, the token-less CLI excepted."""
     user = get_user(session, name)
+    if role is not None:
+        _check_role(role)
+    leaves = user.role == "admin" and not user.disabled and (
+        (role is not None and role != "admin") or bool(disabled))
+    if leaves and _last_admin(session, name):
+        what = "disabled" if disabled else f"made {role}"
+        raise Conflict(f"user '{name}' is the last enabled admin and cannot be {what}: make "
+                       "another user admin first")
     if role is not None:
         user.role = _check_role(role)
     if share is not None:
@@ -103,6 +114,15 @@ def set_user(session: Session, name: str, *, role: str | None = None, share: flo
     if disabled is not None:
         user.disabled = bool(disabled)
     return user
+
+
+def _last_admin(session: Session, name: str) -> bool:
+    """True if no enabled admin but `name` exists. The others' rows are locked
+    until the transaction ends (PostgreSQL; SQLite has one writer at a time),
+    so two admins disabling each other at once cannot both succeed."""
+    return session.scalars(select(User.name).where(
+        User.role == "admin", User.disabled.is_(False), User.name != name)
+        .with_for_update()).first() is None
 
 
 # -- tokens ---------------------------------------------------------------------------

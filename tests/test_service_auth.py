@@ -24,7 +24,7 @@ from conftest import (ADMIN_HEADERS, TEST_ADMIN_TOKEN, TINY, get_json, poll_job,
                       submit)
 from service import auth
 from service.access import Principal
-from service.models import ApiToken, utcnow
+from service.models import ApiToken, User, utcnow
 
 from test_service_events import read_events
 
@@ -287,6 +287,9 @@ def test10_the_admin_cli_manages_users_and_tokens_on_the_ledger(tmp_path):
     assert rayfarm("tokens", "revoke", token_id).returncode == 0
     assert "revoked" in rayfarm("tokens", "list", "--user", "ivy").stdout
     assert rayfarm("users", "set", "ivy", "--role", "viewer").stdout.startswith("ivy: viewer")
+    assert rayfarm("users", "add", "boss", "--role", "admin").returncode == 0
+    last = rayfarm("users", "set", "boss", "--disable")
+    assert last.returncode == 2 and "boss' is the last enabled admin" in last.stderr
 
 
 def test11_a_revoked_token_loses_its_event_streams(local_client, make_user, monkeypatch):
@@ -324,3 +327,37 @@ def test12_logging_out_ends_the_dashboards_event_streams(local_app, monkeypatch)
         assert not reader.is_alive(), "the stream of a logged-out session goes on"
     # The API token it logged in with still works elsewhere.
     assert TestClient(local_app, headers=ADMIN_HEADERS).get("/auth/me").status_code == 200
+
+
+def test13_the_last_enabled_admin_can_be_neither_disabled_nor_demoted(local_client, tmp_path):
+    """Before, an admin could disable the last admin (itself included): nobody
+    could manage users any more. A 409 names the reason."""
+    for change in ({"disabled": True}, {"role": "artist"}, {"role": "viewer"}):
+        refused = local_client.patch("/users/admin", json=change)
+        assert refused.status_code == 409, (change, refused.text)
+        assert "last enabled admin" in refused.json()["detail"]
+    assert local_client.patch("/users/admin", json={"share": 1.0}).status_code == 200
+    assert local_client.get("/auth/me").json()["role"] == "admin"
+    # With a second admin one of them may go; then the other is the last.
+    assert local_client.post("/users", json={"name": "ada-admin", "role": "admin"}
+                             ).status_code == 201
+    assert local_client.patch("/users/ada-admin", json={"disabled": True}).status_code == 200
+    assert local_client.patch("/users/admin", json={"disabled": True}).status_code == 409
+    # The same rule in the domain: two admins demoting each other, one after the other.
+    from service.db import open_ledger
+    from service.errors import Conflict
+    from service.settings import Settings
+
+    engine, sessions = open_ledger(Settings(data_dir=tmp_path / "farm", database_url=""))
+    try:
+        with sessions.begin() as session:
+            auth.add_user(session, "a", "admin", utcnow())
+            auth.add_user(session, "b", "admin", utcnow())
+        with sessions.begin() as session:
+            auth.set_user(session, "a", role="artist")
+        with pytest.raises(Conflict), sessions.begin() as session:
+            auth.set_user(session, "b", role="artist")
+        with sessions() as session:
+            assert session.get(User, "b").role == "admin"
+    finally:
+        engine.dispose()

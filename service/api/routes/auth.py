@@ -82,9 +82,10 @@ def add_user(body: UserCreate, actor: ActorDep, farm: FarmDep) -> UserPublic:
                                                   share=float(body.share)))
 
 
-@admin.patch("/users/{name}", response_model=UserPublic, responses=responses(404, 422))
+@admin.patch("/users/{name}", response_model=UserPublic, responses=responses(404, 409, 422))
 def update_user(name: str, body: UserUpdate, actor: ActorDep, farm: FarmDep) -> UserPublic:
-    """Change a user's role, fair share or disabled flag (admins only)."""
+    """Change a user's role, fair share or disabled flag (admins only). 409: the
+    last enabled admin cannot be disabled or demoted."""
     require_admin(actor)
     with farm.sessions.begin() as session:
         return UserPublic.from_user(auth.set_user(
