@@ -27,7 +27,9 @@ def _ledger():
     from .db import open_ledger
     from .settings import Settings
 
-    engine, sessions = open_ledger(Settings())
+    settings = Settings()
+    settings.keep_files_private()  # it may create the SQLite ledger
+    engine, sessions = open_ledger(settings)
     return engine, sessions
 
 
@@ -116,6 +118,7 @@ def _cache(args: argparse.Namespace) -> int:
     from .settings import Settings
 
     settings = Settings()
+    settings.keep_files_private()
     caches = [DiskCache(settings.cache_dir / name, settings.cache_max_bytes) for name in CACHES]
     if args.action == "clear":
         for cache in caches:

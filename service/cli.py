@@ -49,6 +49,7 @@ def _serve(args: argparse.Namespace) -> int:
     from .settings import Settings
 
     settings = Settings()
+    settings.keep_files_private()  # before the ledger, the store or a log file is made
     engine, sessions = open_ledger(settings)
     try:
         secret = bootstrap_admin(sessions, settings.data_dir, settings.admin_token)
@@ -103,6 +104,7 @@ def _worker(args: argparse.Namespace) -> int:
         print("rayfarm worker: set RAYFARM_BROKER_URL (e.g. redis://localhost:6379/0)",
               file=sys.stderr)
         return 2
+    settings.keep_files_private()  # its caches, logs and the render processes' files
     app = create_celery_app(settings)
     # One single-threaded render process per core (prefork); by default a
     # unique node name so several workers on one host don't collide. A name

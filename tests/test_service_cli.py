@@ -144,3 +144,45 @@ def test06_serve_prints_a_login_url_that_logs_a_browser_in(tmp_path):
         assert child.log().count(token) == 1  # in the printed URL only
     finally:
         child.stop()
+
+
+def test07_serve_keeps_the_files_it_writes_to_its_own_user(tmp_path):
+    """Under the everyday umask 022, `rayfarm serve` still writes the ledger
+    (and SQLite's -wal and -shm), scenes, unit films and logs, results and
+    previews for its own user alone (RAYFARM_UMASK, default 077): before, they
+    were world-readable (0644), directories 0755. A data directory made
+    looser beforehand loses those bits at start."""
+    import os
+    import stat
+
+    import httpx
+
+    from conftest import TINY, embedded_env, poll_job, start_serve
+
+    data = tmp_path / "data"
+    data.mkdir(mode=0o755)
+    os.chmod(data, 0o755)
+    env = embedded_env(data, RAYFARM_LOCAL_WORKERS="1")
+    old_umask = os.umask(0o022)  # what the child inherits
+    try:
+        child, base = start_serve(env, tmp_path / "serve.log")
+    finally:
+        os.umask(old_umask)
+    try:
+        with httpx.Client(base_url=base, timeout=30, headers=ADMIN_HEADERS) as client:
+            job = poll_job(lambda path: client.get(path).json(),
+                           client.post("/jobs", json=TINY).json()["id"])
+            assert job["status"] == "done", job
+            assert client.get(job["preview_url"]).status_code == 200
+            assert client.get(f"/jobs/{job['id']}/units/0/log").status_code == 200
+            written = {path.relative_to(data).as_posix(): stat.S_IMODE(path.lstat().st_mode)
+                       for path in [data, *data.rglob("*")]}
+    finally:
+        child.stop()
+    assert {"rayfarm.sqlite3", "rayfarm.sqlite3-wal", "rayfarm.sqlite3-shm", "admin.token",
+            f"jobs/{job['id']}/result.exr", f"jobs/{job['id']}/preview.png"} <= set(written)
+    assert any(name.endswith(".film") for name in written)
+    assert any("/logs/" in name for name in written)
+    readable = {name: oct(mode) for name, mode in written.items() if mode & 0o077}
+    assert readable == {}, readable
+    assert written["."] == 0o700 and written["jobs"] == 0o700

@@ -10,6 +10,7 @@ tests construct it and hand it down::
 from __future__ import annotations
 
 import os
+import stat
 from typing import Literal
 from pathlib import Path
 
@@ -105,6 +106,12 @@ class Settings(BaseSettings):
     min_free_bytes: int = Field(256 * 1024 * 1024, ge=0,
                                 description="/healthz reports degraded when the data dir's "
                                             "file system has less free space than this")
+    umask: str = Field("077", pattern=r"^0?[0-7]{3}$",
+                       description="permission bits (octal) withheld from every file and "
+                                   "directory that `rayfarm serve`, `rayfarm worker` and the "
+                                   "admin commands create: 077 = their user's alone (files "
+                                   "0600, directories 0700, the SQLite ledger's -wal and "
+                                   "-shm too); 027 lets the group read")
 
     # -- accounts and admission (service only) ------------------------------------
     admin_token: str = Field(
@@ -128,6 +135,21 @@ class Settings(BaseSettings):
         if self.cache_dir is None:
             self.cache_dir = self.data_dir / "cache"
         return self
+
+    def keep_files_private(self) -> None:
+        """Make `umask` this process's, and take its bits off the data directory
+        if it exists (made by an older version, or before the setting changed):
+        what it holds is then out of others' reach too. Called at the start of
+        the commands that write there; a program that embeds the service
+        (`create_app`) keeps its own umask."""
+        mask = int(self.umask, 8)
+        os.umask(mask)
+        try:
+            mode = stat.S_IMODE(self.data_dir.stat().st_mode)
+            if mode & mask:
+                self.data_dir.chmod(mode & ~mask)
+        except OSError:  # not there yet (made under the umask), or not ours
+            pass
 
     def configure_renderer(self) -> None:
         """Point the renderer's on-disk caches at `cache_dir` with `cache_max_bytes`
