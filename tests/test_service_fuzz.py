@@ -10,8 +10,10 @@ small jobs (so fuzzed jobs that pass cost the two shared cores little).
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 
+import numpy as np
 import pytest
 import schemathesis
 from fastapi.testclient import TestClient
@@ -121,3 +123,124 @@ def test02_the_service_answers_healthz_afterwards(fuzz_app):
     _, client = fuzz_app
     response = client.get("/healthz")
     assert response.status_code == 200 and response.json()["status"] == "ok", response.text
+
+
+# -- tiny and huge numbers in every numeric field -------------------------------------------
+# Strict JSON has no NaN or Infinity, but it has these: each goes into each numeric
+# field of a request. The answer is a 4xx naming the field, or a job that
+# finishes with a finite image; never a 5xx, a failed job or a NaN pixel.
+
+EXTREMES = (1e308, -1e308, 1e-300, 1e-320, 10**20, -1, 0)  # 1e-300: a target overflowed
+TINY_JOB = {"scene": "cornell-box", "method": "path-mis", "spp": 2, "depth": 2, "width": 8,
+            "height": 8, "tile_size": 8, "seed": 1, "progressive": False}
+
+
+def _job_cases(methods: list[dict]) -> list[tuple[str, dict]]:
+    """(label, job body): every extreme in every numeric field of the job body,
+    of its noise target and of every method's numeric options (GET /methods),
+    and BDPT's s=K with a K of 10^20."""
+    cases = []
+    for field in ("spp", "depth", "tile_size", "seed", "width", "height", "priority"):
+        cases += [(f"{field}={v!r}", {**TINY_JOB, field: v}) for v in EXTREMES]
+    for field in ("rel_error", "max_spp", "max_seconds"):
+        for v in EXTREMES:
+            body = {k: v for k, v in TINY_JOB.items() if k != "spp"}
+            cases.append((f"target.{field}={v!r}",
+                          {**body, "target": {"rel_error": 0.5, "max_spp": 64, field: v}}))
+    for method in methods:
+        for option in method["options"]:
+            if option["type"] in ("int", "float"):
+                cases += [(f"{method['name']} {option['name']}={v!r}",
+                           {**TINY_JOB, "method": method["name"], "options": {option["name"]: v}})
+                          for v in EXTREMES]
+    cases.append(("bdpt strategy=s=10^20",
+                  {**TINY_JOB, "method": "bdpt", "options": {"strategy": f"s={10**20}"}}))
+    return cases
+
+
+def _admin_of_its_own(app, name: str) -> TestClient:
+    """A client of `app` (its farm the fixture's) as a new admin with a token of
+    its own: a fresh submission budget, whatever the other tests spent."""
+    admin = TestClient(app, headers=ADMIN_HEADERS)
+    assert admin.post("/users", json={"name": name, "role": "admin"}).status_code == 201
+    secret = admin.post("/tokens", json={"user": name}).json()["token"]
+    return TestClient(app, headers={"Authorization": f"Bearer {secret}"})
+
+
+def test03_extreme_numbers_in_a_job_are_a_4xx_or_a_finite_image(fuzz_app, tmp_path):
+    from renderer import read_exr
+
+    client = _admin_of_its_own(fuzz_app[0], "fuzz-jobs")
+    methods = client.get("/methods").json()
+    accepted, problems = {}, []
+    for label, body in _job_cases(methods):
+        response = client.post("/jobs", json=body)
+        if response.status_code == 201:
+            accepted[response.json()["id"]] = label
+        elif not 400 <= response.status_code < 500:
+            problems.append(f"{label}: {response.status_code} {response.text[:200]}")
+        elif response.status_code == 422:  # naming the field it refused
+            detail = response.json()["detail"][0]
+            if not detail.get("loc") or not detail.get("msg"):
+                problems.append(f"{label}: 422 without a field: {response.text[:200]}")
+    assert accepted, "every extreme refused: nothing was rendered"
+    # The list is read while they run: a job's figures (its ETA after a first
+    # pass) are computed only then.
+    final = {}
+    deadline = time.monotonic() + 300
+    while len(final) < len(accepted) and time.monotonic() < deadline:
+        listed = client.get("/jobs", params={"limit": 1000})
+        assert listed.status_code == 200, listed.text
+        final.update({j["id"]: j for j in listed.json()
+                      if j["id"] in accepted and j["status"] in ("done", "failed", "canceled")})
+        time.sleep(0.02)
+    assert len(final) == len(accepted), sorted(set(accepted.values()) - {
+        accepted[i] for i in final})
+    for job_id, label in accepted.items():
+        job = final[job_id]
+        if job["status"] != "done":
+            problems.append(f"{label}: {job['status']}: {job['error']}")
+            continue
+        exr = tmp_path / f"{job_id}.exr"
+        exr.write_bytes(client.get(job["result_url"]).content)
+        channels, _ = read_exr(exr)
+        if not all(np.all(np.isfinite(channels[c])) for c in "RGB"):
+            problems.append(f"{label}: non-finite pixels")
+    assert not problems, "\n".join(problems)
+
+
+def test04_extreme_numbers_elsewhere_are_never_a_server_error(fuzz_app):
+    """Experiments (their accepted jobs canceled at once), user shares, token
+    lifetimes, priorities and the list queries, with every extreme."""
+    client = _admin_of_its_own(fuzz_app[0], "fuzz-requests")
+    tiny = {"scene": "cornell-box", "width": 8, "height": 8, "depth": 1, "repeats": 2,
+            "spp": [1], "block": 4, "configs": [{"method": "raster"}], "reference": {"spp": 1}}
+    created = client.post("/jobs", json=TINY_JOB)
+    assert created.status_code == 201, created.text
+    job = created.json()["id"]
+    client.post("/users", json={"name": "fuzz-numbers"})
+    requests = []
+    for i, v in enumerate(EXTREMES):
+        for field in ("repeats", "block", "depth", "width", "height", "seed", "priority"):
+            requests.append(("POST", "/experiments", {**tiny, field: v}, None))
+        requests.append(("POST", "/experiments", {**tiny, "spp": [v]}, None))
+        requests.append(("POST", "/experiments", {**tiny, "reference": {"spp": v}}, None))
+        requests.append(("POST", "/experiments",
+                         {**tiny, "configs": [{"method": "photon", "options": {"radius": v}}]},
+                         None))
+        requests.append(("POST", "/users", {"name": f"fuzz-share-{i}", "share": v}, None))
+        requests.append(("PATCH", "/users/fuzz-numbers", {"share": v}, None))
+        requests.append(("POST", "/tokens", {"user": "fuzz-numbers", "expires_in_days": v}, None))
+        requests.append(("PATCH", f"/jobs/{job}", {"priority": v}, None))
+        for path in ("/jobs", "/experiments"):
+            requests.append(("GET", path, None, {"limit": v}))
+        requests.append(("GET", "/jobs", None, {"offset": v}))
+    problems = []
+    for method, path, body, params in requests:
+        response = client.request(method, path, json=body, params=params)
+        if response.status_code >= 500:
+            problems.append(f"{method} {path} {body or params}: {response.status_code} "
+                            f"{response.text[:200]}")
+        elif method == "POST" and path == "/experiments" and response.status_code == 201:
+            client.post(f"/experiments/{response.json()['id']}/cancel")
+    assert not problems, "\n".join(problems)
