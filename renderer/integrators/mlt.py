@@ -100,6 +100,7 @@ import math
 import numpy as np
 from numba import prange
 
+from ..errors import SpecError
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_parallel
 from ..kernels.geometry import STACK_SIZE
@@ -348,6 +349,23 @@ def bootstrap_per_depth(spec, opts: dict) -> int:
     return int(min(100_000, max(16384, spec.width * spec.height * spec.spp // (4 * (spec.depth + 1)))))
 
 
+# The bootstrap unit holds a weight per path, (depth + 1) x bootstrap of them,
+# and sorts them: 10^7 per depth at depth 64 (the bound before) were 5 GB per
+# array. 2^24 paths are 134 MB; the automatic count is at most 6.5 million.
+MAX_BOOTSTRAP_PATHS = 1 << 24
+
+
+def check_bootstrap(spec, doc: dict, opts: dict) -> None:
+    """Refuse at submission a bootstrap of more than MAX_BOOTSTRAP_PATHS paths
+    (the job's depth decides; the scene does not)."""
+    per_depth = bootstrap_per_depth(spec, opts)
+    if per_depth * (spec.depth + 1) > MAX_BOOTSTRAP_PATHS:
+        raise SpecError("options.bootstrap", f"{per_depth} paths per depth x {spec.depth + 1} "
+                                             f"depths exceed {MAX_BOOTSTRAP_PATHS} bootstrap "
+                                             f"paths: at depth {spec.depth}, at most "
+                                             f"{MAX_BOOTSTRAP_PATHS // (spec.depth + 1)}")
+
+
 def chain_groups(chains: int) -> list[tuple[int, int]]:
     """The chain ranges of the chain units: min(chains, CHAIN_UNITS) near-equal
     contiguous ranges."""
@@ -460,15 +478,14 @@ METHODS = (Method(
                "perturbation", bounds=(1e-6, 1.0)),
         Option("perturbation", str, "normal", "small steps: pbrt-v3's wrapped normal or "
                "Kelemen's exponential", ("normal", "exponential")),
-        # The bootstrap unit holds a weight per path, (depth + 1) x bootstrap of
-        # them, and sorts them: 10^7 at depth 64 was 5 GB per array. 2^18 (2.6
-        # times the automatic maximum) is at most 136 MB.
         Option("bootstrap", int, 0, "bootstrap paths per depth (0 = auto from the image "
-               "size and spp)", bounds=(0, 1 << 18)),
+               f"size and spp); at most {MAX_BOOTSTRAP_PATHS} paths over the depth + 1 "
+               "depths", bounds=(0, MAX_BOOTSTRAP_PATHS)),
         Option("chains", int, 1024, "Markov chains (grouped into at most 8 units)",
                bounds=(1, 1 << 20)),
     ),
     family="chains",
     plan=plan_mlt,
     phases=("bootstrap", "chains"),
+    check_scene=check_bootstrap,
 ),)
