@@ -202,7 +202,8 @@ class JobStats(BaseModel):
 
 
 class JobPublic(BaseModel):
-    """A job as the API shows it."""
+    """A job as the API shows it. A figure derived from its counters (progress,
+    ETA, rates) that cannot be computed is null (service.figures)."""
 
     id: str
     status: str
@@ -553,8 +554,9 @@ class ExperimentCreate(RequestModel):
     scene: StrictStr = Field(max_length=200, description="a built-in scene's name or an uploaded "
                                                          "scene's id (GET /scenes)")
     configs: list[LabConfig] = Field(min_length=1, max_length=16)
-    spp: list[StrictInt] = Field(min_length=1, max_length=8,
-                                 description="spp levels, ascending (each within the job bounds)")
+    spp: list[_bounded("spp", "samples per pixel")] = Field(
+        min_length=1, max_length=8, description="spp levels, ascending (each within the job "
+                                                "bounds)")
     repeats: StrictInt = Field(4, ge=2, le=64, description="independent renders per "
                                                            "configuration and level")
     depth: _bounded("depth", "maximum path depth") = 5
