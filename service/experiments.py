@@ -43,8 +43,8 @@ from .schemas import ExperimentCreate, ExperimentPublic, JobCreate
 from .settings import Settings
 from .store import Store
 
-__all__ = ["create_experiment", "planned_jobs", "get_experiment", "list_experiments", "cancel_experiment",
-           "experiment_public", "job_states", "report_csv", "figure_path"]
+__all__ = ["create_experiment", "planned_jobs", "get_experiment", "list_experiments",
+           "cancel_experiment", "experiment_public", "job_states", "report_csv", "figure_path"]
 
 TILE_SIZE = 64
 FIGURES = ("plot", "maps")
