@@ -59,17 +59,21 @@ class Farm:
         store = Store(settings.data_dir)
         settings.configure_renderer()  # before the pool warms up (it may solve radiosity)
         engine, sessions = open_ledger(settings)
+        leadership = open_leadership(settings, engine)
         try:
+            # Before anything else: a service whose data dir is not the ledger's
+            # other services' must not serve (DataDirConflict names both).
+            leadership.join(settings.data_dir)
             # A farm always has an admin (`rayfarm serve` made it already and printed its URL).
             bootstrap_admin(sessions, settings.data_dir, settings.admin_token)
             executor = make_executor(settings, store.scene_text, store.unit_film)
         except BaseException:
+            leadership.stop()
             engine.dispose()
             raise
         hub = EventHub()
         publish_commits(sessions, hub)
         relay = watch = None
-        leadership = open_leadership(settings, engine)
         if engine.dialect.name == "postgresql":
             relay = PostgresRelay(engine, sessions, hub)  # attached by start()
         else:

@@ -78,9 +78,10 @@ class Settings(BaseSettings):
                                description="processes of the embedded pool")
     poll_interval: float = Field(0.2, gt=0, description="seconds between scheduler ticks")
     leader_lease_seconds: float = Field(
-        5.0, gt=0, description="the scheduler lease of service replicas on PostgreSQL: a "
-                               "standby takes over this long after the leader stopped "
-                               "renewing it; the leader stops scheduling after half of it")
+        5.0, gt=0, description="the scheduler lease of the service replicas on one ledger: "
+                               "a standby takes over this long after the leader stopped "
+                               "renewing it (on SQLite at once when the leader's process "
+                               "died); the leader stops scheduling after half of it")
     worker_heartbeat_seconds: float = Field(
         2.0, gt=0, description="how often a Celery worker reports that it is alive; a "
                                "rendering unit's own heartbeat lives three times this long")
