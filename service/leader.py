@@ -262,7 +262,7 @@ class LeaseLeadership(Leadership):
             .returning(table.c.epoch)).scalar()
 
     def _take(self, conn: Connection, now, takeable) -> int | None:
-        """Take the row where `takeable` holds (it is made first if missing): the new epoch or None."""
+        """Take the row where `takeable` holds (made first if missing): the new epoch or None."""
         table = SchedulerLease.__table__
         conn.execute(self._insert(table).values(name=LEASE_NAME, holder="", epoch=0,
                                                 expires_at=_NEVER).on_conflict_do_nothing())

@@ -1,9 +1,10 @@
 """Several service replicas on one ledger: exactly one schedules.
 
 The lease on the test run's own PostgreSQL (service.leader) and on SQLite
-(whatever the services' data dirs), events relayed between replicas, and the leader SIGKILLed mid-job with
-real `rayfarm serve` processes. The failover time (the kill -> the standby's
-first tick) is printed (`pytest -s`) for the record.
+(whatever the services' data dirs), events relayed between replicas, and the
+leader SIGKILLed mid-job with real `rayfarm serve` processes. The failover
+time (the kill -> the standby's first tick) is printed (`pytest -s`) for the
+record.
 """
 
 from __future__ import annotations
