@@ -91,6 +91,9 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0,
                                   description="largest request body of POST /scenes (413 above)")
     max_upload_files: int = Field(64, ge=0, description="most mesh files in one POST /scenes")
+    max_concurrent_uploads: int = Field(
+        4, ge=1, description="POST /scenes received and checked at once by one service (each "
+                             "checks its files in a child process); 429 with Retry-After above")
     max_job_bytes: int = Field(16 * 1024 * 1024, gt=0,
                                description="largest request body of POST /jobs (413 above)")
     cache_dir: Path | None = Field(
