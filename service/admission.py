@@ -29,6 +29,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from renderer import METHODS, RenderSpec, Unit
+from renderer.plan_size import plan_size
 from renderer.target import Target, target_plan
 from worker.settings import RoleLimits
 
@@ -62,8 +63,7 @@ def unit_floor(spec: RenderSpec, progressive: bool, target: Target | None = None
     the tile plan's count for tile and radiosity plans (exact for tile
     plans and for a noise target's tiles x canonical-block passes), tiles x
     passes for BDPT, an iteration's photon unit for SPPM. A request for
-    millions of units is refused on this, before `planned_units` would build
-    them (seconds of CPU)."""
+    millions of units is refused on this, before `planned_units` counts them."""
     from renderer.plan import count_units, sample_passes, tile_pixels
 
     if target is not None:
@@ -89,10 +89,11 @@ def job_plan(spec: RenderSpec, progressive: bool, target: Target | None = None) 
 
 def planned_units(spec: RenderSpec, progressive: bool, target: Target | None = None) -> int:
     """How many work units the job would be planned into (the planner is pure,
-    so this is exact, also for DAG methods). Check `unit_floor` first."""
+    so this is exact, also for DAG methods), counted without building them
+    (`renderer.plan_size`): a plan is built by the scheduler, not in a request."""
     if target is not None:
         return unit_floor(spec, progressive, target)
-    return len(job_plan(spec, progressive))
+    return plan_size(spec, progressive)
 
 
 def check_job(settings: Settings, actor: Principal, spec: RenderSpec, units: int,

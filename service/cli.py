@@ -45,6 +45,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     from .auth import admin_token_path, bootstrap_admin
     from .db import open_ledger
+    from .leader import DataDirConflict, open_leadership
     from .main import create_app
     from .settings import Settings
 
@@ -52,6 +53,11 @@ def _serve(args: argparse.Namespace) -> int:
     settings.keep_files_private()  # before the ledger, the store or a log file is made
     engine, sessions = open_ledger(settings)
     try:
+        try:  # checked again, with this service recorded, as it starts
+            open_leadership(settings, engine).check(settings.data_dir)
+        except DataDirConflict as exc:
+            print(f"rayfarm serve: {exc}", file=sys.stderr)
+            return 2
         secret = bootstrap_admin(sessions, settings.data_dir, settings.admin_token)
     finally:
         engine.dispose()

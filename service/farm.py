@@ -10,6 +10,7 @@ and thumbnailer. Built by the app's lifespan, closed with it.
 from __future__ import annotations
 
 import logging
+import multiprocessing
 from dataclasses import dataclass
 
 from sqlalchemy import Engine
@@ -24,7 +25,7 @@ from .executors import Executor, make_executor
 from .leader import Leadership, open_leadership
 from .ledger_watch import LedgerWatch
 from .metrics import FarmMetrics
-from .scenes import scene_hashes
+from .scenes import UploadSlots, scene_hashes
 from .scheduler import Scheduler
 from .settings import Settings
 from .store import Store
@@ -51,25 +52,35 @@ class Farm:
     # Events of the jobs another replica schedules, polled from the ledger while
     # this one stands by (SQLite only; service.ledger_watch).
     watch: LedgerWatch | None = None
+    uploads: UploadSlots | None = None  # scene uploads at once (service.scenes)
 
     @classmethod
     def open(cls, settings: Settings, metrics: FarmMetrics | None = None) -> "Farm":
         """Connect to everything; the scheduler and the thumbnailer are built but not
         started. The scheduler reports to `metrics` (by default nowhere)."""
         store = Store(settings.data_dir)
+        # The service's children (upload checks, thumbnails) fork from a forkserver
+        # that has imported what they run: each then starts in milliseconds, not
+        # after the second or more an import of the renderer takes. (Only before
+        # the forkserver starts; a later call changes nothing.)
+        multiprocessing.set_forkserver_preload(["service.scenes", "service.thumbnails"])
         settings.configure_renderer()  # before the pool warms up (it may solve radiosity)
         engine, sessions = open_ledger(settings)
+        leadership = open_leadership(settings, engine)
         try:
+            # Before anything else: a service whose data dir is not the ledger's
+            # other services' must not serve (DataDirConflict names both).
+            leadership.join(settings.data_dir)
             # A farm always has an admin (`rayfarm serve` made it already and printed its URL).
             bootstrap_admin(sessions, settings.data_dir, settings.admin_token)
             executor = make_executor(settings, store.scene_text, store.unit_film)
         except BaseException:
+            leadership.stop()
             engine.dispose()
             raise
         hub = EventHub()
         publish_commits(sessions, hub)
         relay = watch = None
-        leadership = open_leadership(settings, engine)
         if engine.dialect.name == "postgresql":
             relay = PostgresRelay(engine, sessions, hub)  # attached by start()
         else:
@@ -79,7 +90,7 @@ class Farm:
                               leadership=leadership)
         return cls(settings, engine, sessions, store, executor, scheduler, hub,
                    Thumbnailer(store, lambda: scene_hashes(sessions, store)), RateLimiter(),
-                   leadership, relay, watch)
+                   leadership, relay, watch, UploadSlots(settings.max_concurrent_uploads))
 
     def start(self) -> None:
         """Relay (or watch for) events, try to lead, and run the scheduler's thread (which ticks

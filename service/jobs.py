@@ -45,19 +45,23 @@ def new_job_id() -> str:
     return uuid.uuid4().hex[:12]
 
 
-def _resolve_scene(session: Session, store: Store, actor: Principal,
-                   scene: str | dict) -> tuple[dict, str]:
-    """The resolved document and a display name; never reads server files
-    other than the store's (uploaded scenes are named by their id)."""
+def _resolve_scene(session: Session, store: Store, actor: Principal, scene: str | dict,
+                   method: str) -> tuple[dict, str, str | None]:
+    """The resolved document, a display name and, for an upload (named by its
+    id, its hash), that hash: its text is in the store already. Never reads
+    server files other than the store's. An upload's document holds only its
+    camera unless `method` checks the scene (radiosity): a large mesh's text
+    is not parsed for nothing in the request."""
     if isinstance(scene, str):
         if scene in builtin_scene_names():
-            return resolve_document(scene, allow_files=False), scene
-        uploaded = scenes.uploaded_document(session, store, actor, scene)
+            return resolve_document(scene, allow_files=False), scene, None
+        checks = getattr(METHODS.get(method), "check_scene", True) is not None
+        uploaded = scenes.uploaded_document(session, store, actor, scene, whole=checks)
         if uploaded is None:
             hint = scenes.unknown_scene_hint()
             raise InvalidRequest("scene", f"unknown scene '{scene}' ({hint}; "
                                           "or an inline scene object)")
-        return uploaded
+        return *uploaded, scene
     try:
         doc = resolve_document(scene, allow_files=False)
     except SceneError:
@@ -66,7 +70,7 @@ def _resolve_scene(session: Session, store: Store, actor: Principal,
         # A malformed document the validator did not anticipate is still the
         # client's error, not the server's.
         raise SceneError(f"malformed scene document ({type(exc).__name__}: {exc})") from None
-    return doc, f"inline:{doc['name']}" if doc.get("name") else "inline"
+    return doc, f"inline:{doc['name']}" if doc.get("name") else "inline", None
 
 
 def create_job(session: Session, store: Store, settings: Settings, actor: Principal,
@@ -79,7 +83,7 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
     with too many active jobs (`service.admission`: the role's limits).
     """
     require_submit(actor)
-    doc, scene_name = _resolve_scene(session, store, actor, request.scene)
+    doc, scene_name, key = _resolve_scene(session, store, actor, request.scene, request.method)
     camera = doc["camera"]
     target = _target(request)
     spec = RenderSpec(method=request.method,
@@ -97,8 +101,9 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
         raise InvalidRequest("tile_size", f"{tiles} tiles exceed the limit of {settings.max_units} "
                                           f"work units; use tile_size >= {least}")
     admission.admit_job(session, settings, actor, spec, request.progressive, target)
-    key, text = scene_text(doc)
-    store.put_scene(key, text)
+    if key is None:  # an upload's text is stored under its hash already
+        key, text = scene_text(doc)
+        store.put_scene(key, text)
     job = Job(id=new_job_id(), created=now, status="queued", owner=actor.user,
               scene=scene_name[:200],
               scene_hash=key, spec=spec.to_dict(), width=spec.width, height=spec.height,

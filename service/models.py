@@ -1,6 +1,7 @@
 """The job ledger's tables: `jobs` and their work `units` (SQLAlchemy 2), the
 uploaded `scenes` and who claims them, the farm's `users` and their `tokens`,
-and the `scheduler_lease` that says which service replica schedules.
+the `scheduler_lease` that says which service replica schedules, and the
+`service_replicas` that serve on the ledger (and the data dir each uses).
 
 Both carry a version counter (optimistic locking): the API (cancel) and the
 scheduler (progress) change the same rows from different threads or
@@ -18,7 +19,8 @@ from sqlalchemy import (JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, 
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
-__all__ = ["ApiToken", "Base", "Experiment", "Job", "SceneClaim", "SceneRecord", "SchedulerLease", "User",
+__all__ = ["ApiToken", "Base", "Experiment", "Job", "SceneClaim", "SceneRecord", "SchedulerLease",
+           "ServiceReplica", "User",
            "WorkUnit", "WorkerBlock", "utcnow"]
 
 
@@ -285,8 +287,8 @@ class ApiToken(Base):
 
 
 class SchedulerLease(Base):
-    """Which service replica runs the scheduler (on PostgreSQL; `service.leader`).
-    Its times are the database's clock; `epoch` grows with every new holder."""
+    """Which service replica runs the scheduler (`service.leader`). Its times
+    are the ledger's clock; `epoch` grows with every new holder."""
 
     __tablename__ = "scheduler_lease"
 
@@ -296,3 +298,18 @@ class SchedulerLease(Base):
     expires_at: Mapped[datetime] = mapped_column(UTCDateTime)
     acquired_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
     renewed_at: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+
+class ServiceReplica(Base):
+    """A `rayfarm serve` on this ledger and the data dir it uses (`service.leader`):
+    it beats `seen_at` (the ledger's clock) while it lives and goes when it stops.
+    `data_dir_id` is the data dir's own id (`service.store.data_dir_identity`),
+    the same under any path or host that mounts it."""
+
+    __tablename__ = "service_replicas"
+
+    identity: Mapped[str] = mapped_column(String(200), primary_key=True)
+    data_dir: Mapped[str] = mapped_column(Text)  # as this replica names it, for messages
+    data_dir_id: Mapped[str] = mapped_column(String(64))
+    started: Mapped[datetime] = mapped_column(UTCDateTime)
+    seen_at: Mapped[datetime] = mapped_column(UTCDateTime, index=True)

@@ -10,6 +10,15 @@ name by `"file"` (base names only). It is resolved like any scene, with mesh
 files read only from the upload's private directory; the resolved document is
 self-contained, so it is stored by its hash and nothing else is kept.
 
+Resolving and storing run in a child process (`check_upload`): parsing a
+large `.obj` and writing its canonical JSON is pure Python, tens of seconds
+of one core for a 59 MiB mesh, and in the service's own process it held the
+GIL from the event loop and every request thread (GET /jobs went from 7 ms
+to seconds with three such uploads: docs/operations.md). The child is forked
+from the forkserver that has this module imported, so it starts in
+milliseconds, and the memory of the parsed mesh goes with it. `UploadSlots`
+bounds the uploads received and checked at once (429 with Retry-After above).
+
 Uploads are shared by content hash but owned by claim: each user who uploaded
 a scene holds a claim on it (`SceneClaim`) and sees it; nobody else does
 (admins and viewers see every upload). Deleting an upload removes the
@@ -19,12 +28,17 @@ caller's claim; the record goes with the last claim.
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import posixpath
+import signal
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from functools import cache
 from pathlib import Path, PurePosixPath
+from typing import Iterator
 
 from sqlalchemy import select
 from sqlalchemy.exc import IntegrityError
@@ -34,16 +48,23 @@ from renderer import SceneError, builtin_scene_names, resolve_document, scene_te
 from renderer.scene import triangle_count
 
 from .access import Principal, require_submit
-from .errors import Conflict, Forbidden, InvalidRequest, NotFound, ResultNotReady
+from .errors import (Conflict, Forbidden, InvalidRequest, NotFound, RateLimited, ResultNotReady,
+                     TooLarge)
 from .models import SceneClaim, SceneRecord
 from .store import Store
 
-__all__ = ["SceneInfo", "UploadedFile", "MESH_SUFFIX", "add_upload", "resolve_upload",
-           "list_scenes", "get_scene", "delete_scene", "uploaded_document", "thumbnail_file",
-           "scene_hashes", "unknown_scene_hint"]
+__all__ = ["SceneInfo", "UploadedFile", "UploadSlots", "MESH_SUFFIX", "add_upload",
+           "check_upload", "resolve_upload", "list_scenes", "get_scene", "delete_scene",
+           "uploaded_document", "thumbnail_file", "scene_hashes", "unknown_scene_hint"]
 
 MESH_SUFFIX = ".obj"
 MAX_NAME = 255  # bytes of a file name on common filesystems
+# Retry-After of an upload refused while `UploadSlots` are full: a hint (a
+# large upload takes tens of seconds, a small one milliseconds).
+UPLOADS_BUSY_RETRY_AFTER = 5.0
+# The CPU priority of an upload's check (nice): below the service's requests
+# and scheduler, above the thumbnails (19).
+CHECK_NICENESS = 10
 
 
 @dataclass(frozen=True)
@@ -139,13 +160,17 @@ def get_scene(session: Session, actor: Principal, scene_id: str) -> SceneInfo:
     return SceneInfo.from_record(record)
 
 
-def uploaded_document(session: Session, store: Store, actor: Principal,
-                      scene_id: str) -> tuple[dict, str] | None:
+def uploaded_document(session: Session, store: Store, actor: Principal, scene_id: str,
+                      whole: bool = True) -> tuple[dict, str] | None:
     """(resolved document, name) of the uploaded scene `scene_id`, or None
-    (also when it is not the caller's to use)."""
+    (also when it is not the caller's to use). With `whole` false the document
+    holds only its camera's width and height, from the record: parsing a large
+    mesh's stored text holds the GIL for seconds (5 s for a 59 MiB .obj)."""
     record = _visible_upload(session, actor, scene_id)
     if record is None:
         return None
+    if not whole:
+        return {"camera": {"width": record.width, "height": record.height}}, record.name
     return json.loads(store.scene_text(record.id)), record.name
 
 
@@ -193,25 +218,116 @@ def delete_scene(session: Session, actor: Principal, scene_id: str) -> None:
         session.delete(record)
 
 
+class UploadSlots:
+    """At most `limit` uploads received and checked at once, in this process:
+
+        with slots.hold():        # or RateLimited (429, Retry-After)
+            ...                   # receive the body, check_upload
+    """
+
+    def __init__(self, limit: int):
+        self.limit = limit
+        self._free = threading.BoundedSemaphore(limit)
+
+    @contextmanager
+    def hold(self) -> Iterator[None]:
+        if not self._free.acquire(blocking=False):
+            raise RateLimited(f"{self.limit} scene uploads are being received and checked right "
+                              "now, the most at once (RAYFARM_MAX_CONCURRENT_UPLOADS); retry "
+                              f"in {UPLOADS_BUSY_RETRY_AFTER:g} s",
+                              retry_after=UPLOADS_BUSY_RETRY_AFTER)
+        try:
+            yield
+        finally:
+            self._free.release()
+
+
+def _store_upload(store: Store, scene: UploadedFile, files: list[UploadedFile],
+                  directory: Path) -> dict:
+    """Resolve an upload and store its canonical text: the record's fields."""
+    doc, stem = resolve_upload(scene, files, directory)
+    key, text = scene_text(doc)
+    store.put_scene(key, text)
+    camera = doc["camera"]
+    return dict(id=key, name=(doc["name"] or stem)[:200], description=doc["description"],
+                triangles=triangle_count(doc), width=camera["width"], height=camera["height"],
+                bytes=len(text.encode()))
+
+
+def _check_in_child(sending, store: Store, scene: UploadedFile, files: list[UploadedFile],
+                    directory: Path) -> None:
+    """The child process of `check_upload`: send ("ok", fields) or the refusal."""
+    try:  # the service's requests and scheduler come first
+        os.nice(CHECK_NICENESS)
+    except OSError:
+        pass
+    try:
+        sending.send(("ok", _store_upload(store, scene, files, directory)))
+    except InvalidRequest as exc:
+        sending.send(("invalid", (exc.field, exc.message, exc.source)))
+    except SceneError as exc:
+        sending.send(("scene", (exc.message, exc.location)))
+    except TooLarge as exc:
+        sending.send(("large", (str(exc),)))
+    except MemoryError:
+        sending.send(("large", ("the upload is too large to check (out of memory)",)))
+    sending.close()
+
+
+def check_upload(store: Store, scene: UploadedFile, files: list[UploadedFile],
+                 directory: Path) -> dict:
+    """Resolve an upload and store its canonical text by hash, in a child
+    process (see the module doc); returns the `SceneRecord` fields but
+    `created`. Raises what `resolve_upload` raises. Blocks the calling thread
+    (not the GIL) until the child is done."""
+    context = multiprocessing.get_context("forkserver")
+    receiving, sending = context.Pipe(duplex=False)
+    child = context.Process(target=_check_in_child, name="rayfarm-upload-check", daemon=True,
+                            args=(sending, store, scene, files, directory))
+    child.start()
+    sending.close()  # the child holds the only sending end: EOF if it dies
+    try:
+        try:
+            kind, payload = receiving.recv()
+        except EOFError:
+            kind, payload = "died", None
+    finally:
+        receiving.close()
+        child.join(30)
+        if child.is_alive():
+            child.kill()
+            child.join()
+    if kind == "ok":
+        return payload
+    if kind == "invalid":
+        raise InvalidRequest(*payload)
+    if kind == "scene":
+        raise SceneError(*payload)
+    if kind == "large":
+        raise TooLarge(*payload)
+    code = child.exitcode
+    how = (f"signal {signal.Signals(-code).name}" if code is not None and code < 0
+           else f"exit code {code}")
+    # Killed (the kernel's OOM killer) or crashed on this input: the upload's
+    # fault as far as anyone can tell, never a server error.
+    raise TooLarge(f"the upload could not be checked: its checking process ended with {how}")
+
+
 def add_upload(sessions: sessionmaker[Session], store: Store, actor: Principal,
                scene: UploadedFile, files: list[UploadedFile], directory: Path, now: datetime
                ) -> tuple[SceneInfo, bool]:
-    """Resolve an upload, store it by hash, record it and the caller's claim.
-    Returns (info, created): content this caller uploaded before answers its
-    existing record, not created (someone else's identical upload is shared,
-    and is new to this caller).
+    """Resolve an upload (in a child process: `check_upload`), store it by
+    hash, record it and the caller's claim. Returns (info, created): content
+    this caller uploaded before answers its existing record, not created
+    (someone else's identical upload is shared, and is new to this caller).
 
     Raises `InvalidRequest` (naming the field: ``files[1]``) or `SceneError`
     (naming the location in the scene: ``shapes[0].file``).
     """
     require_submit(actor)
-    doc, stem = resolve_upload(scene, files, directory)
-    key, text = scene_text(doc)
-    store.put_scene(key, text)
-    camera = doc["camera"]
-    record = SceneRecord(id=key, name=(doc["name"] or stem)[:200], description=doc["description"],
-                         created=now, triangles=triangle_count(doc), width=camera["width"],
-                         height=camera["height"], bytes=len(text.encode()))
+    fields = check_upload(store, scene, files, directory)
+    key = fields["id"]
+    record = SceneRecord(created=now, **fields)
     for _ in range(3):  # the same content uploaded at the same moment: one record
         try:
             with sessions.begin() as session:

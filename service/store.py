@@ -1,5 +1,6 @@
 """The data directory: scenes by hash, unit films, finished images.
 
+    <data_dir>/data_dir.id                     the data dir's random id (`data_dir_identity`)
     <data_dir>/store/scenes/<hash>.json        canonical scene text
     <data_dir>/store/scenes/<hash>.png         its thumbnail
     <data_dir>/uploads/<random>/               an upload while it is checked (then deleted)
@@ -21,6 +22,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import secrets
 import shutil
 import tempfile
 import time
@@ -28,7 +30,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-__all__ = ["Store"]
+__all__ = ["Store", "data_dir_identity"]
 
 _HASH = re.compile(r"[0-9a-f]{64}")
 _JOB_ID = re.compile(r"[0-9a-f]{6,32}")
@@ -38,6 +40,30 @@ def _check(pattern: re.Pattern, value: str, what: str) -> str:
     if not isinstance(value, str) or not pattern.fullmatch(value):
         raise ValueError(f"not a valid {what}: {value!r}")
     return value
+
+
+def data_dir_identity(root: Path) -> str:
+    """The data dir's own random id, made on first use: one directory has one
+    id under every path and on every host that mounts it, so the services on
+    one ledger can tell whether they share it (`service.leader`)."""
+    root = Path(root)
+    path = root / "data_dir.id"
+    try:
+        return path.read_text().strip()
+    except FileNotFoundError:
+        pass
+    root.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=root, prefix=".data_dir.id.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(secrets.token_hex(16) + "\n")
+        try:  # a link never replaces the id another service made meanwhile
+            os.link(tmp, path)
+        except FileExistsError:
+            pass
+    finally:
+        os.unlink(tmp)
+    return path.read_text().strip()
 
 
 class Store:

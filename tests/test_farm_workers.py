@@ -7,7 +7,9 @@
   keeps it alive;
 - a drained (disabled) worker takes no new unit while another does;
 - a worker declines, without rendering, a unit of a job it is blocklisted
-  for, or any unit while it is disabled.
+  for, or any unit while it is disabled;
+- a worker SIGKILLed mid-unit and started again under its name gives that
+  unit back at once, although the name never looks lost.
 """
 
 from __future__ import annotations
@@ -330,6 +332,54 @@ def test08_a_drained_worker_stays_drained_across_a_restart(redis_url, spawn_work
         job = poll_job(get, job_id)
         assert job["status"] == "done", job
         assert {u["worker"] for u in get(f"/jobs/{job_id}/units")} == {name}
+
+
+def test08b_a_worker_restarted_under_its_name_gives_back_at_once_the_unit_it_died_under(
+        redis_url, spawn_worker, tmp_path, reference_channels):
+    import redis
+
+    first = spawn_worker(concurrency=1, name="phoenix", **BEAT)
+    broker = redis.Redis.from_url(redis_url)
+    # The unit lease and the silence that makes a worker lost both last ten
+    # minutes: only the restart itself can tell the service the unit is gone.
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
+                        worker_heartbeat_seconds=0.3, worker_lost_seconds=600,
+                        unit_lease_seconds=600)
+    with TestClient(create_app(settings), headers=ADMIN_HEADERS) as client:
+        get = get_json(client)
+        name = wait_for(lambda: next((w["name"] for w in get("/workers")
+                                      if w["name"].startswith("phoenix@")), None),
+                        30, "the named worker")
+        job_id = submit(client, SLOW)["id"]
+
+        def rendering() -> list[int]:
+            return [int(k.rsplit(b":", 1)[1]) for k in broker.keys(f"rayfarm:hb:{job_id}:*")
+                    if broker.get(k) == name.encode()]
+        victims = wait_for(rendering, 120, "the worker to render a unit", interval=0.01)
+        first.kill_group(signal.SIGKILL)  # the main process and its render process
+        first.proc.wait(10)
+        killed = time.monotonic()
+        spawn_worker(concurrency=1, name="phoenix", **BEAT)
+        ready = time.monotonic()
+
+        def requeued() -> dict | None:
+            unit = get(f"/jobs/{job_id}/units")[victims[0]]
+            return unit if unit["tasks"] > 1 or unit["state"] == "done" else None
+        unit = wait_for(requeued, 90, "the dead process's unit to be enqueued again",
+                        interval=0.05)
+        print(f"\nthe unit enqueued again {time.monotonic() - killed:.2f} s after the kill, "
+              f"{time.monotonic() - ready:.2f} s after the restarted worker was ready "
+              "(lease and lost-worker silence 600 s)")
+        assert unit["tasks"] == 2, unit  # not done by the dead process in its last instant
+        assert unit["requeue_reason"].startswith(f"worker {name} was restarted"), unit
+        assert {w["name"]: w for w in get("/workers")}[name]["state"] in ("busy", "idle")
+        job = poll_job(get, job_id)
+        assert job["status"] == "done", job
+        assert get(f"/jobs/{job_id}/units")[victims[0]]["attempts"] == 1
+        assert job["samples"] == 32 * 32 * SLOW["spp"], "a unit was counted twice or lost"
+        (tmp_path / "restarted.exr").write_bytes(client.get(job["result_url"]).content)
+    broker.close()
+    assert_bit_identical(channels_of(tmp_path / "restarted.exr"), reference_channels(SLOW))
 
 
 def test09_the_presence_asks_its_consumer_again_until_it_follows_the_flag(redis_url):

@@ -15,6 +15,8 @@ give the same image however the job is cut and wherever its units run.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -151,3 +153,26 @@ def test05_film_bytes_round_trip_without_parsing_python(monkeypatch):
     old = PartialFilm.from_bytes(legacy.getvalue())
     np.testing.assert_array_equal(old.sum, film.sum)
     assert old.stats == film.stats and old.splat is None
+
+
+@pytest.mark.parametrize("method", dict.fromkeys(m.name for m in METHODS.values()))
+def test06_plan_size_is_the_plans_length_without_building_it(method):
+    """`plan_size` counts what `make_plan` builds, for every method, shape,
+    pass layout and the options that change a plan's shape."""
+    from renderer.plan_size import plan_size
+
+    options = [{}]
+    if METHODS[method].family == "photons":
+        options += [{"iterations_per_unit": 1}, {"iterations_per_unit": 5},
+                    {"photons": 200_000}, {"mode": "photonmap"},
+                    {"mode": "photonmap", "photons": 300_000}]
+    checked = 0
+    for width, height, tile, spp, progressive, opts in itertools.product(
+            (1, 7, 33, 64), (1, 16, 40), (1, 8, 16, 64), (1, 2, 3, 17, 64), (False, True),
+            options):
+        spec = RenderSpec(method=method, spp=spp, width=width, height=height, tile_size=tile,
+                          options=opts)
+        assert plan_size(spec, progressive) == len(METHODS[method].make_plan(spec, progressive)), \
+            (width, height, tile, spp, progressive, opts)
+        checked += 1
+    assert checked >= 480

@@ -224,3 +224,44 @@ def test_unit_floor_is_a_lower_bound_of_every_methods_plan(progressive):
             assert 1 <= floor <= units, (name, spp, size, floor, units)
             if METHODS[name].family == "tile":
                 assert floor == units, name
+
+
+# Jobs whose plans are large for their floor: BDPT's small passes, a photon
+# job with a gather unit per tile and iteration, a photon map of many ranges.
+_LARGE_PLANS = [
+    dict(method="path", spp=64, width=512, height=512, tile_size=8),
+    dict(method="bdpt", spp=64, width=256, height=256, tile_size=8),
+    dict(method="radiosity", spp=4, width=256, height=256, tile_size=8),
+    dict(method="photon", spp=128, width=128, height=128, tile_size=8,
+         options={"iterations_per_unit": 1}),
+    dict(method="photon", spp=16, width=64, height=64, tile_size=8,
+         options={"mode": "photonmap", "photons": 1 << 24}),
+]
+
+
+def test10_planned_units_counts_a_plan_without_building_its_units(monkeypatch):
+    """Admission counts a job's units in the request; building a plan of a
+    few hundred thousand units there held the GIL for seconds (a photon job
+    of one iteration per gather unit: millions). Every unit the planners
+    would make goes through these classes: none is made."""
+    import dataclasses
+    import importlib
+
+    from renderer.integrators import photon, radiosity
+    from service.admission import job_plan, planned_units
+
+    specs = [(RenderSpec(**body).validate(1 << 40), progressive) for body in _LARGE_PLANS
+             for progressive in (False, True)]
+    exact = [len(job_plan(spec, progressive)) for spec, progressive in specs]
+    built = []
+
+    def counted(cls):
+        def make(*args, **kwargs):
+            built.append(1)
+            return cls(*args, **kwargs)
+        return make
+    for module in (importlib.import_module("renderer.plan"), photon, radiosity):
+        monkeypatch.setattr(module, "Unit", counted(module.Unit))
+    monkeypatch.setattr(radiosity, "replace", counted(dataclasses.replace))
+    assert [planned_units(spec, progressive) for spec, progressive in specs] == exact
+    assert not built, f"{len(built)} units built to count {sum(exact)}"

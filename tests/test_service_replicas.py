@@ -1,16 +1,19 @@
 """Several service replicas on one ledger: exactly one schedules.
 
-The lease on the test run's own PostgreSQL (service.leader), the lock file on
-SQLite, events relayed between replicas, and the leader SIGKILLed mid-job with
-real `rayfarm serve` processes. The failover time (the kill -> the standby's
-first tick) is printed (`pytest -s`) for the record.
+The lease on the test run's own PostgreSQL (service.leader) and on SQLite
+(whatever the services' data dirs), events relayed between replicas, and the
+leader SIGKILLed mid-job with real `rayfarm serve` processes. The failover
+time (the kill -> the standby's first tick) is printed (`pytest -s`) for the
+record.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from collections import Counter
 import signal
+import sys
 import threading
 import time
 
@@ -19,12 +22,12 @@ import pytest
 from sqlalchemy import update
 
 from service.db import open_ledger
-from service.leader import FileLockLeadership, LeadershipLost, LeaseLeadership
+from service.leader import LeadershipLost, LeaseLeadership, open_leadership
 from service.models import SchedulerLease, User, utcnow
 from service.settings import Settings
 
 from conftest import (ADMIN_HEADERS, TINY, Child, assert_bit_identical, channels_of,
-                      embedded_env, start_serve, wait_for)
+                      embedded_env, free_port, rayfarm_command, start_serve, wait_for)
 
 
 @pytest.fixture
@@ -93,21 +96,105 @@ def _utc(seconds: float):
     return datetime.fromtimestamp(seconds, timezone.utc)
 
 
-def test03_the_lock_file_has_one_holder_and_names_it(tmp_path):
-    path = tmp_path / "scheduler.lock"
-    a, b = FileLockLeadership(path, 0.05, "a"), FileLockLeadership(path, 0.05, "b")
-    a.start()
-    b.start()
+def _sqlite_leaderships(tmp_path, *data_dirs: str, lease: float = 60.0):
+    """One SQLite ledger, and the leadership of a service for each of `data_dirs`
+    (as `rayfarm serve` opens it); the engines are disposed of by the caller."""
+    ledger = f"sqlite:///{tmp_path / 'ledger.sqlite3'}"
+    out = []
+    for name in data_dirs:
+        settings = Settings(data_dir=tmp_path / name, database_url=ledger,
+                            leader_lease_seconds=lease)
+        engine, sessions = open_ledger(settings)
+        out.append((open_leadership(settings, engine), engine, sessions))
+    return out
+
+
+def test03_one_scheduler_per_sqlite_ledger_whatever_the_data_dirs(tmp_path):
+    (a, ea, _), (b, eb, _) = _sqlite_leaderships(tmp_path, "data-a", "data-b")
     try:
-        assert a.leading() and not b.leading()
-        assert b.status() == {"role": "standby", "replica": "b", "lease": "file-lock",
-                              "holder": "a"}
-        a.stop()
-        wait_for(b.leading, 5, "the standby to take the lock")
-        assert a.status()["holder"] == "b"
+        a._attempt()
+        b._attempt()
+        assert a.leading() and not b.leading(), "two services on one ledger both lead"
+        assert b.status()["holder"] == a.identity and b.status()["epoch"] == 1
+        a.stop()  # a clean stop releases the lease at once
+        b._attempt()
+        assert b.leading() and b.epoch == 2
     finally:
         a.stop()
         b.stop()
+        ea.dispose()
+        eb.dispose()
+
+
+def test03b_on_sqlite_a_fenced_commit_after_a_takeover_rolls_back(tmp_path):
+    (a, ea, sessions), (b, eb, _) = _sqlite_leaderships(tmp_path, "data", "data")
+    try:
+        a.guard(sessions)
+        a._attempt()
+        assert a.leading()
+        with sessions.begin() as session:
+            session.add(User(name="probe", role="artist", share=1.0, created=utcnow()))
+        with a.fenced(), pytest.raises(LeadershipLost):
+            with sessions.begin() as session:
+                session.get(User, "probe").share = 2.0  # written by a leader about to be deposed
+                # Meanwhile the lease expired (a stalled a while still holding
+                # its lock file) and b took it.
+                with eb.begin() as conn:
+                    conn.execute(update(SchedulerLease.__table__).values(expires_at=_utc(0)))
+                b._attempt()
+                assert b.leading()
+        with sessions() as session:
+            assert session.get(User, "probe").share == 1.0, "the fenced write stood"
+        a._attempt()  # the deposed leader's lock file proves nothing: it stays a standby
+        assert not a.leading() and b.leading()
+        with a.fenced(), sessions.begin() as session:  # while a leads again, it commits
+            b.stop()
+            a._attempt()
+            session.get(User, "probe").share = 4.0
+        with sessions() as session:
+            assert session.get(User, "probe").share == 4.0
+    finally:
+        a.stop()
+        b.stop()
+        ea.dispose()
+        eb.dispose()
+
+
+_LEADER = """
+import sys, time
+from service.db import open_ledger
+from service.leader import open_leadership
+from service.settings import Settings
+settings = Settings(data_dir=sys.argv[1], database_url=sys.argv[2], leader_lease_seconds=60)
+leadership = open_leadership(settings, open_ledger(settings)[0])
+leadership._attempt()
+print("leading" if leadership.leading() else "standby", flush=True)
+time.sleep(600)
+"""
+
+
+def test03c_on_sqlite_a_killed_leader_is_replaced_at_once_not_after_its_lease(tmp_path):
+    """The lease lasts a minute; the leader's lock file beside the ledger,
+    dropped by the kernel when the process dies, lets a standby take over at once."""
+    [(b, eb, _)] = _sqlite_leaderships(tmp_path, "data-b")
+    log = tmp_path / "leader.log"
+    leader = Child([sys.executable, "-c", _LEADER, str(tmp_path / "data-a"),
+                    f"sqlite:///{tmp_path / 'ledger.sqlite3'}"], dict(os.environ), log)
+    try:
+        wait_for(lambda: "leading" in leader.log() or leader.proc.poll() is not None, 60,
+                 "the other process to lead")
+        assert "leading" in leader.log(), leader.log()
+        b._attempt()
+        assert not b.leading(), "a standby led beside a live leader"
+        leader.kill_group(signal.SIGKILL)
+        leader.proc.wait(10)
+        b._attempt()
+        assert b.leading() and b.epoch == 2, b.status()
+        assert b.status()["expires_in"] > 50
+    finally:
+        leader.stop()
+        b.stop()
+        eb.dispose()
 
 
 # -- real `rayfarm serve` replicas ------------------------------------------------------
@@ -193,6 +280,38 @@ def test04_two_services_on_one_sqlite_file_never_both_schedule(spawn_replica):
     first.kill_group(signal.SIGKILL)  # the kernel drops its lock: the standby takes over
     wait_for(lambda: health(b)["leadership"]["role"] == "leader", 10, "the standby to lead")
     wait_for(lambda: health(b)["scheduler_ticks"] > 0, 10, "the new leader to tick")
+
+
+def test04b_a_service_with_another_data_dir_on_the_same_sqlite_ledger_refuses_to_start(
+        tmp_path):
+    """Two `rayfarm serve` named one SQLite ledger by RAYFARM_DATABASE_URL and
+    given different data dirs: the second refuses to start, naming both data
+    dirs, and every unit of the first one's jobs runs once."""
+    ledger = f"sqlite:///{tmp_path / 'ledger.sqlite3'}"
+    mine, other = tmp_path / "data-a", tmp_path / "data-b"
+    first, a = start_serve(embedded_env(mine, RAYFARM_DATABASE_URL=ledger,
+                                        RAYFARM_LOCAL_WORKERS="1"), tmp_path / "a.log")
+    second = None
+    try:
+        jobs = [api(a, "POST", "/jobs", json=dict(TINY, spp=64, seed=seed)) for seed in (1, 2, 3)]
+        second = Child([*rayfarm_command(), "serve", "--host", "127.0.0.1", "--port",
+                        str(free_port())],
+                       embedded_env(other, RAYFARM_DATABASE_URL=ledger), tmp_path / "b.log")
+        wait_for(lambda: second.proc.poll() is not None, 120,
+                 "the service with another data dir to refuse to start")
+        assert second.proc.returncode == 2, second.log()
+        assert str(mine.resolve()) in second.log() and str(other.resolve()) in second.log()
+        for job in jobs:
+            wait_for(lambda: api(a, "GET", f"/jobs/{job['id']}")["status"] in ("done", "failed"),
+                     120, "the job to end")
+            assert api(a, "GET", f"/jobs/{job['id']}")["status"] == "done"
+            units = api(a, "GET", f"/jobs/{job['id']}/units")
+            assert all(u["tasks"] == 1 for u in units), [u["tasks"] for u in units]
+        assert health(a)["leadership"]["role"] == "leader"
+    finally:
+        if second is not None:
+            second.stop()
+        first.stop()
 
 
 def _replica_pair(spawn_replica, postgres_url: str, **env: str):

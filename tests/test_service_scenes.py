@@ -18,8 +18,8 @@ from PIL import Image
 
 from renderer import builtin_scene_names, resolve_document, scene_text
 
-from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, get_json, poll_job,
-                      submit, wait_for)
+from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, embedded_env,
+                      get_json, poll_job, start_serve, submit, wait_for)
 
 WALL = {"type": "rectangle", "material": "white"}
 ROOM = {
@@ -403,6 +403,85 @@ def test11_thumbnail_is_404_until_rendered_and_rendered_once(tmp_path):
         assert thumbnails.make([info.id]) == 0 and thumbnails.rendered == 1  # once per hash
     finally:
         engine.dispose()
+
+
+# -- the request path stays light -----------------------------------------------------------
+
+def test11b_an_uploads_mesh_files_are_parsed_outside_the_serving_process(local_client,
+                                                                        monkeypatch):
+    # Parsing a large .obj holds the GIL for tens of seconds: in the service's
+    # own process it stalled every request. A child process parses it, and a
+    # reader patched here (in the serving process) is never called.
+    from renderer import scene_format
+
+    parsed = []
+    original = scene_format._read_mesh_file
+    monkeypatch.setattr(scene_format, "_read_mesh_file",
+                        lambda path, loc: parsed.append(path) or original(path, loc))
+    response = upload(local_client, scene_bytes(room("test11b-room")))
+    assert response.status_code == 201, response.text
+    assert response.json()["triangles"] == TRIANGLES
+    assert parsed == [], "the upload's mesh was parsed in the serving process"
+    # What the child refuses still names where, as test05 shows for every refusal.
+    bad = CUBE_OBJ.replace("v 1 -1 -1", "v 1 x -1").encode()
+    assert_422(upload(local_client, scene_bytes(room("test11b-bad")), (("cube.obj", bad),)),
+               ["body", "scene", f"shapes[{MESH}].file"], "cannot parse line 3 of cube.obj")
+
+
+def test11c_a_job_on_an_upload_is_submitted_without_parsing_the_stored_scene(local_client,
+                                                                            local_app,
+                                                                            monkeypatch):
+    # The stored text of a 59 MiB mesh takes seconds to parse; a job needs
+    # only the record's camera and hash, unless its method checks the scene
+    # (radiosity counts its patches).
+    scene = upload_created(local_client, room("test11c-room"))
+    store = local_app.state.farm.store
+    read = []
+    original = store.scene_text
+    monkeypatch.setattr(store, "scene_text", lambda key: read.append(key) or original(key))
+    job = submit(local_client, dict(TINY, scene=scene["id"]))
+    assert job["scene_hash"] == scene["id"]
+    assert read == [], "the request parsed the uploaded scene's stored text"
+    submit(local_client, dict(TINY, scene=scene["id"], method="radiosity", width=16, height=16))
+    assert read == [scene["id"]]
+    done = poll_job(get_json(local_client), job["id"])
+    assert done["status"] == "done", done
+
+
+def test11d_uploads_beyond_the_bound_at_once_are_429_with_retry_after(tmp_path):
+    child, base = start_serve(embedded_env(tmp_path / "data", RAYFARM_LOCAL_WORKERS="1",
+                                           RAYFARM_MAX_CONCURRENT_UPLOADS="1"),
+                              tmp_path / "serve.log")
+    try:
+        scene = json.dumps(room("test11d")).encode()
+        head = (b'--b\r\nContent-Disposition: form-data; name="scene"; filename="room.json"'
+                b"\r\n\r\n")
+        tail = (b'\r\n--b\r\nContent-Disposition: form-data; name="files"; '
+                b'filename="cube.obj"\r\n\r\n' + CUBE_OBJ.encode() + b"\r\n--b--\r\n")
+        host, port = base.removeprefix("http://").split(":")
+        with socket.create_connection((host, int(port)), timeout=30) as slow:
+            # An upload that holds the one slot: its body arrives slowly.
+            slow.sendall(b"POST /scenes HTTP/1.1\r\nHost: farm\r\n"
+                         b"Authorization: " + ADMIN_HEADERS["Authorization"].encode() +
+                         b"\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+                         b"Content-Length: %d\r\n\r\n" % (len(head) + len(scene) + len(tail))
+                         + head + scene[:10])
+            with httpx.Client(base_url=base, timeout=60, headers=ADMIN_HEADERS) as client:
+                files = [("scene", ("room.json", json.dumps(room("test11d-2")).encode())),
+                         ("files", ("cube.obj", CUBE_OBJ.encode()))]
+                busy = wait_for(lambda: (lambda r: r if r.status_code == 429 else None)(
+                    client.post("/scenes", files=files)), 30, "an upload beyond the bound")
+                assert int(busy.headers["retry-after"]) >= 1
+                assert "RAYFARM_MAX_CONCURRENT_UPLOADS" in busy.json()["detail"]
+                slow.sendall(scene[10:] + tail)
+                answer = b""
+                while b"\r\n\r\n" not in answer:
+                    answer += slow.recv(4096)
+                assert answer.startswith(b"HTTP/1.1 201"), answer
+                # The slot is free again.
+                assert client.post("/scenes", files=files).status_code == 201
+    finally:
+        child.stop()
 
 
 # -- size limits, on a real server ----------------------------------------------------------

@@ -4,7 +4,9 @@
     rayfarm:worker:<name>            hash: host, pid, concurrency, started, last_seen,
                                      state (online | offline), units_done, samples,
                                      rays, seconds, reserved (JSON list of the task
-                                     ids this worker holds: prefetched or running)
+                                     ids this worker holds: prefetched or running),
+                                     abandoned (JSON list of the task ids a previous
+                                     process under this name held when it died)
     rayfarm:worker:<name>:running    hash: render process id -> {"job_id", "index", "since",
                                      "task_id"}
     rayfarm:workers:disabled         set of the names an admin disabled (no expiry)
@@ -16,6 +18,15 @@ so a long unit never delays a beat, and a killed worker simply stops beating
 (the service shows it as lost). Its render processes record the unit they
 run and add to the counters when it is done. The keys expire a day after the
 last beat; the service reads them (`read_workers`), it never writes them.
+
+A worker started again under its old name (`rayfarm worker --name`) after its
+previous process died (killed, not stopped: a clean stop leaves the record
+"offline" with nothing held) cannot be rendering what that process held. It
+lists those tasks, the units its render processes ran and the messages it
+had prefetched, as `abandoned` in its new record, and the service enqueues
+them again at once, as it does a lost worker's, instead of waiting for their
+lease: the new process beats under the same name, so the worker never looks
+lost.
 """
 
 from __future__ import annotations
@@ -38,6 +49,16 @@ __all__ = ["Presence", "unit_started", "unit_finished", "forget_dead_processes",
 log = logging.getLogger(__name__)
 
 PRESENCE_TTL = 24 * 3600
+MAX_ABANDONED = 4096  # carried over from incarnation to incarnation of a crash loop
+
+
+def _task_ids(raw) -> list[str]:
+    """A JSON list of task ids from a presence field ([] if unreadable)."""
+    try:
+        value = json.loads(raw or "[]")
+    except (ValueError, TypeError):
+        return []
+    return [str(t) for t in value] if isinstance(value, list) else []
 
 
 def redis_now(client: redis.Redis) -> float:
@@ -135,19 +156,40 @@ class Presence:
             except Exception:  # a control message that failed: try again next beat
                 log.exception("presence: could not follow the disabled flag")
 
+    def _abandoned(self) -> list[str]:
+        """The task ids the previous process under this name held, if it died
+        (see the module doc), with those its own predecessors had abandoned."""
+        old = {k.decode(): v.decode() for k, v in
+               self.client.hgetall(worker_key(self.name)).items()}
+        if not old or old.get("state") == "offline":
+            return []
+        tasks = set(_task_ids(old.get("reserved"))) | set(_task_ids(old.get("abandoned")))
+        for raw in self.client.hvals(worker_running_key(self.name)):
+            try:
+                task_id = json.loads(raw).get("task_id")
+            except (ValueError, AttributeError):
+                continue
+            if task_id:
+                tasks.add(str(task_id))
+        return sorted(tasks)[:MAX_ABANDONED]
+
     def start(self) -> None:
         now = redis_now(self.client)
+        abandoned = self._abandoned()
+        if abandoned:
+            log.warning("worker %s was started again after its previous process died: %d "
+                        "units it held go back to the queue", self.name, len(abandoned))
         self.client.delete(worker_key(self.name), worker_running_key(self.name))
         self._beat(state="online", host=socket.gethostname(), pid=os.getpid(),
                    concurrency=self.concurrency, started=now, units_done=0, samples=0, rays=0,
-                   seconds=0.0)
+                   seconds=0.0, abandoned=json.dumps(abandoned))
         self._follow_disabled()
         self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
         try:
-            self._beat(state="offline", reserved="[]")
+            self._beat(state="offline", reserved="[]", abandoned="[]")
             self.client.delete(worker_running_key(self.name))
         except redis.RedisError as exc:
             log.warning("could not mark worker %s offline: %s", self.name, exc)
@@ -209,9 +251,9 @@ def forget_dead_processes(client: redis.Redis, name: str, payload: dict | None) 
 
 def read_workers(client: redis.Redis) -> tuple[float, list[dict]]:
     """(Redis's clock now, every known worker as a dict of its hash fields
-    plus `name`, `disabled` (a bool), `reserved` (a list of task ids) and
-    `running`: a list of {"job_id", "index", "since", "task_id"}). Workers whose
-    keys expired are forgotten."""
+    plus `name`, `disabled` (a bool), `reserved` and `abandoned` (lists of task
+    ids) and `running`: a list of {"job_id", "index", "since", "task_id"}).
+    Workers whose keys expired are forgotten."""
     names = sorted(n.decode() for n in client.smembers(WORKERS))
     disabled = {n.decode() for n in client.smembers(DISABLED_WORKERS)}
     pipe = client.pipeline()
@@ -228,10 +270,8 @@ def read_workers(client: redis.Redis) -> tuple[float, list[dict]]:
         record = {k.decode(): v.decode() for k, v in fields.items()}
         record["name"] = name
         record["disabled"] = name in disabled
-        try:
-            record["reserved"] = [str(t) for t in json.loads(record.get("reserved") or "[]")]
-        except (ValueError, TypeError):  # a worker of an older version
-            record["reserved"] = []
+        record["reserved"] = _task_ids(record.get("reserved"))
+        record["abandoned"] = _task_ids(record.get("abandoned"))  # [] from an older worker
         record["running"] = sorted((json.loads(v) for v in running.values()),
                                    key=lambda r: (r["job_id"], r["index"]))
         out.append(record)

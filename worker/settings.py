@@ -80,9 +80,10 @@ class Settings(BaseSettings):
                                description="processes of the embedded pool")
     poll_interval: float = Field(0.2, gt=0, description="seconds between scheduler ticks")
     leader_lease_seconds: float = Field(
-        5.0, gt=0, description="the scheduler lease of service replicas on PostgreSQL: a "
-                               "standby takes over this long after the leader stopped "
-                               "renewing it; the leader stops scheduling after half of it")
+        5.0, gt=0, description="the scheduler lease of the service replicas on one ledger: "
+                               "a standby takes over this long after the leader stopped "
+                               "renewing it (on SQLite at once when the leader's process "
+                               "died); the leader stops scheduling after half of it")
     worker_heartbeat_seconds: float = Field(
         2.0, gt=0, description="how often a Celery worker reports that it is alive; a "
                                "rendering unit's own heartbeat lives three times this long")
@@ -92,6 +93,9 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0,
                                   description="largest request body of POST /scenes (413 above)")
     max_upload_files: int = Field(64, ge=0, description="most mesh files in one POST /scenes")
+    max_concurrent_uploads: int = Field(
+        4, ge=1, description="POST /scenes received and checked at once by one service (each "
+                             "checks its files in a child process); 429 with Retry-After above")
     max_job_bytes: int = Field(16 * 1024 * 1024, gt=0,
                                description="largest request body of POST /jobs (413 above)")
     cache_dir: Path | None = Field(

@@ -109,6 +109,8 @@ class WorkerInfo:
     disabled: bool = False  # drained by an admin: finishes what it runs, takes nothing new
     # Task ids whose messages the worker holds (prefetched or running), when known.
     reserved: tuple[str, ...] = ()
+    # Task ids its previous process under the same name held when it died.
+    abandoned: tuple[str, ...] = ()
 
 
 class Executor(ABC):

@@ -10,6 +10,9 @@ new task id (its attempt count unchanged), when
   among those its presence record says it runs: at once, not after a lease
   (a SIGKILL leaves the message unacknowledged for Redis's visibility
   timeout, an hour by default; we don't wait for that either);
+- the worker was started again under its name after its previous process
+  died holding the unit's latest task (its new record lists the task as
+  `abandoned`): at once, although the name never looked lost;
 - it started but no heartbeat of it has been seen for a lease: the unit's
   heartbeat key lives a few heartbeat intervals and its render process keeps
   refreshing it, so a long unit that still renders is never re-run by lease;
@@ -113,9 +116,9 @@ class CeleryExecutor(Executor):
         self.heartbeat_ttl = min(3 * settings.worker_heartbeat_seconds, self.lease_seconds)
         self.lost_seconds = settings.worker_lost_seconds
         self._beat_seen: dict[str, datetime] = {}  # task id -> when its unit's heartbeat was last seen
-        # Tasks whose worker is lost by presence -> that worker, and the tasks
-        # live workers hold (read at most once a second).
-        self._lost_tasks: dict[str, str] = {}
+        # Tasks whose worker is lost by presence or restarted -> (that worker,
+        # why), and the tasks live workers hold (read at most once a second).
+        self._lost_tasks: dict[str, tuple[str, str]] = {}
         self._held_tasks: set[str] = set()
         self._lost_read = -1e9
         self._presence: list[WorkerInfo] = []  # as of `_lost_read`
@@ -261,11 +264,12 @@ class CeleryExecutor(Executor):
             out.append(obs)
         return out
 
-    def _read_presence(self) -> dict[str, str]:
+    def _read_presence(self) -> dict[str, tuple[str, str]]:
         """Read the workers' presence (at most once a second) and return task id
-        -> worker for the units lost workers were rendering or held; the same
-        read refreshes `_presence`, the tasks live workers hold (`_held_tasks`)
-        and the directed tasks of stopped workers (`_stranded`)."""
+        -> (worker, why) for the units lost workers were rendering or held, and
+        those the previous process of a restarted worker held; the same read
+        refreshes `_presence`, the tasks live workers hold (`_held_tasks`) and
+        the directed tasks of stopped workers (`_stranded`)."""
         now = time.monotonic()
         if now - self._lost_read >= 1.0:
             lost, held = {}, set()
@@ -273,9 +277,14 @@ class CeleryExecutor(Executor):
             for w in self._presence:
                 tasks = {r.task_id for r in w.running if r.task_id} | set(w.reserved)
                 if w.state == "lost":
-                    lost.update(dict.fromkeys(tasks, w.name))
+                    why = (f"worker {w.name} lost (no presence heartbeat for "
+                           f"{self.lost_seconds:g} s)")
+                    lost.update(dict.fromkeys(tasks | set(w.abandoned), (w.name, why)))
                 elif w.state in ("busy", "idle"):
                     held |= tasks
+                    # Its new process holds none of them (unless taken again).
+                    why = f"worker {w.name} was restarted; its previous process died holding it"
+                    lost.update(dict.fromkeys(set(w.abandoned) - tasks, (w.name, why)))
             self._lost_tasks, self._held_tasks = lost, held
             # A unit in the own queue of a worker that is lost, stopped or
             # forgotten waits for nobody: it is enqueued again at once.
@@ -288,7 +297,7 @@ class CeleryExecutor(Executor):
         return self._lost_tasks
 
     def _decide(self, flight: Flight, metas: list[dict | None], beat: bytes | None,
-                now: datetime, lost_tasks: dict[str, str]) -> Observation | None:
+                now: datetime, lost_tasks: dict[str, tuple[str, str]]) -> Observation | None:
         for task_id, meta in zip(flight.task_ids, metas):
             if meta and meta.get("status") == "SUCCESS":
                 result = meta.get("result") or {}
@@ -321,9 +330,8 @@ class CeleryExecutor(Executor):
             return Observation("failed", error=_error_text(latest), worker=latest.get("worker"),
                                log=self._failure_log(flight.task_ids[-1], latest))
         if latest_id in lost_tasks:
-            return Observation("lost", cause="worker", worker=lost_tasks[latest_id],
-                               error=f"worker {lost_tasks[latest_id]} lost (no presence "
-                                     f"heartbeat for {self.lost_seconds:g} s)")
+            worker, why = lost_tasks[latest_id]
+            return Observation("lost", cause="worker", worker=worker, error=why)
         if beat is None and status in (None, "PENDING") and latest_id in self._stranded:
             name = self._stranded[latest_id]
             return Observation("lost", cause="worker", worker=name,
@@ -468,8 +476,9 @@ class CeleryExecutor(Executor):
                                         u.get("task_id"))
                             for u in r["running"])
             reserved = tuple(r.get("reserved") or ())
+            abandoned = tuple(r.get("abandoned") or ())
             if r.get("state") == "offline":
-                state, running, reserved = "offline", (), ()
+                state, running, reserved, abandoned = "offline", (), (), ()
             elif now - last_seen > self.lost_seconds:
                 state = "lost"
             else:
@@ -481,7 +490,7 @@ class CeleryExecutor(Executor):
                 rays=int(r.get("rays", 0)), seconds=float(r.get("seconds", 0.0)),
                 started=_utc(r.get("started")), last_seen=_utc(last_seen),
                 silent_seconds=max(now - last_seen, 0.0), disabled=bool(r.get("disabled")),
-                reserved=reserved))
+                reserved=reserved, abandoned=abandoned))
         return out
 
     def set_worker_enabled(self, name: str, enabled: bool) -> None:

@@ -39,12 +39,13 @@ async def upload_scene(request: Request, farm: FarmDep, actor: ActorDep,
                        response: Response) -> ScenePublic:
     """Upload a scene file (multipart field `scene`) with the mesh files it
     names (field `files`, repeated). It is validated (422 naming the field, or
-    the location in the scene and the line in a file), stored by content hash
-    and its thumbnail rendered in the background. 201 with a Location; 200 with
-    the existing record for content uploaded before."""
+    the location in the scene and the line in a file) in a child process,
+    stored by content hash and its thumbnail rendered in the background. 201
+    with a Location; 200 with the existing record for content uploaded before;
+    429 with Retry-After while RAYFARM_MAX_CONCURRENT_UPLOADS uploads are under way."""
     settings = farm.settings
     admission.check_upload_rate(farm.limiter, settings, actor)  # 429 past uploads per hour
-    with farm.store.upload_dir() as directory:
+    with farm.uploads.hold(), farm.store.upload_dir() as directory:  # 429 if too many at once
         parts = await receive_parts(
             request, directory, fields={"scene": 1, "files": settings.max_upload_files},
             too_many={"files": f"at most {settings.max_upload_files} mesh files per upload "
