@@ -43,12 +43,15 @@ class _RedactTokens:
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from .api.security import allowed_hosts
     from .auth import admin_token_path, bootstrap_admin
     from .db import open_ledger
     from .main import create_app
     from .settings import Settings
 
     settings = Settings()
+    if not settings.allowed_hosts:  # the names of the address it listens on
+        settings.allowed_hosts = allowed_hosts([], bind=args.host)
     engine, sessions = open_ledger(settings)
     try:
         secret = bootstrap_admin(sessions, settings.data_dir, settings.admin_token)

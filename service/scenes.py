@@ -37,6 +37,7 @@ from .access import Principal, require_submit
 from .errors import Conflict, Forbidden, InvalidRequest, NotFound, ResultNotReady
 from .models import SceneClaim, SceneRecord
 from .store import Store
+from .text import lone_surrogate
 
 __all__ = ["SceneInfo", "UploadedFile", "MESH_SUFFIX", "add_upload", "resolve_upload",
            "list_scenes", "get_scene", "delete_scene", "uploaded_document", "thumbnail_file",
@@ -306,6 +307,10 @@ def _parse_scene_file(scene: UploadedFile) -> dict:
     if not isinstance(doc, dict):  # a string would name a built-in scene or a path
         raise SceneError(f"a scene document must be a JSON object, {name} holds "
                          f"{type(doc).__name__ if doc is not None else 'null'}")
+    found = lone_surrogate(doc)
+    if found is not None:
+        raise SceneError(f'not valid Unicode text in {name}: "{found[1][:60]}" holds a lone '
+                         "surrogate (half of a UTF-16 pair)", found[0])
     return doc
 
 

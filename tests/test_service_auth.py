@@ -193,7 +193,9 @@ def test06_an_upload_is_shared_by_hash_but_seen_and_deleted_per_owner(local_clie
 
 def test07_cookie_login_needs_csrf_for_changes_and_refuses_other_origins(local_app, local_client):
     browser = TestClient(local_app, base_url="http://farm.test")
-    response = browser.get("/", params={"token": TEST_ADMIN_TOKEN}, follow_redirects=False)
+    typed = {"sec-fetch-site": "none"}  # the login URL, typed or clicked in a terminal
+    response = browser.get("/", params={"token": TEST_ADMIN_TOKEN}, headers=typed,
+                           follow_redirects=False)
     assert response.status_code == 303 and response.headers["location"] == "/"
     cookies = response.headers.get_list("set-cookie")
     session_cookie = next(c for c in cookies if c.startswith("rayfarm_session="))
@@ -213,7 +215,7 @@ def test07_cookie_login_needs_csrf_for_changes_and_refuses_other_origins(local_a
     assert browser.post(path, headers={"x-csrf-token": csrf,
                                        "origin": "http://farm.test"}).status_code == 200
     # A bad login link; logout ends the session.
-    bad = browser.get("/", params={"token": "rf_nope"}, follow_redirects=False)
+    bad = browser.get("/", params={"token": "rf_nope"}, headers=typed, follow_redirects=False)
     assert bad.status_code == 303 and bad.headers["location"].startswith("/#/login")
     assert browser.post("/auth/logout", headers={"x-csrf-token": csrf}).status_code == 204
     assert browser.get("/auth/me").status_code == 401

@@ -20,14 +20,15 @@ router = APIRouter(prefix="/experiments", tags=["experiments"])
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=ExperimentPublic,
-             responses=responses(403, 422, 429))
+             responses=responses(403, 422, 429, 507))
 def create_experiment(body: ExperimentCreate, session: SessionDep, farm: FarmDep,
                       actor: ActorDep, response: Response) -> ExperimentPublic:
     """Submit an experiment: every configuration at every spp level, `repeats`
     times with derived seeds, and a reference unless one is given, as jobs of
     the caller. When they are done, GET reports per configuration: bias and
     its test, variance, MSE, time, efficiency, the RMSE slope, "unbiased?" and
-    "consistent?" (renderer.lab)."""
+    "consistent?" (renderer.lab). 507 with Retry-After while the disk is full."""
+    farm.disk.check_room()
     experiment = experiments.create_experiment(session, farm.store, farm.settings, actor, body,
                                                utcnow())
     session.commit()

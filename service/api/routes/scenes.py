@@ -34,15 +34,17 @@ def _public(farm, info: scenes.SceneInfo) -> ScenePublic:
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=ScenePublic,
              openapi_extra=_UPLOAD_BODY,
              responses={200: {"model": ScenePublic, "description": "uploaded before: the same id"},
-                        **responses(403, 409, 413, 422, 429)})
+                        **responses(403, 409, 413, 422, 429, 507)})
 async def upload_scene(request: Request, farm: FarmDep, actor: ActorDep,
                        response: Response) -> ScenePublic:
     """Upload a scene file (multipart field `scene`) with the mesh files it
     names (field `files`, repeated). It is validated (422 naming the field, or
     the location in the scene and the line in a file), stored by content hash
     and its thumbnail rendered in the background. 201 with a Location; 200 with
-    the existing record for content uploaded before."""
+    the existing record for content uploaded before; 507 with Retry-After
+    while the disk is full (the upload is not read)."""
     settings = farm.settings
+    farm.disk.check_room()
     admission.check_upload_rate(farm.limiter, settings, actor)  # 429 past uploads per hour
     with farm.store.upload_dir() as directory:
         parts = await receive_parts(
