@@ -3,8 +3,8 @@ browser-safety rules that go with cookies.
 
     ActorDep      Annotated[Principal, Depends(current_actor)]
     PROTECTED     [Depends(current_actor)]: put on every router but the public ones
-    Authenticate  ASGI middleware: the caller of every protected route is known
-                  before a byte of its body is read (service.main installs it)
+    Authenticate  ASGI middleware: the caller of a request with a body is known
+                  before a byte of it is read (service.main installs it)
 
 A request authenticates with `Authorization: Bearer <token>` (scripts, the
 CLI, the Python client) or with the dashboard's session cookie. A cookie
@@ -18,10 +18,11 @@ site's request carries neither in the first place.
 
 FastAPI reads and parses a request's body before it solves any dependency, so
 `current_actor` alone would come after a stranger's 2 GiB were read. The
-`Authenticate` middleware runs it first for every route whose dependencies
-include it (the app's own routes say which): a caller without a valid token
-gets its 401 with the body unread and the connection closed. The dependency
-then finds the caller on the request.
+`Authenticate` middleware runs it first for every request that carries a
+body, but to the one route that takes a stranger's (POST /auth/login, whose
+body limit is small): a caller without a valid token gets its 401 with the
+body unread and the connection closed. The dependency then finds the caller
+on the request.
 
 Authentication only reads the ledger. A token's `last_used` is written on the
 side, at most once a minute, and a failed write (a full disk, a read-only
@@ -38,7 +39,6 @@ from typing import Annotated
 from fastapi import Depends, Request, Response
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
-from starlette.routing import Match
 
 from .. import auth
 from ..access import Principal
@@ -152,48 +152,31 @@ ActorDep = Annotated[Principal, Depends(current_actor)]
 PROTECTED = [Depends(current_actor)]
 
 
-def _needs_caller(route) -> bool:
-    """Does `route` depend on `current_actor` (itself, its router's or a sub-dependency)?"""
-    pending = [getattr(route, "dependant", None)]
-    while pending:
-        dependant = pending.pop()
-        if dependant is None:
-            continue
-        if dependant.call is current_actor:
-            return True
-        pending.extend(dependant.dependencies)
-    return False
+# The one route that takes a body from a caller without a token: logging in.
+STRANGERS_MAY_POST = frozenset({("POST", "/auth/login")})
 
 
 def _has_body(scope) -> bool:
     for name, value in scope.get("headers", ()):
-        if name == b"transfer-encoding" or (name == b"content-length" and value != b"0"):
+        if name == b"transfer-encoding" or (name == b"content-length" and value.strip() != b"0"):
             return True
     return False
 
 
 class Authenticate:
-    """Pure ASGI middleware: authenticates the request of every route that
-    needs a caller before the app reads its body (module doc). The routes are
-    the app's own: which of them need a caller is read from their
-    dependencies, once per route."""
+    """Pure ASGI middleware: a request that carries a body is authenticated
+    before the app reads a byte of it, unless its route takes a stranger's
+    body (`STRANGERS_MAY_POST`). A request without a body is authenticated
+    by its route's dependency, as before; so is every route that needs no
+    caller. A body for a route that does not exist needs a caller too: an
+    unknown path is no way around this."""
 
     def __init__(self, app):
         self.app = app
-        self._needs: dict[int, bool] = {}  # id(route) -> needs a caller
-
-    def _protected(self, scope) -> bool:
-        for route in scope["app"].router.routes:
-            match, _ = route.matches(scope)
-            if match is Match.FULL:
-                needs = self._needs.get(id(route))
-                if needs is None:
-                    needs = self._needs[id(route)] = _needs_caller(route)
-                return needs
-        return False
 
     async def __call__(self, scope, receive, send) -> None:
-        if scope["type"] != "http" or not self._protected(scope):
+        if (scope["type"] != "http" or not _has_body(scope)
+                or (scope["method"], scope["path"].rstrip("/")) in STRANGERS_MAY_POST):
             await self.app(scope, receive, send)
             return
         request = Request(scope)
@@ -201,8 +184,7 @@ class Authenticate:
             await authenticate(request, request.app.state.farm)
         except ServiceError as exc:
             response = error_response(exc)
-            if _has_body(scope):  # never read: the connection cannot carry another request
-                response.headers["connection"] = "close"
+            response.headers["connection"] = "close"  # the body stays unread
             await response(scope, receive, send)
             return
         await self.app(scope, receive, send)
