@@ -10,7 +10,10 @@ every event would cost a query per event per stream; instead one thread per
 service reads `auth.logins_mark` (the count of revoked tokens, the users'
 roles and flags: two small queries) every `interval` seconds while any stream
 is open, and when it moved calls `EventHub.logins_changed`: each stream then
-checks its own caller once (service.api.routes.events). It reads the ledger
+checks its own caller once (service.api.routes.events). A stream checks once
+when it starts too, and the first read after a time without streams counts
+as a change: a login that ended between a stream's authentication and the
+watch's reading is not missed. It reads the ledger
 itself, so a change made by another replica, or by `rayfarm tokens revoke` on
 the ledger, is seen the same way on SQLite and PostgreSQL.
 """
@@ -58,6 +61,7 @@ class RevocationWatch:
     def _run(self) -> None:
         while not self._stop.wait(self.interval):
             if not self.hub.subscribers:
+                self._mark = None  # unknown from here on: the next read wakes the streams
                 continue
             try:
                 self.poll()
@@ -65,10 +69,12 @@ class RevocationWatch:
                 log.warning("revocation watch: %s: %s", type(exc).__name__, exc)
 
     def poll(self) -> None:
-        """Read the mark; wake the streams if it moved since the last read."""
+        """Read the mark; wake the streams if it moved since the last read, or
+        if there was none (a stream opened while nothing was read may have
+        missed a change)."""
         with self.sessions() as session:
             mark = auth.logins_mark(session)
         self.polls += 1
-        if self._mark is not None and mark != self._mark:
+        if mark != self._mark:
             self.hub.logins_changed()
         self._mark = mark

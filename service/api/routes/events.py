@@ -62,7 +62,7 @@ class _Login:
 
     def __init__(self, farm: Farm, actor: Principal):
         self.farm, self.actor = farm, actor
-        self.seen = farm.events.logins
+        self.seen = farm.events.logins  # read before the first check (in the stream's start)
 
     async def ended(self, always: bool = False) -> bool:
         logins = self.farm.events.logins
@@ -85,6 +85,8 @@ async def _job_stream(farm: Farm, actor: Principal, sub: Subscription, job_id: s
     login = _Login(farm, actor)
     try:
         yield f"retry: {RETRY_MS}\n\n"
+        if await login.ended(always=True):  # it may have ended since it was authenticated
+            return
         while True:
             job, units = snapshot
             yield sse_frame("job", job)
@@ -139,6 +141,8 @@ async def _all_stream(farm: Farm, actor: Principal, sub: Subscription) -> AsyncI
     login = _Login(farm, actor)
     try:
         yield f"retry: {RETRY_MS}\n\n"
+        if await login.ended(always=True):  # it may have ended since it was authenticated
+            return
         while True:
             event = await sub.next(KEEPALIVE)
             if await login.ended(always=event is None):
