@@ -2,8 +2,9 @@
 
     disk = DiskWatch(settings.data_dir, settings.min_free_bytes)
     disk.watch_ledger(engine, sessions)   # hears the ledger's failed writes, and the next good one
-    disk.problem()                         # None, or why new work is refused now
-    disk.check_room()                      # InsufficientStorage (507, Retry-After) while so
+    disk.space_problem(), disk.ledger_problem()   # why there is no room now, or None
+    disk.check_room()                      # InsufficientStorage (507, Retry-After) while the
+                                           # data dir is short of space
 
 A full disk degrades the farm; it does not fail it. What is stored stays
 stored and readable, authentication only reads (service.api.auth), and new
@@ -11,11 +12,13 @@ work, which would need room (a job's units and films, an upload, an
 experiment's jobs), is refused with the reason and a Retry-After until there
 is room again. "No room" is either of:
 - the data dir's file system has less than `min_free_bytes` free (unit films,
-  results and uploads go there);
+  results and uploads go there): submissions are refused before they start;
 - the ledger failed a write for want of room (SQLite's SQLITE_FULL, which is
   also what its `max_page_count` gives; PostgreSQL's disk_full) or because it
-  is read-only, within the last `LEDGER_MEMORY` seconds and with no
-  successful write since.
+  is read-only: that write's request is a 507 (service.api.errors), and
+  /healthz says so for `LEDGER_MEMORY` seconds unless a write succeeds
+  meanwhile. A submission still tries its write, so the farm takes work again
+  as soon as the ledger does.
 """
 
 from __future__ import annotations
@@ -108,17 +111,13 @@ class DiskWatch:
         return (f"the data dir's file system has {free} bytes free, less than min_free_bytes "
                 f"({self.min_free_bytes}, RAYFARM_MIN_FREE_BYTES)")
 
-    def problem(self) -> str | None:
-        """Why there is no room for new work now, or None."""
-        try:
-            space = self.space_problem()
-        except OSError as exc:
-            space = f"the data dir's free space is unknown ({exc.strerror or exc})"
-        return space or self.ledger_problem()
-
     def check_room(self) -> None:
-        """`InsufficientStorage` (507 with Retry-After) while there is no room."""
-        problem = self.problem()
+        """`InsufficientStorage` (507 with Retry-After) while the data dir's file
+        system is short of space (an unknown free space is not refused)."""
+        try:
+            problem = self.space_problem()
+        except OSError:
+            return
         if problem is not None:
             raise InsufficientStorage(f"no room for new work: {problem}; what is stored is "
                                       "kept and served, try again when there is room",

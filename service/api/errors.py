@@ -187,7 +187,8 @@ async def _ledger_error(request: Request, exc: OperationalError) -> JSONResponse
     if reason is None:
         raise exc
     return error_response(InsufficientStorage(
-        f"no room for new work: {reason}; nothing was changed, what is stored is kept",
+        f"no room: {reason}; nothing was changed, what is stored is kept and served, try "
+        "again when there is room",
         retry_after=RETRY_AFTER))
 
 

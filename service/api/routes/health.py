@@ -17,8 +17,8 @@ def healthz(farm: FarmDep) -> JSONResponse:
     runs (status "degraded" while the broker is unreachable, or while there is
     no room for new work: the data dir's file system has less than
     `min_free_bytes` free, or the ledger failed a write for want of room,
-    service.disk); 503 otherwise. `reasons` says, in words, why the status
-    is not "ok". `leadership` says whether this replica runs the scheduler
+    service.disk: `ledger_writes` "failing"); 503 otherwise. `reasons` says,
+    in words, why the status is not "ok". `leadership` says whether this replica runs the scheduler
     ("leader") or serves HTTP only ("standby") and who holds the scheduler
     lease (`service.leader`)."""
     report: dict = {"status": "ok", **farm.executor.health(),
@@ -49,8 +49,7 @@ def healthz(farm: FarmDep) -> JSONResponse:
         space = f"the data dir's free space is unknown ({exc.strerror or type(exc).__name__})"
         report["disk"] = f"error: {exc.strerror or type(exc).__name__}"
     ledger = farm.disk.ledger_problem()
-    if ledger is not None and report["disk"] == "ok":
-        report["disk"] = "full"  # the data dir has room, the ledger had none
+    report["ledger_writes"] = "ok" if ledger is None else "failing"
     for problem in (space, ledger):
         if problem:
             reasons.append(f"disk: {problem}; new jobs, scenes and experiments are refused "

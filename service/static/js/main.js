@@ -114,7 +114,9 @@ async function health() {
   el.className = `health ${report.status}`;
   const parts = [report.executor === "local" ? `local pool · ${report.workers} processes` : "celery"];
   if (report.broker && report.broker !== "ok") parts.push("broker unreachable");
-  if (report.disk && report.disk !== "ok") parts.push(`disk ${report.disk}: new work refused`);
+  if ((report.disk && report.disk !== "ok") || report.ledger_writes === "failing") {
+    parts.push("disk full: new work refused");
+  }
   // Which replica runs the scheduler (service.leader): this one, or another.
   const lead = report.leadership;
   if (lead && lead.role === "leader") parts.push(`scheduler here (${lead.replica})`);
