@@ -22,7 +22,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from conftest import (ADMIN_HEADERS, TEST_ADMIN_TOKEN, TINY, get_json, poll_job, rayfarm_command,
-                      submit)
+                      submit, wait_for)
 from service import auth
 from service.access import Principal
 from service.models import ApiToken, utcnow
@@ -303,14 +303,24 @@ def _chatter(hub, owner: str, job_id: str = "0123456789ab") -> threading.Event:
     return stop
 
 
-def _ends(lines_of, lines: list[str], timeout: float = 10.0) -> bool:
-    """Does the server end the stream (a response, or its iter_lines) within
-    `timeout` seconds (lines read go to `lines`)?"""
-    source = lines_of.iter_lines() if hasattr(lines_of, "iter_lines") else lines_of
-    reader = threading.Thread(target=lambda: lines.extend(source), daemon=True)
-    reader.start()
-    reader.join(timeout)  # iter_lines returns once the server ends the stream
-    return not reader.is_alive()
+class _Reader:
+    """Reads a stream (a response, or its iter_lines) in a thread, as a client
+    that keeps up with it does; the lines go to `lines`."""
+
+    def __init__(self, lines_of):
+        source = lines_of.iter_lines() if hasattr(lines_of, "iter_lines") else lines_of
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=lambda: self.lines.extend(source), daemon=True)
+        self._thread.start()
+
+    def ended(self, timeout: float = 10.0) -> bool:
+        """Did the server end the stream within `timeout` seconds?"""
+        self._thread.join(timeout)  # iter_lines returns once the server ends the stream
+        return not self._thread.is_alive()
+
+
+def _ends(lines_of, timeout: float = 10.0) -> bool:
+    return _Reader(lines_of).ended(timeout)
 
 
 def test11_a_revoked_token_ends_its_busy_event_streams_at_once(local_client, make_user,
@@ -321,17 +331,15 @@ def test11_a_revoked_token_ends_its_busy_event_streams_at_once(local_client, mak
     monkeypatch.setattr(events, "KEEPALIVE", 3600.0)
     kim = make_user("kim")
     token_id = kim.get("/auth/me").json()["token_id"]
-    lines: list[str] = []
     stop = _chatter(local_client.app.state.farm.events, "kim")
     try:
         with kim.stream("GET", "/events") as response:
             assert response.status_code == 200
-            busy = response.iter_lines()
-            assert next(busy).startswith("retry:")
-            while not next(busy).startswith("event: job"):  # the stream carries kim's events
-                pass
+            reader = _Reader(response)
+            wait_for(lambda: any(line.startswith("event: job") for line in reader.lines), 30,
+                     "the stream to carry kim's events")
             assert local_client.delete(f"/tokens/{token_id}").status_code == 204
-            assert _ends(busy, lines), "the stream of a revoked token goes on"
+            assert reader.ended(), "the stream of a revoked token goes on"
     finally:
         stop.set()
 
@@ -342,13 +350,12 @@ def test12_logging_out_ends_the_dashboards_event_streams(local_app, monkeypatch)
     monkeypatch.setattr(events, "KEEPALIVE", 3600.0)
     browser = TestClient(local_app, base_url="http://farm.test")
     assert browser.post("/auth/login", json={"token": TEST_ADMIN_TOKEN}).status_code == 200
-    lines: list[str] = []
     with browser.stream("GET", "/events") as response:
         assert response.status_code == 200
         assert browser.post("/auth/logout",
                             headers={"x-csrf-token": browser.cookies["rayfarm_csrf"]}
                             ).status_code == 204
-        assert _ends(response, lines), "the stream of a logged-out session goes on"
+        assert _ends(response), "the stream of a logged-out session goes on"
     # The API token it logged in with still works elsewhere.
     assert TestClient(local_app, headers=ADMIN_HEADERS).get("/auth/me").status_code == 200
 
@@ -367,12 +374,12 @@ def test13_a_user_disabled_on_the_ledger_loses_its_streams_and_no_one_else(local
     try:
         with lea.stream("GET", "/events") as busy, max_.stream("GET", "/events") as idle:
             assert busy.status_code == idle.status_code == 200
-            lines = busy.iter_lines()
-            while not next(lines).startswith("event: job"):  # the stream carries lea's events
-                pass
+            reader = _Reader(busy)
+            wait_for(lambda: any(line.startswith("event: job") for line in reader.lines), 30,
+                     "the stream to carry lea's events")
             with farm.sessions.begin() as session:
                 auth.set_user(session, "lea", disabled=True)
-            assert _ends(lines, []), "the stream of a disabled user goes on"
+            assert reader.ended(), "the stream of a disabled user goes on"
             # Max's stream is still there: it carries his next event.
             farm.events.publish("job", "fedcba987654", {"id": "fedcba987654"}, owner="max")
             seen = threading.Event()
@@ -386,7 +393,7 @@ def test13_a_user_disabled_on_the_ledger_loses_its_streams_and_no_one_else(local
             assert seen.wait(10), "another user's stream ended too"
             with farm.sessions.begin() as session:
                 auth.set_user(session, "max", role="viewer")
-            assert _ends(idle, []), "the stream of a user with another role goes on"
+            assert _ends(idle), "the stream of a user with another role goes on"
     finally:
         stop.set()
     assert lea.get("/auth/me").status_code == 401 and max_.get("/auth/me").json()["role"] == "viewer"
