@@ -56,9 +56,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = farm_metrics
     install_error_handlers(app)
-    # From the inside out: a protected route's caller is known before its body
-    # is read; every body is bounded (a declared oversized one is refused
-    # before anything else is done for it); the Host is one of ours.
+    # From the inside out: a body's sender is known before the body is read
+    # (but a login's); every body is bounded (a declared oversized one is
+    # refused before anything else is done for it); the Host is one of ours.
+    # docs/hardening.md has the whole front door.
     app.add_middleware(Authenticate)
     install_body_limits(app, settings)
     if settings.cors_origins:  # none by default: the dashboard is same-origin

@@ -14,8 +14,9 @@
 422 bodies have FastAPI's own validation shape, so clients parse one format;
 `msg` starts with the field's name (for scenes, the location inside it).
 FastAPI's own 422s echo the offending `input`: a NaN or infinity there (Python
-reads them in JSON bodies) is replaced by its repr, since no JSON writer may
-send it back. A JSON body that cannot even be decoded (not UTF-8, nested too
+reads them in JSON bodies) is replaced by its repr, and a lone surrogate by
+its escape, since no JSON writer may send either back (a body holding one is
+refused before validation anyway: service.api.deps.unicode_body). A JSON body that cannot even be decoded (not UTF-8, nested too
 deeply) is FastAPI's bare 400; here it is the 422 of any other invalid JSON.
 
 `responses(401, 404, ...)` documents these answers on a route (`responses=`

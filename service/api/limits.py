@@ -18,9 +18,9 @@ middleware sits in front of all that:
   the limit, the app's `receive` raises `BodyTooLarge` (and then reports a
   disconnect), and whatever the app answers instead is replaced by the 413.
 The 413 asks the server to close the connection (the rest of the body is
-never read). Who may send a body at all is decided before this (the
-`Authenticate` middleware of service.api.auth): a protected route's body is
-not read for a caller without a valid token.
+never read). Who may send a body at all is decided right after this (the
+`Authenticate` middleware of service.api.auth): a body is not read for a
+caller without a valid token, but a login's.
 """
 
 from __future__ import annotations
