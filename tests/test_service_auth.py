@@ -374,7 +374,7 @@ def test13_a_user_disabled_on_the_ledger_loses_its_streams_and_no_one_else(local
     try:
         with lea.stream("GET", "/events") as busy, max_.stream("GET", "/events") as idle:
             assert busy.status_code == idle.status_code == 200
-            reader = _Reader(busy)
+            reader, other = _Reader(busy), _Reader(idle)
             wait_for(lambda: any(line.startswith("event: job") for line in reader.lines), 30,
                      "the stream to carry lea's events")
             with farm.sessions.begin() as session:
@@ -382,18 +382,12 @@ def test13_a_user_disabled_on_the_ledger_loses_its_streams_and_no_one_else(local
             assert reader.ended(), "the stream of a disabled user goes on"
             # Max's stream is still there: it carries his next event.
             farm.events.publish("job", "fedcba987654", {"id": "fedcba987654"}, owner="max")
-            seen = threading.Event()
-
-            def read():
-                for line in idle.iter_lines():
-                    if "fedcba987654" in line:
-                        seen.set()
-                        return
-            threading.Thread(target=read, daemon=True).start()
-            assert seen.wait(10), "another user's stream ended too"
+            wait_for(lambda: any("fedcba987654" in line for line in other.lines), 10,
+                     "max's stream to carry his event")
+            assert not other.ended(0)
             with farm.sessions.begin() as session:
                 auth.set_user(session, "max", role="viewer")
-            assert _ends(idle), "the stream of a user with another role goes on"
+            assert other.ended(), "the stream of a user with another role goes on"
     finally:
         stop.set()
     assert lea.get("/auth/me").status_code == 401 and max_.get("/auth/me").json()["role"] == "viewer"

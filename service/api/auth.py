@@ -166,10 +166,10 @@ def _has_body(scope) -> bool:
 class Authenticate:
     """Pure ASGI middleware: a request that carries a body is authenticated
     before the app reads a byte of it, unless its route takes a stranger's
-    body (`STRANGERS_MAY_POST`). A request without a body is authenticated
-    by its route's dependency, as before; so is every route that needs no
-    caller. A body for a route that does not exist needs a caller too: an
-    unknown path is no way around this."""
+    body (`STRANGERS_MAY_POST`), whatever the route: a body sent to a public
+    page, or to a path that does not exist, needs a token too, so no path is
+    a way around this. A request without a body is authenticated by its
+    route's dependency, as before (or not at all, on a public route)."""
 
     def __init__(self, app):
         self.app = app
