@@ -24,7 +24,7 @@ import secrets
 from datetime import datetime, timedelta
 from pathlib import Path
 
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -34,7 +34,8 @@ from .models import ApiToken, User, utcnow
 
 __all__ = ["TOKEN_PREFIX", "hash_secret", "add_user", "list_users", "set_user", "create_token",
            "list_tokens", "revoke_token", "verify", "create_session", "bootstrap_admin",
-           "admin_token_path", "select_token_by_secret", "still_valid", "USER_NAME"]
+           "admin_token_path", "select_token_by_secret", "still_valid", "logins_mark",
+           "USER_NAME"]
 
 log = logging.getLogger(__name__)
 
@@ -200,15 +201,27 @@ def verify(session: Session, secret: str, now: datetime, via: str = "bearer",
 
 def still_valid(session: Session, actor: Principal, now: datetime) -> bool:
     """Is the token `actor` authenticated with (and its dashboard login, if it
-    came with one) still usable, and its user enabled? (A long-lived event
-    stream asks now and then: a logout or a revoked token ends it.)"""
+    came with one) still usable, and its user enabled with the same role? (A
+    long-lived event stream asks whenever `logins_mark` moved: a logout, a
+    revoked token, a disabled user or a new role ends it.)"""
     if actor.token_id is None:
         return True
     user = session.get(User, actor.user)
     return (_usable(session.get(ApiToken, actor.token_id), now) and user is not None
-            and not user.disabled
+            and not user.disabled and user.role == actor.role
             and (actor.session_id is None
                  or _usable(session.get(ApiToken, actor.session_id), now)))
+
+
+def logins_mark(session: Session) -> tuple:
+    """A value that changes whenever a login may have ended early: the number
+    of revoked tokens (a revocation is never undone; a logout revokes its
+    session) and every user's role and disabled flag. Two small reads."""
+    revoked = session.scalar(select(func.count()).select_from(ApiToken)
+                             .where(ApiToken.revoked.is_not(None)))
+    users = tuple(session.execute(select(User.name, User.role, User.disabled)
+                                  .order_by(User.name)).all())
+    return revoked, users
 
 
 def create_session(session: Session, secret: str, now: datetime,

@@ -43,6 +43,7 @@ class _RedactTokens:
 def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from .api.security import allowed_hosts
     from .auth import admin_token_path, bootstrap_admin
     from .db import open_ledger
     from .leader import DataDirConflict, open_leadership
@@ -51,6 +52,8 @@ def _serve(args: argparse.Namespace) -> int:
 
     settings = Settings()
     settings.keep_files_private()  # before the ledger, the store or a log file is made
+    if not settings.allowed_hosts:  # the names of the address it listens on
+        settings.allowed_hosts = allowed_hosts([], bind=args.host)
     engine, sessions = open_ledger(settings)
     try:
         try:  # checked again, with this service recorded, as it starts

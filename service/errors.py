@@ -10,7 +10,8 @@
      ├── Conflict                 the request contradicts the job's state
      │    └── IllegalTransition   a status change the state table forbids
      ├── InvalidRequest           a field of the request is invalid (names it)
-     └── TooLarge                 the request exceeds a size limit (names it)
+     ├── TooLarge                 the request exceeds a size limit (names it)
+     └── InsufficientStorage      no room for new work now (a full disk); `retry_after` seconds
 
 The renderer's `SceneError` and `SpecError` are invalid requests too. Domain
 code raises these; `service.api.errors` maps them to HTTP in one place.
@@ -19,7 +20,7 @@ code raises these; `service.api.errors` maps them to HTTP in one place.
 from __future__ import annotations
 
 __all__ = ["ServiceError", "Unauthorized", "Forbidden", "RateLimited", "NotFound", "ResultNotReady", "Conflict", "IllegalTransition",
-           "InvalidRequest", "TooLarge"]
+           "InvalidRequest", "TooLarge", "InsufficientStorage"]
 
 
 class ServiceError(Exception):
@@ -75,3 +76,12 @@ class InvalidRequest(ServiceError):
 
 class TooLarge(ServiceError):
     """The request is bigger than a limit allows (bytes, number of files)."""
+
+
+class InsufficientStorage(ServiceError):
+    """No room to store new work (the data dir's disk, the ledger); what is
+    stored is kept. The same request may succeed after `retry_after` seconds."""
+
+    def __init__(self, message: str, retry_after: float):
+        self.retry_after = retry_after
+        super().__init__(message)

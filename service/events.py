@@ -31,6 +31,12 @@ owner and receives only events that carry it (an event without an owner
 reaches only subscriptions without that filter: those of one job, opened
 after the caller was shown to see it). A subscriber that falls more than `QUEUE_LIMIT` events
 behind is told so (`overflowed`) and resynchronises from a snapshot.
+
+When a login may have ended (a token revoked, a logout, a user disabled or
+given another role: `service.revocations` sees the ledger change),
+`logins_changed` bumps the hub's `logins` count and wakes every idle
+subscriber: each stream checks its caller once, busy or idle, and ends if
+that login is over.
 """
 
 from __future__ import annotations
@@ -97,8 +103,13 @@ class Subscription:
                 return
             self.queue.put_nowait(event)
 
+    def _wake(self) -> None:  # runs in the subscriber's loop
+        if self.queue.empty():  # a busy stream looks at the hub between its events anyway
+            self.queue.put_nowait(None)
+
     async def next(self, timeout: float) -> Event | None:
-        """The next event, or None after `timeout` seconds of silence."""
+        """The next event, or None after `timeout` seconds of silence (or when
+        the hub wakes its idle subscribers: `EventHub.logins_changed`)."""
         try:
             return await asyncio.wait_for(self.queue.get(), timeout)
         except asyncio.TimeoutError:
@@ -118,6 +129,7 @@ class EventHub:
         # Carries events to every replica, whose relays `deliver` them (this
         # one's too); None: delivered here only.
         self.relay = None
+        self.logins = 0  # bumped when a login may have ended (module doc)
 
     def subscribe(self, job_id: str | None, loop: asyncio.AbstractEventLoop,
                   kinds: frozenset[str] | None = None, owner: str | None = None) -> Subscription:
@@ -172,6 +184,17 @@ class EventHub:
                 self.unsubscribe(sub)
         return events
 
+
+    def logins_changed(self) -> None:
+        """A login may have ended: bump `logins` and wake every idle stream."""
+        with self._lock:
+            self.logins += 1
+            targets = list(self._subscriptions)
+        for sub in targets:
+            try:
+                sub.loop.call_soon_threadsafe(sub._wake)
+            except RuntimeError:  # its loop is closed: the stream is gone
+                self.unsubscribe(sub)
 
     def resync_all(self) -> None:
         """Events may have been missed: every stream reloads from a snapshot."""

@@ -19,11 +19,13 @@ from sqlalchemy.orm import Session, sessionmaker
 from .admission import RateLimiter
 from .auth import bootstrap_admin
 from .db import open_ledger
+from .disk import DiskWatch
 from .event_relay import PostgresRelay
 from .events import EventHub, publish_commits
 from .executors import Executor, make_executor
 from .leader import Leadership, open_leadership
 from .ledger_watch import LedgerWatch
+from .revocations import RevocationWatch
 from .metrics import FarmMetrics
 from .scenes import UploadSlots, scene_hashes
 from .scheduler import Scheduler
@@ -53,6 +55,10 @@ class Farm:
     # this one stands by (SQLite only; service.ledger_watch).
     watch: LedgerWatch | None = None
     uploads: UploadSlots | None = None  # scene uploads at once (service.scenes)
+    # Room for new work: the data dir's free space, the ledger's writes (service.disk).
+    disk: DiskWatch | None = None
+    # Ends the event streams of logins that ended (service.revocations).
+    revocations: RevocationWatch | None = None
 
     @classmethod
     def open(cls, settings: Settings, metrics: FarmMetrics | None = None) -> "Farm":
@@ -80,6 +86,8 @@ class Farm:
             raise
         hub = EventHub()
         publish_commits(sessions, hub)
+        disk = DiskWatch(settings.data_dir, settings.min_free_bytes)
+        disk.watch_ledger(engine, sessions)
         relay = watch = None
         if engine.dialect.name == "postgresql":
             relay = PostgresRelay(engine, sessions, hub)  # attached by start()
@@ -90,7 +98,8 @@ class Farm:
                               leadership=leadership)
         return cls(settings, engine, sessions, store, executor, scheduler, hub,
                    Thumbnailer(store, lambda: scene_hashes(sessions, store)), RateLimiter(),
-                   leadership, relay, watch, UploadSlots(settings.max_concurrent_uploads))
+                   leadership, relay, watch, UploadSlots(settings.max_concurrent_uploads),
+                   disk=disk, revocations=RevocationWatch(sessions, hub))
 
     def start(self) -> None:
         """Relay (or watch for) events, try to lead, and run the scheduler's thread (which ticks
@@ -103,6 +112,7 @@ class Farm:
             log.warning("%s", self.standby_message())
         if self.watch is not None:
             self.watch.start()
+        self.revocations.start()
         self.scheduler.start()
         self.thumbnails.start()
 
@@ -117,6 +127,7 @@ class Farm:
         self.leadership.stop()  # after the scheduler: a standby may start at once
         if self.watch is not None:
             self.watch.stop()
+        self.revocations.stop()
         if self.relay is not None:
             self.events.relay = None
             self.relay.stop()

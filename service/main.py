@@ -8,16 +8,17 @@ from __future__ import annotations
 
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 from starlette.concurrency import run_in_threadpool
 
-from .api.auth import PROTECTED
+from .api.auth import PROTECTED, Authenticate
+from .api.deps import unicode_body
 from .api.errors import install_error_handlers, responses
 from .api.limits import install_body_limits
 from .api.routes import (auth, compare, dashboard, events, experiments, health, jobs, methods,
                          metrics, scenes, workers)
-from .api.security import SecurityHeaders
+from .api.security import AllowedHosts, SecurityHeaders, allowed_hosts, relative_slash_redirects
 from .farm import Farm
 from .metrics import HTTPMetrics, PrometheusMetrics
 from .settings import Settings
@@ -48,19 +49,25 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     # docs_url/redoc_url/openapi_url: served by the dashboard module, the docs
     # from local assets (no CDN), the schema behind authentication.
     app = FastAPI(title="rayfarm", version="0.1.0", lifespan=lifespan, docs_url=None,
-                  redoc_url=None, openapi_url=None,
+                  redoc_url=None, openapi_url=None, dependencies=[Depends(unicode_body)],
                   description="A render farm: submit render jobs, follow them, fetch the EXR. "
                               "Every route but /healthz and /metrics needs "
                               "`Authorization: Bearer <token>`.")
     app.state.settings = settings
     app.state.metrics = farm_metrics
     install_error_handlers(app)
+    # From the inside out: a body's sender is known before the body is read
+    # (but a login's); every body is bounded (a declared oversized one is
+    # refused before anything else is done for it); the Host is one of ours.
+    # docs/hardening.md has the whole front door.
+    app.add_middleware(Authenticate)
     install_body_limits(app, settings)
     if settings.cors_origins:  # none by default: the dashboard is same-origin
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "PATCH", "DELETE"],
                            allow_headers=["Authorization", "Content-Type"],
                            allow_credentials=False, max_age=600)
+    app.add_middleware(AllowedHosts, hosts=allowed_hosts(settings.allowed_hosts))
     app.add_middleware(SecurityHeaders)
     # Outermost: times every answer; a request answered before routing (a 404,
     # a 413 of a declared oversized body) is "unmatched".
@@ -73,4 +80,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (auth, health, metrics, dashboard):
         app.include_router(module.router)
     dashboard.mount_assets(app)
+    relative_slash_redirects(app.router)
     return app

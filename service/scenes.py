@@ -52,6 +52,7 @@ from .errors import (Conflict, Forbidden, InvalidRequest, NotFound, RateLimited,
                      TooLarge)
 from .models import SceneClaim, SceneRecord
 from .store import Store
+from .text import lone_surrogate
 
 __all__ = ["SceneInfo", "UploadedFile", "UploadSlots", "MESH_SUFFIX", "add_upload",
            "check_upload", "resolve_upload", "list_scenes", "get_scene", "delete_scene",
@@ -422,6 +423,10 @@ def _parse_scene_file(scene: UploadedFile) -> dict:
     if not isinstance(doc, dict):  # a string would name a built-in scene or a path
         raise SceneError(f"a scene document must be a JSON object, {name} holds "
                          f"{type(doc).__name__ if doc is not None else 'null'}")
+    found = lone_surrogate(doc)
+    if found is not None:
+        raise SceneError(f'not valid Unicode text in {name}: "{found[1][:60]}" holds a lone '
+                         "surrogate (half of a UTF-16 pair)", found[0])
     return doc
 
 

@@ -52,6 +52,9 @@ if "RAYFARM_CACHE_DIR" not in os.environ:
 TEST_ADMIN_TOKEN = "rf_test-admin-" + secrets.token_urlsafe(24)
 os.environ["RAYFARM_TOKEN"] = TEST_ADMIN_TOKEN  # what clients and the CLI send
 os.environ["RAYFARM_ADMIN_TOKEN"] = TEST_ADMIN_TOKEN  # what every Settings() here bootstraps
+# The names in-process clients use (TestClient's own, and a "browser" of test_service_auth);
+# a `rayfarm serve` child is reached as 127.0.0.1, which every service answers to.
+os.environ["RAYFARM_ALLOWED_HOSTS"] = "testserver,farm.test"
 ADMIN_HEADERS = {"Authorization": f"Bearer {TEST_ADMIN_TOKEN}"}
 TINY = {"scene": "cornell-box", "method": "path", "spp": 4, "depth": 3, "tile_size": 8,
         "seed": 7, "width": 32, "height": 32}

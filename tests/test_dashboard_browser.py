@@ -997,3 +997,45 @@ def test26_the_lab_and_compare_pages_fit_a_phone(browser, server):
         assert all(scroll <= 390 and inner == 390 for scroll, inner in widths.values()), widths
     finally:
         context.close()
+
+
+def test27_a_login_link_from_another_site_asks_before_it_logs_in(anon_page, other_origin):
+    """Login CSRF: a page of another origin links to the service's login URL with
+    someone else's token. Following it logs nobody in: the dashboard takes the
+    token out of the address bar and asks, naming whose link it is; only a
+    click on that page logs in. (The printed URL, opened from outside any
+    page, logs in at once: test09.)"""
+    page = anon_page
+    with api(page.base) as client:
+        client.post("/users", json={"name": "mallory", "role": "artist"})  # 201, or 409 on a rerun
+        secret = client.post("/tokens", json={"user": "mallory", "label": "a link"}).json()["token"]
+    other = page.context.new_page()  # the same browser; `page` must not visit another host
+
+    def follow_the_link():
+        other.goto(f"{other_origin}/")
+        other.evaluate("""url => { const a = document.createElement('a'); a.id = 'go';
+            a.href = url; a.textContent = 'free renders'; document.body.append(a); }""",
+                       f"{page.base}/?token={secret}")
+        other.click("#go")
+        other.wait_for_selector("#link-form")
+
+    follow_the_link()
+    assert other.url == f"{page.base}/#/login?link=1"  # the token left the address bar
+    assert other.inner_text("#link-user-name") == "mallory"
+    assert "another site" in other.inner_text("#link-why")
+    assert "rayfarm_session" not in cookies_of(page)  # nobody is logged in yet
+    shot(other, "27-login-link-asks")
+    # Cancel: still nobody.
+    other.click("#link-cancel")
+    other.wait_for_selector("#login-form")
+    assert "rayfarm_session" not in cookies_of(page)
+    # Following it again and saying yes logs in as the link's user, as it says.
+    follow_the_link()
+    other.wait_for_selector("#link-login:not([disabled])")
+    assert other.inner_text("#link-login") == "Log in as mallory"
+    other.click("#link-login")
+    other.wait_for_url(f"{page.base}/#/jobs")
+    other.wait_for_selector("#whoami-user")
+    assert other.inner_text("#whoami-user") == "mallory"
+    assert "rayfarm_session" in cookies_of(page)
+    other.close()

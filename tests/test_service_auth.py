@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import re
+import socket
 import sqlite3
 import stat
 import subprocess
@@ -21,7 +22,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from conftest import (ADMIN_HEADERS, TEST_ADMIN_TOKEN, TINY, get_json, poll_job, rayfarm_command,
-                      submit)
+                      submit, wait_for)
 from service import auth
 from service.access import Principal
 from service.models import ApiToken, User, utcnow
@@ -193,7 +194,9 @@ def test06_an_upload_is_shared_by_hash_but_seen_and_deleted_per_owner(local_clie
 
 def test07_cookie_login_needs_csrf_for_changes_and_refuses_other_origins(local_app, local_client):
     browser = TestClient(local_app, base_url="http://farm.test")
-    response = browser.get("/", params={"token": TEST_ADMIN_TOKEN}, follow_redirects=False)
+    typed = {"sec-fetch-site": "none"}  # the login URL, typed or clicked in a terminal
+    response = browser.get("/", params={"token": TEST_ADMIN_TOKEN}, headers=typed,
+                           follow_redirects=False)
     assert response.status_code == 303 and response.headers["location"] == "/"
     cookies = response.headers.get_list("set-cookie")
     session_cookie = next(c for c in cookies if c.startswith("rayfarm_session="))
@@ -213,7 +216,7 @@ def test07_cookie_login_needs_csrf_for_changes_and_refuses_other_origins(local_a
     assert browser.post(path, headers={"x-csrf-token": csrf,
                                        "origin": "http://farm.test"}).status_code == 200
     # A bad login link; logout ends the session.
-    bad = browser.get("/", params={"token": "rf_nope"}, follow_redirects=False)
+    bad = browser.get("/", params={"token": "rf_nope"}, headers=typed, follow_redirects=False)
     assert bad.status_code == 303 and bad.headers["location"].startswith("/#/login")
     assert browser.post("/auth/logout", headers={"x-csrf-token": csrf}).status_code == 204
     assert browser.get("/auth/me").status_code == 401
@@ -292,39 +295,70 @@ def test10_the_admin_cli_manages_users_and_tokens_on_the_ledger(tmp_path):
     assert last.returncode == 2 and "boss' is the last enabled admin" in last.stderr
 
 
-def test11_a_revoked_token_loses_its_event_streams(local_client, make_user, monkeypatch):
+def _chatter(hub, owner: str, job_id: str = "0123456789ab") -> threading.Event:
+    """A busy stream: an event of one of `owner`'s jobs every 20 ms, until set."""
+    stop = threading.Event()
+
+    def publish():
+        while not stop.wait(0.02):
+            hub.publish("job", job_id, {"id": job_id, "status": "running"}, owner=owner)
+    threading.Thread(target=publish, daemon=True).start()
+    return stop
+
+
+class _Reader:
+    """Reads a stream (a response, or its iter_lines) in a thread, as a client
+    that keeps up with it does; the lines go to `lines`."""
+
+    def __init__(self, lines_of):
+        source = lines_of.iter_lines() if hasattr(lines_of, "iter_lines") else lines_of
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=lambda: self.lines.extend(source), daemon=True)
+        self._thread.start()
+
+    def ended(self, timeout: float = 10.0) -> bool:
+        """Did the server end the stream within `timeout` seconds?"""
+        self._thread.join(timeout)  # iter_lines returns once the server ends the stream
+        return not self._thread.is_alive()
+
+
+def _ends(lines_of, timeout: float = 10.0) -> bool:
+    return _Reader(lines_of).ended(timeout)
+
+
+def test11_a_revoked_token_ends_its_busy_event_streams_at_once(local_client, make_user,
+                                                               monkeypatch):
     from service.api.routes import events
 
-    monkeypatch.setattr(events, "KEEPALIVE", 0.2)  # the token is checked at every keep-alive
+    # No keep-alive comes in the test's time: the revocation alone must end the stream.
+    monkeypatch.setattr(events, "KEEPALIVE", 3600.0)
     kim = make_user("kim")
     token_id = kim.get("/auth/me").json()["token_id"]
-    lines: list[str] = []
-    with kim.stream("GET", "/events") as response:
-        assert response.status_code == 200
-        assert local_client.delete(f"/tokens/{token_id}").status_code == 204
-        reader = threading.Thread(target=lambda: lines.extend(response.iter_lines()), daemon=True)
-        reader.start()
-        reader.join(10)  # iter_lines returns once the server ends the stream
-        assert not reader.is_alive(), "the stream of a revoked token goes on"
-    assert lines[0].startswith("retry:")
+    stop = _chatter(local_client.app.state.farm.events, "kim")
+    try:
+        with kim.stream("GET", "/events") as response:
+            assert response.status_code == 200
+            reader = _Reader(response)
+            wait_for(lambda: any(line.startswith("event: job") for line in reader.lines), 30,
+                     "the stream to carry kim's events")
+            assert local_client.delete(f"/tokens/{token_id}").status_code == 204
+            assert reader.ended(), "the stream of a revoked token goes on"
+    finally:
+        stop.set()
 
 
 def test12_logging_out_ends_the_dashboards_event_streams(local_app, monkeypatch):
     from service.api.routes import events
 
-    monkeypatch.setattr(events, "KEEPALIVE", 0.2)
+    monkeypatch.setattr(events, "KEEPALIVE", 3600.0)
     browser = TestClient(local_app, base_url="http://farm.test")
     assert browser.post("/auth/login", json={"token": TEST_ADMIN_TOKEN}).status_code == 200
-    lines: list[str] = []
     with browser.stream("GET", "/events") as response:
         assert response.status_code == 200
         assert browser.post("/auth/logout",
                             headers={"x-csrf-token": browser.cookies["rayfarm_csrf"]}
                             ).status_code == 204
-        reader = threading.Thread(target=lambda: lines.extend(response.iter_lines()), daemon=True)
-        reader.start()
-        reader.join(10)
-        assert not reader.is_alive(), "the stream of a logged-out session goes on"
+        assert _ends(response), "the stream of a logged-out session goes on"
     # The API token it logged in with still works elsewhere.
     assert TestClient(local_app, headers=ADMIN_HEADERS).get("/auth/me").status_code == 200
 
@@ -361,3 +395,79 @@ def test13_the_last_enabled_admin_can_be_neither_disabled_nor_demoted(local_clie
             assert session.get(User, "b").role == "admin"
     finally:
         engine.dispose()
+
+
+def test14_a_user_disabled_on_the_ledger_loses_its_streams_and_no_one_else(local_app,
+                                                                          make_user,
+                                                                          monkeypatch):
+    """Disabled, or given another role, on the ledger itself (as `rayfarm users set`
+    or another replica would): the streams of that user end, busy or idle."""
+    from service.api.routes import events
+
+    monkeypatch.setattr(events, "KEEPALIVE", 3600.0)
+    farm = local_app.state.farm
+    lea, max_ = make_user("lea"), make_user("max")
+    stop = _chatter(farm.events, "lea")
+    try:
+        with lea.stream("GET", "/events") as busy, max_.stream("GET", "/events") as idle:
+            assert busy.status_code == idle.status_code == 200
+            reader, other = _Reader(busy), _Reader(idle)
+            wait_for(lambda: any(line.startswith("event: job") for line in reader.lines), 30,
+                     "the stream to carry lea's events")
+            with farm.sessions.begin() as session:
+                auth.set_user(session, "lea", disabled=True)
+            assert reader.ended(), "the stream of a disabled user goes on"
+            # Max's stream is still there: it carries his next event.
+            farm.events.publish("job", "fedcba987654", {"id": "fedcba987654"}, owner="max")
+            wait_for(lambda: any("fedcba987654" in line for line in other.lines), 10,
+                     "max's stream to carry his event")
+            assert not other.ended(0)
+            with farm.sessions.begin() as session:
+                auth.set_user(session, "max", role="viewer")
+            assert other.ended(), "the stream of a user with another role goes on"
+    finally:
+        stop.set()
+    assert lea.get("/auth/me").status_code == 401 and max_.get("/auth/me").json()["role"] == "viewer"
+
+
+def test15_a_login_link_from_another_site_logs_nobody_in(local_app):
+    """`/?token=` is traded for a session at once only for a navigation the user
+    made (Sec-Fetch-Site none: typed, or clicked in a terminal) or from the
+    dashboard itself; from another site (another port of this host is the same
+    *site*), or a browser that does not say, the dashboard is served and asks."""
+    for where in ("cross-site", "same-site", None):
+        browser = TestClient(local_app, base_url="http://farm.test")
+        headers = {"sec-fetch-site": where} if where else {}
+        page = browser.get("/", params={"token": TEST_ADMIN_TOKEN}, headers=headers,
+                           follow_redirects=False)
+        assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+        assert "set-cookie" not in page.headers and not browser.cookies, where
+        assert browser.get("/auth/me").status_code == 401
+    for where in ("none", "same-origin"):
+        browser = TestClient(local_app, base_url="http://farm.test")
+        login = browser.get("/", params={"token": TEST_ADMIN_TOKEN},
+                            headers={"sec-fetch-site": where}, follow_redirects=False)
+        assert login.status_code == 303 and login.headers["location"] == "/", where
+        assert browser.get("/auth/me").json()["via"] == "cookie"
+
+
+def test16_the_service_answers_only_to_its_names_and_redirects_by_path(local_app, local_client):
+    stranger = TestClient(local_app, base_url="http://rebound.example", headers=ADMIN_HEADERS)
+    for path in ("/jobs", "/healthz", "/"):
+        refused = stranger.get(path)
+        assert refused.status_code == 400, (path, refused.text)
+        assert "RAYFARM_ALLOWED_HOSTS" in refused.json()["detail"]
+    for host in ("localhost:8000", "127.0.0.1", "[::1]:8000", "LOCALHOST.", "testserver:80"):
+        assert local_client.get("/auth/me", headers={"host": host}).status_code == 200, host
+    # The trailing-slash redirect names no host: the one the request gave is the caller's word.
+    moved = local_client.get("/jobs/", params={"limit": 1}, follow_redirects=False)
+    assert moved.status_code == 307 and moved.headers["location"] == "/jobs?limit=1"
+    # The default: what `rayfarm serve --host` listens on, and always the loopback names.
+    from service.api.security import allowed_hosts
+    from service.settings import Settings
+
+    assert allowed_hosts([], bind="10.1.2.3") == ["10.1.2.3", "127.0.0.1", "::1", "localhost"]
+    assert socket.gethostname().lower() in allowed_hosts([], bind="0.0.0.0")
+    assert allowed_hosts(["Farm.Example.com", "*.studio.test"], bind="0.0.0.0") == [
+        "*.studio.test", "127.0.0.1", "::1", "farm.example.com", "localhost"]
+    assert Settings(allowed_hosts="a.test, b.test").allowed_hosts == ["a.test", "b.test"]

@@ -137,7 +137,9 @@ def test06_serve_prints_a_login_url_that_logs_a_browser_in(tmp_path):
         assert (tmp_path / "data" / "admin.token").read_text().strip() == token
         with httpx.Client(base_url=base, timeout=30) as browser:
             assert browser.get("/jobs").status_code == 401
-            login = browser.get(f"/?token={token}", follow_redirects=False)
+            # opened from a terminal: the browser says `Sec-Fetch-Site: none`
+            login = browser.get(f"/?token={token}", headers={"sec-fetch-site": "none"},
+                                follow_redirects=False)
             assert login.status_code == 303 and login.headers["location"] == "/"
             assert browser.get("/auth/me").json()["user"] == "admin"  # by the cookie now
         assert "token=..." in child.log()  # the access log line of the login, redacted

@@ -1,14 +1,20 @@
 """Admission through the API: the role's limits refuse a job too big (samples,
 units: 422 naming the field and the setting), an owner with too many active
 jobs (429), a token submitting too fast and an owner uploading too often (429
-with Retry-After). Its own small farm with low artist limits."""
+with Retry-After). Its own small farm with low artist limits. And request
+bodies on a real server: a 2 GiB body to any route is refused unread (413),
+a stranger's is not read at all (401), and every route has a limit."""
 
 from __future__ import annotations
 
+import select
+import socket
+
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 
-from conftest import ADMIN_HEADERS, TINY
+from conftest import ADMIN_HEADERS, TEST_ADMIN_TOKEN, TINY, embedded_env, start_serve
 from worker.settings import RoleLimits
 
 LIMITS = RoleLimits(max_samples_per_job=1 << 24, max_units_per_job=20, max_active_jobs=2,
@@ -78,3 +84,87 @@ def test03_uploads_per_owner_and_hour(farm):
     assert upload(dan, scene_bytes(room("limits-1"))).status_code == 201
     again = upload(dan, scene_bytes(room("limits-2")))
     assert again.status_code == 429 and int(again.headers["retry-after"]) > 3000
+
+
+# -- request bodies, on a real server ----------------------------------------------------------
+
+def _answer(sock: socket.socket) -> bytes:
+    """The status line and headers of the server's answer (up to 60 s to come)."""
+    sock.settimeout(60)
+    answer = b""
+    while b"\r\n\r\n" not in answer:
+        data = sock.recv(4096)
+        if not data:
+            break
+        answer += data
+    return answer
+
+
+def _send_chunked(sock: socket.socket, cap: int, start: bytes) -> tuple[int, bytes]:
+    """Send a chunked body, `start` then spaces, until the server answers (or
+    `cap` bytes went): (bytes sent, the answer)."""
+    sent, chunk = 0, b" " * (64 << 10)
+    frame = f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n"
+    try:
+        sock.sendall(f"{len(start):x}\r\n".encode() + start + b"\r\n")
+        while sent < cap:
+            if select.select([sock], [], [], 0)[0]:
+                break  # the server answered (or closed) before the body was whole
+            sock.sendall(frame)
+            sent += len(chunk)
+        else:
+            sock.sendall(b"0\r\n\r\n")
+    except OSError:  # the server closed the connection: it read no more
+        pass
+    return sent, _answer(sock)
+
+
+PART = b'--b\r\nContent-Disposition: form-data; name="scene"; filename="room.json"\r\n\r\n'
+
+
+def test04_a_huge_body_to_any_kind_of_route_is_refused_unread_or_at_its_limit(tmp_path):
+    env = embedded_env(tmp_path / "data", RAYFARM_LOCAL_WORKERS="1",
+                       RAYFARM_MAX_JOB_BYTES=str(1 << 20), RAYFARM_MAX_UPLOAD_BYTES=str(1 << 20))
+    child, base = start_serve(env, tmp_path / "serve.log")
+    host, port = base.removeprefix("http://").split(":")
+    routes = [("POST", "/auth/login"), ("POST", "/experiments"), ("POST", "/users"),
+              ("PATCH", "/jobs/0123456789ab"), ("POST", "/jobs/0123456789ab/cancel"),
+              ("POST", "/tokens"), ("POST", "/jobs"), ("POST", "/scenes")]
+    bearer = f"Authorization: Bearer {TEST_ADMIN_TOKEN}\r\n"
+    # Offered chunked; what was sent is bounded by the route's limit plus the
+    # kernel's socket buffers (a few MB on loopback), far below this.
+    cap = 64 << 20
+    try:
+        for method, path in routes:
+            for who in ("", bearer):
+                kind = ("multipart/form-data; boundary=b" if path == "/scenes"
+                        else "application/json")
+                head = (f"{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n{who}"
+                        f"Content-Type: {kind}\r\n").encode()
+                # 2 GiB declared: answered at once, before a byte of the body was sent.
+                with socket.create_connection((host, int(port))) as sock:
+                    sock.sendall(head + f"Content-Length: {2 << 30}\r\n\r\n".encode())
+                    answer = _answer(sock)
+                    assert answer.startswith(b"HTTP/1.1 413"), (method, path, who, answer)
+                # Chunked, no Content-Length: a stranger's body to a route that needs a
+                # caller is not read at all; any other stops at the route's limit (or is
+                # not read by a route that takes none: a job action's 404 here).
+                with socket.create_connection((host, int(port))) as sock:
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 256 << 10)
+                    sock.sendall(head + b"Transfer-Encoding: chunked\r\n\r\n")
+                    sent, answer = _send_chunked(sock, cap, PART if path == "/scenes" else b"[")
+                status = int(answer.split()[1]) if answer else None
+                if who or (method, path) == ("POST", "/auth/login"):
+                    expected = 404 if path.endswith("/cancel") else 413
+                    assert status == expected and sent < cap // 4, (method, path, who, sent)
+                else:
+                    assert status == 401 and sent < cap // 4, (method, path, sent, answer)
+        with httpx.Client(base_url=base, headers=ADMIN_HEADERS, timeout=60) as client:
+            # A small route's limit is named, and counts for every job (a path template).
+            refused = client.patch("/jobs/fedcba987654", content=b" " * (65 << 10))
+            assert refused.status_code == 413, refused.text
+            assert "RAYFARM_MAX_BODY_BYTES" in refused.json()["detail"]
+            assert client.get("/healthz").status_code == 200
+    finally:
+        child.stop()
+    assert "Traceback" not in child.log(), child.log()

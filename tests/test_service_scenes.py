@@ -461,7 +461,7 @@ def test11d_uploads_beyond_the_bound_at_once_are_429_with_retry_after(tmp_path):
         host, port = base.removeprefix("http://").split(":")
         with socket.create_connection((host, int(port)), timeout=30) as slow:
             # An upload that holds the one slot: its body arrives slowly.
-            slow.sendall(b"POST /scenes HTTP/1.1\r\nHost: farm\r\n"
+            slow.sendall(b"POST /scenes HTTP/1.1\r\nHost: 127.0.0.1\r\n"
                          b"Authorization: " + ADMIN_HEADERS["Authorization"].encode() +
                          b"\r\nContent-Type: multipart/form-data; boundary=b\r\n"
                          b"Content-Length: %d\r\n\r\n" % (len(head) + len(scene) + len(tail))
@@ -500,7 +500,7 @@ def test12_bodies_above_the_limits_are_413_before_they_are_read(spawn_serve):
     # server never even asks for it (no "100 Continue", as curl expects).
     host, port = base.removeprefix("http://").split(":")
     with socket.create_connection((host, int(port)), timeout=30) as sock:
-        sock.sendall(b"POST /scenes HTTP/1.1\r\nHost: farm\r\nExpect: 100-continue\r\n"
+        sock.sendall(b"POST /scenes HTTP/1.1\r\nHost: 127.0.0.1\r\nExpect: 100-continue\r\n"
                      b"Content-Type: multipart/form-data; boundary=b\r\n"
                      b"Content-Length: 1000000000\r\n\r\n")
         answer = b""

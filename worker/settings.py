@@ -9,13 +9,14 @@ tests construct it and hand it down::
 
 from __future__ import annotations
 
+import json
 import os
 import stat
-from typing import Literal
+from typing import Annotated, Literal
 from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 from renderer import DEFAULT_MAX_WORK
 
@@ -98,6 +99,10 @@ class Settings(BaseSettings):
                              "checks its files in a child process); 429 with Retry-After above")
     max_job_bytes: int = Field(16 * 1024 * 1024, gt=0,
                                description="largest request body of POST /jobs (413 above)")
+    max_body_bytes: int = Field(64 * 1024, gt=0,
+                                description="largest request body of every other route: a "
+                                            "login, a user, a token, a job's change, an "
+                                            "experiment (413 above)")
     cache_dir: Path | None = Field(
         None, description="the renderer's on-disk caches (radiosity solutions, in "
                           "<cache_dir>/radiosity); empty = <data_dir>/cache")
@@ -108,8 +113,9 @@ class Settings(BaseSettings):
         "text", description="json: `rayfarm serve` and workers log one JSON object per line "
                             "(time, level, logger, message, job_id and unit when known)")
     min_free_bytes: int = Field(256 * 1024 * 1024, ge=0,
-                                description="/healthz reports degraded when the data dir's "
-                                            "file system has less free space than this")
+                                description="below this much free space on the data dir's "
+                                            "file system, /healthz reports degraded and new "
+                                            "jobs, scenes and experiments are refused (507)")
     umask: str = Field("077", pattern=r"^0?[0-7]{3}$",
                        description="permission bits (octal) withheld from every file and "
                                    "directory that `rayfarm serve`, `rayfarm worker` and the "
@@ -126,6 +132,12 @@ class Settings(BaseSettings):
     cors_origins: list[str] = Field(
         default_factory=list, description="origins allowed to call the API from a browser "
                                           "(CORS); empty = none, same origin only")
+    allowed_hosts: Annotated[list[str], NoDecode] = Field(
+        default_factory=list, description="the names the service answers to (the Host header; "
+                                          "comma-separated, '*.example.com' for a domain's, "
+                                          "'*' for any); localhost, 127.0.0.1 and ::1 always; "
+                                          "empty = the address `rayfarm serve --host` listens "
+                                          "on (every name of this machine for 0.0.0.0)")
     limits_admin: AdminLimits = Field(default_factory=AdminLimits)
     limits_artist: RoleLimits = Field(default_factory=RoleLimits)
 
@@ -161,6 +173,16 @@ class Settings(BaseSettings):
         from renderer import cache
 
         cache.configure(self.cache_dir, self.cache_max_bytes)
+
+    @field_validator("allowed_hosts", mode="before")
+    @classmethod
+    def _split_hosts(cls, value):
+        # From the environment: "farm.example.com,10.0.0.5" (or a JSON list, as other lists)
+        if isinstance(value, str):
+            text = value.strip()
+            return json.loads(text) if text.startswith("[") else [
+                name.strip() for name in text.split(",") if name.strip()]
+        return value
 
     @field_validator("log_format", mode="before")
     @classmethod

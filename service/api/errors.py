@@ -8,12 +8,15 @@
     InvalidRequest, SpecError, SceneError 422 {"detail": [{"loc", "msg", "type"}]}
     RequestValidationError (FastAPI)     422 {"detail": [{"loc", "msg", "type", "input", ...}]}
     TooLarge                             413 {"detail": "..."}
+    InsufficientStorage                  507 {"detail": "..."} + Retry-After
+    OperationalError of a ledger that is full (or read-only)   507 the same way
 
 422 bodies have FastAPI's own validation shape, so clients parse one format;
 `msg` starts with the field's name (for scenes, the location inside it).
 FastAPI's own 422s echo the offending `input`: a NaN or infinity there (Python
-reads them in JSON bodies) is replaced by its repr, since no JSON writer may
-send it back. A JSON body that cannot even be decoded (not UTF-8, nested too
+reads them in JSON bodies) is replaced by its repr, and a lone surrogate by
+its escape, since no JSON writer may send either back (a body holding one is
+refused before validation anyway: service.api.deps.unicode_body). A JSON body that cannot even be decoded (not UTF-8, nested too
 deeply) is FastAPI's bare 400; here it is the 422 of any other invalid JSON.
 
 `responses(401, 404, ...)` documents these answers on a route (`responses=`
@@ -32,15 +35,18 @@ from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
+from sqlalchemy.exc import OperationalError
 from sqlalchemy.orm.exc import StaleDataError
 from starlette.exceptions import HTTPException
 
 from renderer import SceneError, SpecError
 
-from ..errors import (Conflict, Forbidden, InvalidRequest, NotFound, RateLimited, ServiceError,
-                      TooLarge, Unauthorized)
+from ..disk import RETRY_AFTER, ledger_cannot_write
+from ..errors import (Conflict, Forbidden, InsufficientStorage, InvalidRequest, NotFound,
+                      RateLimited, ServiceError, TooLarge, Unauthorized)
 
-__all__ = ["install_error_handlers", "status_of", "responses", "Message", "Invalid"]
+__all__ = ["install_error_handlers", "status_of", "error_response", "responses", "Message",
+           "Invalid"]
 
 _STATUS: tuple[tuple[type[Exception], int], ...] = (
     (Unauthorized, 401),
@@ -52,6 +58,7 @@ _STATUS: tuple[tuple[type[Exception], int], ...] = (
     (SpecError, 422),
     (SceneError, 422),
     (TooLarge, 413),
+    (InsufficientStorage, 507),
     # A write based on a read the scheduler made stale meanwhile (optimistic
     # locking, service.models). Routes that change jobs try again
     # (jobs.retrying); this is the net under any that does not: a conflict to
@@ -95,13 +102,19 @@ def _body(exc: Exception) -> dict:
 def _headers(exc: Exception) -> dict[str, str] | None:
     if isinstance(exc, Unauthorized):
         return {"WWW-Authenticate": 'Bearer realm="rayfarm"'}
-    if isinstance(exc, RateLimited):
+    if isinstance(exc, (RateLimited, InsufficientStorage)):
         return {"Retry-After": str(max(1, math.ceil(exc.retry_after)))}
     return None
 
 
-async def _handle(request: Request, exc: Exception) -> JSONResponse:
+def error_response(exc: Exception) -> JSONResponse:
+    """The answer to a domain error, as the handlers give it (for middleware,
+    which runs outside them)."""
     return JSONResponse(status_code=status_of(exc), content=_body(exc), headers=_headers(exc))
+
+
+async def _handle(request: Request, exc: Exception) -> JSONResponse:
+    return error_response(exc)
 
 
 _SOURCES = ("body", "query", "path", "header", "cookie")
@@ -111,14 +124,17 @@ _ECHO_DEPTH = 8  # levels of an error's echoed input shown; a body may nest far 
 
 
 def _json_safe(value: Any, depth: int = 0) -> Any:
-    """`value` with every non-finite float replaced by its repr, and what lies
-    deeper than _ECHO_DEPTH by "..."."""
+    """`value` with every non-finite float replaced by its repr, a lone
+    surrogate in a string by its escape, and what lies deeper than
+    _ECHO_DEPTH by "..."."""
     if isinstance(value, float) and not math.isfinite(value):
         return repr(value)
+    if isinstance(value, str):
+        return value.encode("utf-8", "backslashreplace").decode("utf-8")
     if isinstance(value, (dict, list, tuple)) and depth >= _ECHO_DEPTH:
         return "..."
     if isinstance(value, dict):
-        return {key: _json_safe(item, depth + 1) for key, item in value.items()}
+        return {_json_safe(key): _json_safe(item, depth + 1) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
         return [_json_safe(item, depth + 1) for item in value]
     return value
@@ -165,9 +181,22 @@ async def _http_error(request: Request, exc: HTTPException) -> Response:
     return await http_exception_handler(request, exc)
 
 
+async def _ledger_error(request: Request, exc: OperationalError) -> JSONResponse:
+    """A write the ledger refused for want of room is a 507 to try again
+    later (service.disk); any other database error stays a 500."""
+    reason = ledger_cannot_write(exc)
+    if reason is None:
+        raise exc
+    return error_response(InsufficientStorage(
+        f"no room: {reason}; nothing was changed, what is stored is kept and served, try "
+        "again when there is room",
+        retry_after=RETRY_AFTER))
+
+
 def install_error_handlers(app: FastAPI) -> None:
     for cls in (ServiceError, SpecError, SceneError, StaleDataError):
         app.add_exception_handler(cls, _handle)
+    app.add_exception_handler(OperationalError, _ledger_error)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_exception_handler(HTTPException, _http_error)
 
@@ -201,6 +230,7 @@ _DOCUMENTED: dict[int, tuple[type[BaseModel], str]] = {
     413: (Message, "the request body (or its number of files) is above its limit"),
     422: (Invalid, "an invalid field: loc and msg name it"),
     429: (Message, "too many requests for now: Retry-After says when to try again"),
+    507: (Message, "no room for new work now (a full disk): the reason, and Retry-After"),
 }
 
 

@@ -1,6 +1,14 @@
 """Request-body limits, as a pure ASGI middleware: 413 before a byte too many is kept.
 
-    install_body_limits(app, settings)   # POST /scenes and POST /jobs
+    install_body_limits(app, settings)
+
+Every route has a limit. Most bodies are a few hundred bytes (a login, a
+user, a token, a job's change, an experiment, a job action), so every route
+gets `max_body_bytes` (64 KiB) unless it is named with a larger one: POST
+/scenes (uploads, `max_upload_bytes`) and POST /jobs (inline scene documents,
+`max_job_bytes`). A route is named by its method and path template, as the
+app declares it ("PATCH /jobs/{job_id}" covers every job), so a limit cannot
+be dodged by a path parameter.
 
 FastAPI reads and parses a body (JSON, multipart) before any dependency or
 handler runs, so a check there comes after the body was spooled. This
@@ -10,13 +18,17 @@ middleware sits in front of all that:
   the limit, the app's `receive` raises `BodyTooLarge` (and then reports a
   disconnect), and whatever the app answers instead is replaced by the 413.
 The 413 asks the server to close the connection (the rest of the body is
-never read).
+never read). Who may send a body at all is decided right after this (the
+`Authenticate` middleware of service.api.auth): a body is not read for a
+caller without a valid token, but a login's.
 """
 
 from __future__ import annotations
 
 import json
 from typing import Mapping, NamedTuple
+
+from starlette.routing import compile_path
 
 from ..settings import Settings
 
@@ -43,21 +55,28 @@ def _round_size(n: int) -> str:
 
 
 class BodyLimit:
-    """Limits the request bodies of some routes: ``{("POST", "/scenes"): Limit(...)}``."""
+    """Limits every request body: `default`, or the limit of the route's
+    ``(method, path template)`` in `limits`: ``{("POST", "/scenes"): Limit(...)}``."""
 
-    def __init__(self, app, limits: Mapping[tuple[str, str], Limit]):
+    def __init__(self, app, default: Limit, limits: Mapping[tuple[str, str], Limit]):
         self.app = app
-        self.limits = dict(limits)
+        self.default = default
+        self.limits = [(method, compile_path(template)[0], limit)
+                       for (method, template), limit in limits.items()]
+
+    def limit_of(self, method: str, path: str) -> Limit:
+        path = path.rstrip("/") or "/"  # "/scenes/" is redirected to "/scenes": the same limit
+        for route_method, pattern, limit in self.limits:
+            if route_method == method and pattern.match(path):
+                return limit
+        return self.default
 
     async def __call__(self, scope, receive, send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         method, path = scope["method"], scope["path"]
-        limit = self.limits.get((method, path.rstrip("/") or "/"))
-        if limit is None:
-            await self.app(scope, receive, send)
-            return
+        limit = self.limit_of(method, path)
         declared = _content_length(scope)
         if declared is not None and declared > limit.max_bytes:
             await _refuse(send, method, path, limit)
@@ -119,8 +138,11 @@ async def _refuse(send, method: str, path: str, limit: Limit) -> None:
 
 
 def install_body_limits(app, settings: Settings) -> None:
-    """Limit POST /scenes (uploads) and POST /jobs (inline scene documents)."""
-    app.add_middleware(BodyLimit, limits={
-        ("POST", "/scenes"): Limit(settings.max_upload_bytes, "max_upload_bytes"),
-        ("POST", "/jobs"): Limit(settings.max_job_bytes, "max_job_bytes"),
-    })
+    """Limit every route's body: POST /scenes (uploads) and POST /jobs (inline
+    scene documents) to their own settings, the rest to `max_body_bytes`."""
+    app.add_middleware(BodyLimit, default=Limit(settings.max_body_bytes, "max_body_bytes"),
+                       limits={
+                           ("POST", "/scenes"): Limit(settings.max_upload_bytes,
+                                                      "max_upload_bytes"),
+                           ("POST", "/jobs"): Limit(settings.max_job_bytes, "max_job_bytes"),
+                       })

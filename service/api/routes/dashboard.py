@@ -7,6 +7,17 @@ Jupyter does): the token is traded for the dashboard's session cookie and the
 browser is sent on to `/`, so the token leaves the address bar and history.
 The pages and assets are public; every piece of data they show comes from
 the API, which needs a login. The OpenAPI schema needs one too.
+
+The link is traded at once only for a navigation the user made: typed,
+pasted, a bookmark, or clicked in a terminal or mail program (the browser's
+`Sec-Fetch-Site: none`), or from this dashboard itself (`same-origin`).
+From anywhere else (another site, even another port of this host, or a
+browser that does not say) a link could be someone else's token, logging
+this browser into their account: what the victim uploads next would be
+theirs (login CSRF). Then the dashboard is served as it is, and its login
+page takes the token out of the address bar and asks first, naming the user
+the link would log in as; the login is its POST /auth/login, which refuses
+another origin.
 """
 
 from __future__ import annotations
@@ -33,6 +44,8 @@ DOCS_ASSETS = "/docs-assets"  # Swagger UI and ReDoc bundles, from the fastapi-o
 OPENAPI_URL = "/openapi.json"
 
 router = APIRouter(include_in_schema=False)
+# Sec-Fetch-Site of a navigation the user made (module doc)
+USER_NAVIGATION = ("none", "same-origin")
 
 
 class _RevalidatedFiles(StaticFiles):
@@ -54,7 +67,8 @@ def mount_assets(app: FastAPI) -> None:
 @router.get("/", response_model=None)
 async def index(request: Request, farm: FarmDep,
                 token: str | None = None) -> FileResponse | RedirectResponse:
-    if token is None:
+    if token is None or request.headers.get("sec-fetch-site") not in USER_NAVIGATION:
+        # the dashboard's login page asks before it uses a link's token
         return FileResponse(STATIC_DIR / "index.html", media_type="text/html",
                             headers={"Cache-Control": "no-cache"})
 

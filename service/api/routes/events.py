@@ -9,9 +9,15 @@ then carries `unit`, `job` and `preview` events as they are committed (see
 `service.events` for their data) and ends with an `end` event once the job is
 done, failed, canceled or deleted (`?follow=true` keeps it open across a
 requeue). A comment line every `KEEPALIVE` seconds keeps proxies from closing
-an idle stream; at each one the caller's token is checked again, so a
-revoked token (or a disabled user) loses its streams within that time. Every event has an `id:`; a reconnecting client gets a fresh
+an idle stream. Every event has an `id:`; a reconnecting client gets a fresh
 snapshot rather than a replay.
+
+A stream ends when its caller's login does (a revoked token, a logout, a
+disabled user, a new role), within about a second however busy it is: the
+hub's `logins` count moves when the ledger says a login may have ended
+(service.revocations), and the stream then checks its own caller once,
+between two events or when the hub wakes it. At every keep-alive it checks
+too (an expired token).
 """
 
 from __future__ import annotations
@@ -42,14 +48,28 @@ _SSE_DOC = {200: {"content": {"text/event-stream": {}},
                   "description": "a stream of server-sent events"}}
 
 
+_KEEPALIVE = ": keep-alive\n\n"
+
+
 def _still_valid(farm: Farm, actor: Principal) -> bool:
     with farm.sessions() as session:
         return auth.still_valid(session, actor, utcnow())
 
 
-async def _keepalive(farm: Farm, actor: Principal) -> str | None:
-    """The keep-alive comment, or None when the caller's token stopped being valid."""
-    return ": keep-alive\n\n" if await run_in_threadpool(_still_valid, farm, actor) else None
+class _Login:
+    """The stream's caller: is its login over? Asked of the ledger only when
+    the hub's `logins` count moved, or when `always` (a keep-alive)."""
+
+    def __init__(self, farm: Farm, actor: Principal):
+        self.farm, self.actor = farm, actor
+        self.seen = farm.events.logins  # read before the first check (in the stream's start)
+
+    async def ended(self, always: bool = False) -> bool:
+        logins = self.farm.events.logins
+        if logins == self.seen and not always:
+            return False
+        self.seen = logins
+        return not await run_in_threadpool(_still_valid, self.farm, self.actor)
 
 
 def _job_snapshot(farm: Farm, actor: Principal, job_id: str) -> tuple[dict, list[dict]]:
@@ -62,8 +82,11 @@ def _job_snapshot(farm: Farm, actor: Principal, job_id: str) -> tuple[dict, list
 
 async def _job_stream(farm: Farm, actor: Principal, sub: Subscription, job_id: str,
                       snapshot: tuple, follow: bool) -> AsyncIterator[str]:
+    login = _Login(farm, actor)
     try:
         yield f"retry: {RETRY_MS}\n\n"
+        if await login.ended(always=True):  # it may have ended since it was authenticated
+            return
         while True:
             job, units = snapshot
             yield sse_frame("job", job)
@@ -74,14 +97,13 @@ async def _job_stream(farm: Farm, actor: Principal, sub: Subscription, job_id: s
                 return
             while True:
                 event = await sub.next(KEEPALIVE)
+                if await login.ended(always=event is None):
+                    return
                 if sub.overflowed:  # we fell behind: start again from a snapshot
                     sub.overflowed = False
                     break
                 if event is None:
-                    keepalive = await _keepalive(farm, actor)
-                    if keepalive is None:
-                        return
-                    yield keepalive
+                    yield _KEEPALIVE
                     continue
                 yield event.sse()
                 if event.kind == "deleted":
@@ -116,18 +138,20 @@ async def job_events(job_id: str, farm: FarmDep, actor: ActorDep,
 
 
 async def _all_stream(farm: Farm, actor: Principal, sub: Subscription) -> AsyncIterator[str]:
+    login = _Login(farm, actor)
     try:
         yield f"retry: {RETRY_MS}\n\n"
+        if await login.ended(always=True):  # it may have ended since it was authenticated
+            return
         while True:
             event = await sub.next(KEEPALIVE)
+            if await login.ended(always=event is None):
+                return
             if sub.overflowed:
                 sub.overflowed = False
                 yield sse_frame("resync", {})  # reload the list: events were dropped
             if event is None:
-                keepalive = await _keepalive(farm, actor)
-                if keepalive is None:
-                    return
-                yield keepalive
+                yield _KEEPALIVE
                 continue
             yield event.sse()
     finally:

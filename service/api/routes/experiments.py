@@ -20,7 +20,7 @@ router = APIRouter(prefix="/experiments", tags=["experiments"])
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=ExperimentPublic,
-             responses=responses(403, 422, 429))
+             responses=responses(403, 422, 429, 507))
 def create_experiment(body: ExperimentCreate, session: SessionDep, farm: FarmDep,
                       actor: ActorDep, response: Response) -> ExperimentPublic:
     """Submit an experiment: every configuration at every spp level, `repeats`
@@ -29,7 +29,8 @@ def create_experiment(body: ExperimentCreate, session: SessionDep, farm: FarmDep
     its test, variance, MSE, time, efficiency, the RMSE slope, "unbiased?" and
     "consistent?" (renderer.lab). Each of its jobs counts as a submission: 429
     with Retry-After past the role's submissions per minute (per token), as
-    POST /jobs."""
+    POST /jobs; 507 with Retry-After while the disk is full."""
+    farm.disk.check_room()
     admission.check_submission_rate(farm.limiter, farm.settings, actor,
                                     jobs=experiments.planned_jobs(body), field="repeats")
     experiment = experiments.create_experiment(session, farm.store, farm.settings, actor, body,

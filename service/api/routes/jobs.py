@@ -39,12 +39,13 @@ def _changing_png(path, job_id: str) -> Response:
 
 
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=JobPublic,
-             responses=responses(403, 413, 422, 429))
+             responses=responses(403, 413, 422, 429, 507))
 def create_job(body: JobCreate, session: SessionDep, farm: FarmDep, actor: ActorDep,
                response: Response) -> JobPublic:
     """Submit a render job; it is queued and rendered in the background. 429
     with Retry-After past the role's submissions per minute (per token) or
-    active jobs (per owner)."""
+    active jobs (per owner); 507 with Retry-After while the disk is full."""
+    farm.disk.check_room()
     admission.check_submission_rate(farm.limiter, farm.settings, actor)
     job = jobs.create_job(session, farm.store, farm.settings, actor, body, utcnow())
     session.commit()

@@ -34,7 +34,7 @@ def _public(farm, info: scenes.SceneInfo) -> ScenePublic:
 @router.post("", status_code=status.HTTP_201_CREATED, response_model=ScenePublic,
              openapi_extra=_UPLOAD_BODY,
              responses={200: {"model": ScenePublic, "description": "uploaded before: the same id"},
-                        **responses(403, 409, 413, 422, 429)})
+                        **responses(403, 409, 413, 422, 429, 507)})
 async def upload_scene(request: Request, farm: FarmDep, actor: ActorDep,
                        response: Response) -> ScenePublic:
     """Upload a scene file (multipart field `scene`) with the mesh files it
@@ -42,8 +42,10 @@ async def upload_scene(request: Request, farm: FarmDep, actor: ActorDep,
     the location in the scene and the line in a file) in a child process,
     stored by content hash and its thumbnail rendered in the background. 201
     with a Location; 200 with the existing record for content uploaded before;
-    429 with Retry-After while RAYFARM_MAX_CONCURRENT_UPLOADS uploads are under way."""
+    429 with Retry-After while RAYFARM_MAX_CONCURRENT_UPLOADS uploads are under
+    way; 507 with Retry-After while the disk is full (the upload is not read)."""
     settings = farm.settings
+    farm.disk.check_room()
     admission.check_upload_rate(farm.limiter, settings, actor)  # 429 past uploads per hour
     with farm.uploads.hold(), farm.store.upload_dir() as directory:  # 429 if too many at once
         parts = await receive_parts(

@@ -44,8 +44,9 @@ export function hasLoginCookie() {
 // handle their 401 themselves.
 export const UNAUTHORIZED = "rayfarm:unauthorized";
 
-async function request(method, path, body, { isForm = false, anonymous = false } = {}) {
+async function request(method, path, body, { isForm = false, anonymous = false, token = null } = {}) {
   const init = { method, headers: {} };
+  if (token !== null) init.headers.authorization = `Bearer ${token}`;
   if (method !== "GET") init.headers["x-csrf-token"] = csrfToken();
   if (body !== undefined) {
     if (isForm) init.body = body;
@@ -79,6 +80,8 @@ export const api = {
   // a bad token, which is the login form's business, not a lost login.
   me: () => request("GET", "/auth/me", undefined, { anonymous: true }),
   login: (token) => request("POST", "/auth/login", { token }, { anonymous: true }),
+  // Whose token this is, without logging in with it (a login link's, before asking).
+  whoIs: (token) => request("GET", "/auth/me", undefined, { anonymous: true, token }),
   logout: () => request("POST", "/auth/logout"),
 };
 

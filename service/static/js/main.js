@@ -10,7 +10,7 @@ import { may, onSessionChange, readOnlyReason, refresh, session, setMe } from ".
 import { h, replace, toast } from "./ui.js";
 import { jobsView } from "./views/jobs.js";
 import { jobView } from "./views/job.js";
-import { loginView } from "./views/login.js";
+import { holdLoginLink, loginView } from "./views/login.js";
 import { submitView } from "./views/submit.js";
 import { workersView } from "./views/workers.js";
 import { experimentView, experimentsView } from "./views/experiments.js";
@@ -114,6 +114,9 @@ async function health() {
   el.className = `health ${report.status}`;
   const parts = [report.executor === "local" ? `local pool · ${report.workers} processes` : "celery"];
   if (report.broker && report.broker !== "ok") parts.push("broker unreachable");
+  if ((report.disk && report.disk !== "ok") || report.ledger_writes === "failing") {
+    parts.push("disk full: new work refused");
+  }
   // Which replica runs the scheduler (service.leader): this one, or another.
   const lead = report.leadership;
   if (lead && lead.role === "leader") parts.push(`scheduler here (${lead.replica})`);
@@ -144,6 +147,14 @@ new MutationObserver(() => {
 }).observe(document.getElementById("view"), { childList: true, subtree: true });
 
 async function start() {
+  // A login link the service did not use by itself (it came from another
+  // site, or the browser did not say where from: service/api/routes/dashboard.py):
+  // its token leaves the address bar at once, and the login page asks first.
+  const link = new URLSearchParams(location.search).get("token");
+  if (link !== null) {
+    holdLoginLink(link);
+    history.replaceState(null, "", "/#/login?link=1");
+  }
   onSessionChange(renderAccount);
   try {
     await refresh();

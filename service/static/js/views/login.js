@@ -4,6 +4,7 @@
 //   #/login?next=#/jobs/<id>   sent here by a 401; goes on there afterwards
 //   #/login?failed=1           the login link's token was refused (GET /?token=)
 //   #/login?ended=1            the login ended (logged out elsewhere, expired, revoked)
+//   #/login?link=1             a login link the service would not use by itself: asks first
 
 import { api } from "../api.js";
 import { session, setMe } from "../session.js";
@@ -21,7 +22,20 @@ export function tokenOf(text) {
   return match ? decodeURIComponent(match[1]) : value;
 }
 
+// The token of a login link that came from another site (main.js holds it
+// here, out of the address bar). Using it needs the user's yes: it could be
+// someone else's token, and this browser would then work in their account.
+let heldLink = null;
+
+export function holdLoginLink(token) {
+  heldLink = token;
+}
+
 export function loginView(root, params) {
+  if (params.get("link") === "1" && heldLink !== null) {
+    linkView(root, heldLink, safeNext(params.get("next")));
+    return;
+  }
   const next = safeNext(params.get("next"));
   const token = h("input#login-token", { type: "password", name: "token", autocomplete: "off",
     spellcheck: "false", placeholder: "rf_…", "aria-describedby": "login-help", required: true });
@@ -85,6 +99,58 @@ export function loginView(root, params) {
       token.select();
     } finally {
       button.disabled = false;
+    }
+  });
+}
+
+// Asks before a login link from elsewhere is used, naming whose it is.
+function linkView(root, token, next) {
+  const who = h("p#link-user", {}, "Asking the service whose link this is…");
+  const error = h("div#login-error", { role: "alert" });
+  const confirm = h("button.primary#link-login", { type: "submit", disabled: true }, "Log in");
+  const cancel = h("button#link-cancel", { type: "button" }, "Cancel");
+  const already = session.me ? h("div.notice#login-already", {}, "You are logged in as ",
+    h("b", {}, session.me.user), ` (${session.me.role}). Cancel to stay so.`) : null;
+  const form = h("form.panel.login#link-form", { novalidate: true },
+    h("h1", {}, "Log in with this link?"),
+    h("div.panel-body", {},
+      h("div.notice#link-why", {}, "This login link was opened from another site, or the browser "
+        + "did not say from where, so it was not used by itself. Use it only if it is yours: a link "
+        + "from someone else logs this browser into their account, and what you upload goes there."),
+      already,
+      who,
+      error,
+      h("div.actions", {}, confirm, cancel)));
+  replace(root, form);
+
+  const forget = () => { heldLink = null; };
+  api.whoIs(token).then((me) => {
+    replace(who, "It logs this browser in as ", h("b#link-user-name", {}, me.user), ` (${me.role}).`);
+    confirm.textContent = `Log in as ${me.user}`;
+    confirm.disabled = false;
+    confirm.focus();
+  }, (err) => {
+    forget();
+    who.remove();
+    confirm.remove();
+    replace(error, h("div.error-box#login-failed", {}, err.status === 401
+      ? "The login link's token was not accepted: it is unknown, expired or revoked."
+      : `Could not check the login link: ${err.message}`));
+  });
+  cancel.addEventListener("click", () => {
+    forget();
+    location.replace(session.me ? next : "#/login");
+  });
+  form.addEventListener("submit", async (event) => {
+    event.preventDefault();
+    confirm.disabled = true;
+    try {
+      setMe(await api.login(token));
+      forget();
+      location.hash = next;
+    } catch (err) {
+      replace(error, h("div.error-box#login-refused", {}, `Could not log in: ${err.message}`));
+      confirm.disabled = false;
     }
   });
 }
