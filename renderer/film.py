@@ -81,7 +81,8 @@ import numpy as np
 
 __all__ = ["PartialFilm", "Film", "sample_blocks", "merge", "read_exr", "tonemap_srgb8",
            "relative_error", "error_floor", "image_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP",
-           "AOV_LAYERS", "AOV_CHANNELS"]
+           "AOV_LAYERS", "AOV_CHANNELS", "FrameImages", "frame_bands", "write_exr", "write_png",
+           "tonemap_rows", "denoised_channels"]
 
 # The AOV channels a film's `aov` sums, in order, and the EXR channels their
 # means are written as: "layer.channel", the convention tev, Nuke and
@@ -182,9 +183,11 @@ class PartialFilm:
             a = np.asarray(value)
             if a.dtype.kind not in _WIRE_KINDS:
                 raise TypeError(f"film array {name!r} has dtype {a.dtype}, not a number type")
-            a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+            a = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
             header["arrays"].append([name, a.dtype.str, list(a.shape)])
-            blobs.append(a.tobytes())
+            # the array's own memory, not a copy of it: the join below is the
+            # one copy (a tile of 1024^2 pixels with AOVs is 117 MB)
+            blobs.append(memoryview(a.reshape(-1)).cast("B") if a.size else b"")
         head = json.dumps(header, allow_nan=True).encode()
         out = [_WIRE_MAGIC, len(head).to_bytes(4, "little"), head, b"\0" * _pad(len(head) + 12)]
         for blob in blobs:
@@ -334,9 +337,31 @@ class Film(PartialFilm):
             out = out + np.where(n > 0, (j - 1.0) / j * spread, 0.0)
         return out
 
+    def band(self, y0: int, y1: int) -> "Film":
+        """This frame's rows [y0, y1) as a Film of views into its arrays, with
+        the frame's splat counts (see BAND_PIXELS)."""
+        rows = slice(y0, y1)
+
+        def part(a):
+            return None if a is None else a[rows]
+
+        return Film(self.x0, self.y0 + y0, self.sum[rows], self.sum_sq[rows], self.weight[rows],
+                    self.stats, splat=part(self.splat), splat_sq=part(self.splat_sq),
+                    splat_paths=self.splat_paths, splat_batches=self.splat_batches,
+                    splat_scale_rel_var=self.splat_scale_rel_var, artefact=self.artefact,
+                    aov=part(self.aov), jackknife=part(self.jackknife))
+
+    def images(self, **what: bool) -> "FrameImages":
+        """`FrameImages` of this frame (`what`: which), made band by band."""
+        images = FrameImages(self.width, self.height, aov=self.aov is not None, **what)
+        for y0, y1 in frame_bands(self.width, self.height):
+            images.add(y0, self.band(y0, y1))
+        return images.finish()
+
     def image_error(self) -> float:
-        """`image_error` of this frame's mean and variance."""
-        return image_error(self.mean(), self.variance_of_mean())
+        """`image_error` of this frame's mean and variance (the same value,
+        made band by band: `FrameImages`)."""
+        return self.images(channels=False, error=True).rel_error
 
     def aovs(self) -> dict[str, np.ndarray]:
         """The AOVs' per-pixel means by EXR channel name (AOV_LAYERS; empty for
@@ -357,18 +382,22 @@ class Film(PartialFilm):
         self.sum[ys, xs] += part.sum
         self.sum_sq[ys, xs] += part.sum_sq
         self.weight[ys, xs] += part.weight
+        # Layers a part brings are added in the frame's own precision (a
+        # running preview's frame is float32: service.previews)
+        dtype = self.sum.dtype
         if part.aov is not None:
             if self.aov is None:
-                self.aov = np.zeros((self.height, self.width, AOV_CHANNELS))
+                self.aov = np.zeros((self.height, self.width, AOV_CHANNELS), dtype)
             self.aov[ys, xs] += part.aov
         if part.jackknife is not None:
             if self.jackknife is None:
-                self.jackknife = np.zeros((self.height, self.width) + part.jackknife.shape[2:])
+                self.jackknife = np.zeros((self.height, self.width) + part.jackknife.shape[2:],
+                                          dtype)
             self.jackknife[ys, xs] += part.jackknife
         if part.splat is not None:
             if self.splat is None:
-                self.splat = np.zeros((self.height, self.width, 3))
-                self.splat_sq = np.zeros((self.height, self.width, 3))
+                self.splat = np.zeros((self.height, self.width, 3), dtype)
+                self.splat_sq = np.zeros((self.height, self.width, 3), dtype)
             self.splat += part.splat
             self.splat_sq += part.splat_sq
             self.splat_paths += part.splat_paths
@@ -380,65 +409,255 @@ class Film(PartialFilm):
 
     def write_exr(self, path: str | Path, metadata: dict | None = None,
                   denoised: np.ndarray | None = None) -> None:
-        """Write float32 R, G, B (mean radiance), var.R/G/B (variance of the
-        mean), the AOVs (`aovs`: samples.Y, and albedo, normal and depth where
-        the method made them), with `metadata` as `rayfarm.<key>` header attributes (see
-        renderer.metadata: strings, 32-bit ints, floats; anything else as
-        JSON) and the standard `software`, `capDate` and `utcOffset`; given
-        `denoised` (h, w, 3: renderer.denoise), also denoised.R/G/B beside the
-        raw beauty, which stays as it is."""
-        import OpenEXR
-
-        channels = self.channels(denoised)
-        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-                  "software": f"rayfarm {_version()}",
-                  "capDate": datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S"),
-                  "utcOffset": 0.0}
-        for key, value in (metadata or {}).items():
-            header[f"rayfarm.{key}"] = _exr_attribute(key, value)
-        path = Path(path)
-        tmp = path.with_name(path.name + ".part")
-        with OpenEXR.File(header, channels) as exr:
-            exr.write(str(tmp))
-        tmp.replace(path)  # readers never see a half-written file
+        """`write_exr` of this frame's `channels` (with `denoised`, its
+        denoised beauty, beside the raw one)."""
+        write_exr(path, self.channels(denoised), metadata)
 
     def channels(self, denoised: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The float32 (h, w) channels `write_exr` writes, by EXR name."""
-        mean = self.mean().astype(np.float32)
-        var = self.variance_of_mean().astype(np.float32)
-        channels = {"R": mean[..., 0].copy(), "G": mean[..., 1].copy(), "B": mean[..., 2].copy(),
-                    "var.R": var[..., 0].copy(), "var.G": var[..., 1].copy(),
-                    "var.B": var[..., 2].copy()}
-        channels.update({name: np.ascontiguousarray(a, dtype=np.float32)
-                         for name, a in self.aovs().items()})
+        """The float32 (h, w) channels `write_exr` writes, by EXR name: R, G, B
+        (mean radiance), var.R/G/B (variance of the mean), the AOVs (`aovs`:
+        samples.Y, and albedo, normal and depth where the method made them),
+        and given `denoised` (h, w, 3: renderer.denoise) denoised.R/G/B."""
+        channels = self.images().channels
         if denoised is not None:
-            channels.update({f"denoised.{c}": np.ascontiguousarray(denoised[..., i],
-                                                                   dtype=np.float32)
-                             for i, c in enumerate("RGB")})
+            channels.update(denoised_channels(denoised))
         return channels
 
     def write_png(self, path: str | Path, rgb: np.ndarray | None = None) -> None:
         """Write a tonemapped sRGB preview (exposure 1, clamped) of the film,
         or of `rgb` (its denoised beauty) if given."""
-        from PIL import Image
-
-        path = Path(path)
-        tmp = path.with_name(path.name + ".part")
-        # compress_level 1: previews are rewritten while a job renders; zlib's
-        # default level 6 takes longer for files about as small
-        image = tonemap_srgb8(self.mean() if rgb is None else rgb)
-        Image.fromarray(image).save(tmp, format="PNG", compress_level=1)
-        tmp.replace(path)
+        write_png(path, self.images(channels=False, preview=True).preview if rgb is None
+                  else tonemap_rows(rgb))
 
     def write_noise_png(self, path: str | Path) -> None:
         """Write the per-pixel noise heatmap (`noise_srgb8`) of this film."""
-        from PIL import Image
+        write_png(path, self.images(channels=False, noise=True).noise)
 
-        path = Path(path)
-        tmp = path.with_name(path.name + ".part")
-        Image.fromarray(noise_srgb8(self.mean(), self.variance_of_mean())).save(
-            tmp, format="PNG", compress_level=1)
-        tmp.replace(path)
+
+# Bands. A frame's images are made band by band: every step from the merged
+# sums to a channel, a PNG pixel or the error statistic is per pixel, so a
+# band of rows gives the whole frame's values bit for bit, and the float64
+# temporaries (the mean, the variance and theirs: about 200 bytes a pixel at
+# once) exist for one band at a time, not for the frame. What remains whole
+# is what is kept: the float32 channels, the 8-bit images, and the two
+# float64 numbers a pixel that the error statistic needs at the end (a
+# percentile over pixels chosen by the frame's mean brightness).
+BAND_PIXELS = 1 << 18
+
+
+def frame_bands(width: int, height: int, tile: int = 0) -> list[tuple[int, int]]:
+    """Row ranges [y0, y1) of a frame's bands, about BAND_PIXELS each. With
+    `tile` (the job's tile size), bands hold whole rows of tiles where that
+    stays within 4 x BAND_PIXELS, so each tile is read in one piece."""
+    rows = max(1, BAND_PIXELS // max(width, 1))
+    if tile > 0:
+        if tile <= rows:
+            rows -= rows % tile
+        elif tile <= 4 * rows:
+            rows = tile
+    return [(y, min(y + rows, height)) for y in range(0, height, rows)]
+
+
+class FrameImages:
+    """What a frame's files are made of, filled band by band (`add`, the
+    bands in order, then `finish`), each value the one the whole frame's
+    computation gives:
+
+    - `channels`: the EXR's float32 channels (`Film.channels`), by name;
+    - `preview`, `noise`: the 8-bit sRGB preview and noise heatmap (h, w, 3);
+    - `color`: the denoiser's input, the finite beauty as float32 (h, w, 3);
+    - `rel_error`: `image_error` of the frame (after `finish`);
+    - `stats`: the merged film's stats, where a merge fills them in.
+
+    Only those asked for are made (`channels` by default)."""
+
+    def __init__(self, width: int, height: int, *, aov: bool, channels: bool = True,
+                 preview: bool = False, noise: bool = False, error: bool = False,
+                 denoise: bool = False):
+        self.width, self.height = width, height
+        names = ["R", "G", "B", "var.R", "var.G", "var.B", "samples.Y"]
+        names += list(AOV_LAYERS) if aov else []
+        self.channels: dict[str, np.ndarray] = (
+            {name: np.empty((height, width), np.float32) for name in names} if channels else {})
+        self.preview = np.empty((height, width, 3), np.uint8) if preview else None
+        self.noise = np.empty((height, width, 3), np.uint8) if noise else None
+        self.color = np.empty((height, width, 3), np.float32) if denoise else None
+        self._error = _ErrorStatistic(width * height) if error else None
+        self.rel_error = float("nan")
+        self.stats: dict = {}
+
+    def add(self, y0: int, band: Film) -> None:
+        """The frame's rows from y0 on: `band` (a Film over them)."""
+        rows = slice(y0, y0 + band.height)
+        mean = band.mean()
+        var = (band.variance_of_mean()
+               if self.channels or self.noise is not None or self._error is not None else None)
+        if self.channels:
+            for i, c in enumerate("RGB"):
+                self.channels[c][rows] = mean[..., i]
+                self.channels[f"var.{c}"][rows] = var[..., i]
+            for name, a in band.aovs().items():
+                self.channels[name][rows] = a
+        if self.preview is not None:
+            self.preview[rows] = tonemap_srgb8(mean)
+        if self.noise is not None:
+            self.noise[rows] = noise_srgb8(mean, var)
+        if self.color is not None:  # renderer.denoise: non-finite pixels as black
+            self.color[rows] = np.nan_to_num(mean, nan=0.0, posinf=0.0, neginf=0.0)
+        if self._error is not None:
+            self._error.add(mean, var)
+
+    def finish(self) -> "FrameImages":
+        """Every band added: the error statistic (its per-pixel arrays freed)."""
+        if self._error is not None:
+            self.rel_error, self._error = self._error.value(), None
+        return self
+
+
+class _ErrorStatistic:
+    """`image_error` of a frame given band by band: per pixel its brightness
+    (the channel average) and relative error, and the frame's mean made as
+    numpy makes `np.mean(mean)` (`_PairwiseSum`), so the floor, the counted
+    pixels and the percentile are the same."""
+
+    def __init__(self, pixels: int):
+        self.level = np.empty(pixels)
+        self.error = np.empty(pixels)
+        self.at = 0
+        self.total = _PairwiseSum(3 * pixels)
+
+    def add(self, mean: np.ndarray, variance_of_mean: np.ndarray) -> None:
+        n = mean.shape[0] * mean.shape[1]
+        self.level[self.at:self.at + n] = _channel_mean(mean).reshape(-1)
+        self.error[self.at:self.at + n] = relative_error(mean, variance_of_mean).reshape(-1)
+        self.total.add(np.ascontiguousarray(mean).reshape(-1))
+        self.at += n
+
+    def value(self) -> float:
+        # error_floor: np.mean is numpy's sum divided by the count
+        floor = ERROR_LEVEL * max(float(self.total.value() / self.total.n), 0.0)
+        counted = self.level > floor
+        self.level = None
+        if not counted.any():
+            return float("nan")
+        err = self.error[counted]
+        self.error = counted = None
+        if not np.all(np.isfinite(err)):
+            return float("inf")
+        return float(np.percentile(err, ERROR_PERCENTILE, overwrite_input=True))
+
+
+# numpy sums a contiguous float64 array pairwise: up to 128 values in 8
+# lanes, above that the two halves' sums added, the split rounded down to a
+# multiple of 8 (numpy/_core/src/umath/loops_utils.h, pairwise_sum). Any
+# subtree of that split is numpy's own sum of its values, so handing numpy
+# the subtrees of at most _PAIRWISE_LEAF values and adding their sums as the
+# tree does gives np.sum's bits for values that arrive in pieces.
+_PAIRWISE_LEAF = 1 << 16
+
+
+def _pairwise_split(n: int) -> int:
+    half = n // 2
+    return half - half % 8
+
+
+class _PairwiseSum:
+    """`np.add.reduce` of n float64 values given in order in pieces (`add`),
+    the same bits (see above); holds at most _PAIRWISE_LEAF of them."""
+
+    def __init__(self, n: int):
+        self.n = n
+        self.sizes: list[int] = []  # the leaves' sizes, in order
+        stack = [n]
+        while stack:
+            m = stack.pop()
+            if m <= _PAIRWISE_LEAF:
+                self.sizes.append(m)
+            else:
+                half = _pairwise_split(m)
+                stack += [m - half, half]
+        self.sums: list = []
+        self.buffer = np.empty(min(n, _PAIRWISE_LEAF))
+        self.filled = 0
+
+    def add(self, values: np.ndarray) -> None:
+        at = 0
+        while at < values.size:
+            need = self.sizes[len(self.sums)] - self.filled
+            if self.filled == 0 and values.size - at >= need:
+                self.sums.append(np.add.reduce(values[at:at + need]))
+                at += need
+                continue
+            take = values[at:at + need]
+            self.buffer[self.filled:self.filled + take.size] = take
+            self.filled += take.size
+            at += take.size
+            if self.filled == self.sizes[len(self.sums)]:
+                self.sums.append(np.add.reduce(self.buffer[:self.filled]))
+                self.filled = 0
+
+    def value(self) -> np.float64:
+        if len(self.sums) != len(self.sizes) or self.filled:
+            raise ValueError(f"{self.n} values expected, fewer given")
+        sums = iter(self.sums)
+
+        def total(m: int):
+            if m <= _PAIRWISE_LEAF:
+                return next(sums)
+            half = _pairwise_split(m)
+            left = total(half)
+            return left + total(m - half)
+
+        return total(self.n) if self.n else np.float64(0.0)
+
+
+def write_exr(path: str | Path, channels: dict[str, np.ndarray],
+              metadata: dict | None = None) -> None:
+    """Write float32 (h, w) `channels` by EXR name (`Film.channels`), with
+    `metadata` as `rayfarm.<key>` header attributes (see renderer.metadata:
+    strings, 32-bit ints, floats; anything else as JSON) and the standard
+    `software`, `capDate` and `utcOffset`, atomically."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "software": f"rayfarm {_version()}",
+              "capDate": datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S"),
+              "utcOffset": 0.0}
+    for key, value in (metadata or {}).items():
+        header[f"rayfarm.{key}"] = _exr_attribute(key, value)
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    # The package writes from the arrays themselves (no copy: measured at
+    # 4096^2 x 14 channels, +12 MB); it takes whole channels, not scanlines.
+    with OpenEXR.File(header, channels) as exr:
+        exr.write(str(tmp))
+    tmp.replace(path)  # readers never see a half-written file
+
+
+def denoised_channels(denoised: np.ndarray) -> dict[str, np.ndarray]:
+    """denoised.R/G/B of a denoised beauty (h, w, 3), as float32 channels."""
+    return {f"denoised.{c}": np.ascontiguousarray(denoised[..., i], dtype=np.float32)
+            for i, c in enumerate("RGB")}
+
+
+def write_png(path: str | Path, image: np.ndarray) -> None:
+    """Write 8-bit RGB pixels (h, w, 3) as a PNG, atomically."""
+    from PIL import Image
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    # compress_level 1: previews are rewritten while a job renders; zlib's
+    # default level 6 takes longer for files about as small
+    Image.fromarray(image).save(tmp, format="PNG", compress_level=1)
+    tmp.replace(path)
+
+
+def tonemap_rows(rgb: np.ndarray) -> np.ndarray:
+    """`tonemap_srgb8` of a frame (h, w, 3), band by band (the same pixels)."""
+    out = np.empty(rgb.shape, np.uint8)
+    for y0, y1 in frame_bands(rgb.shape[1], rgb.shape[0]):
+        out[y0:y1] = tonemap_srgb8(rgb[y0:y1])
+    return out
 
 
 def tonemap_srgb8(rgb: np.ndarray) -> np.ndarray:
