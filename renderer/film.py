@@ -340,16 +340,30 @@ class Film(PartialFilm):
     def band(self, y0: int, y1: int) -> "Film":
         """This frame's rows [y0, y1) as a Film of views into its arrays, with
         the frame's splat counts (see BAND_PIXELS)."""
-        rows = slice(y0, y1)
+        return self.region(0, y0, self.width, y1)
+
+    def region(self, x0: int, y0: int, x1: int, y1: int) -> "Film":
+        """The pixels [x0, x1) x [y0, y1) of this frame as a Film of views
+        into its arrays, with the frame's splat counts: its `mean()` and
+        `variance_of_mean()` are those of the frame there, bit for bit."""
+        rows, cols = slice(y0, y1), slice(x0, x1)
 
         def part(a):
-            return None if a is None else a[rows]
+            return None if a is None else a[rows, cols]
 
-        return Film(self.x0, self.y0 + y0, self.sum[rows], self.sum_sq[rows], self.weight[rows],
-                    self.stats, splat=part(self.splat), splat_sq=part(self.splat_sq),
-                    splat_paths=self.splat_paths, splat_batches=self.splat_batches,
+        return Film(self.x0 + x0, self.y0 + y0, self.sum[rows, cols], self.sum_sq[rows, cols],
+                    self.weight[rows, cols], self.stats, splat=part(self.splat),
+                    splat_sq=part(self.splat_sq), splat_paths=self.splat_paths,
+                    splat_batches=self.splat_batches,
                     splat_scale_rel_var=self.splat_scale_rel_var, artefact=self.artefact,
                     aov=part(self.aov), jackknife=part(self.jackknife))
+
+    def error_floor(self) -> float:
+        """`error_floor` of this frame's mean, band by band (the same value)."""
+        total = _PairwiseSum(3 * self.width * self.height)
+        for y0, y1 in frame_bands(self.width, self.height):
+            total.add(self.band(y0, y1).mean().reshape(-1))
+        return ERROR_LEVEL * max(float(total.value() / total.n), 0.0)
 
     def images(self, **what: bool) -> "FrameImages":
         """`FrameImages` of this frame (`what`: which), made band by band."""
@@ -437,24 +451,22 @@ class Film(PartialFilm):
 # Bands. A frame's images are made band by band: every step from the merged
 # sums to a channel, a PNG pixel or the error statistic is per pixel, so a
 # band of rows gives the whole frame's values bit for bit, and the float64
-# temporaries (the mean, the variance and theirs: about 200 bytes a pixel at
-# once) exist for one band at a time, not for the frame. What remains whole
-# is what is kept: the float32 channels, the 8-bit images, and the two
-# float64 numbers a pixel that the error statistic needs at the end (a
-# percentile over pixels chosen by the frame's mean brightness).
-BAND_PIXELS = 1 << 18
+# temporaries (the mean, the variance and theirs: up to about 500 bytes a
+# pixel at once with a band's sums) exist for one band at a time, not for
+# the frame. What remains whole is what is kept: the float32 channels, the
+# 8-bit images, and the two float64 numbers a pixel that the error statistic
+# needs at the end (a percentile over pixels chosen by the frame's mean
+# brightness). renderer/memory.py counts these bytes.
+BAND_PIXELS = 1 << 16
 
 
 def frame_bands(width: int, height: int, tile: int = 0) -> list[tuple[int, int]]:
-    """Row ranges [y0, y1) of a frame's bands, about BAND_PIXELS each. With
-    `tile` (the job's tile size), bands hold whole rows of tiles where that
-    stays within 4 x BAND_PIXELS, so each tile is read in one piece."""
+    """Row ranges [y0, y1) of a frame's bands, at most BAND_PIXELS each (or
+    one row). With `tile` (the job's tile size) no larger than a band's rows,
+    bands hold whole rows of tiles, so a tile is read in one piece."""
     rows = max(1, BAND_PIXELS // max(width, 1))
-    if tile > 0:
-        if tile <= rows:
-            rows -= rows % tile
-        elif tile <= 4 * rows:
-            rows = tile
+    if 0 < tile <= rows:
+        rows -= rows % tile
     return [(y, min(y + rows, height)) for y in range(0, height, rows)]
 
 

@@ -281,6 +281,10 @@ class LocalPool:
                 with self._changed:
                     self._busy -= 1
                     self._changed.notify_all()
+                # This thread waits for the next unit next: what it no longer
+                # needs must not live on in its frame (the last unit's film
+                # and inputs, hundreds of MB for a large tile).
+                item = future = args = outcome = None
         finally:
             if process is not None:
                 process.stop()

@@ -759,6 +759,10 @@ class Scheduler:
                 if job.units_skipped else range(n_units))
         error = waiting = None
         rel_error = float("nan")
+        # The running frames are not what the result is made of: freed before
+        # the merge makes the frame's channels.
+        self.previews.drop(job_id)
+        self.targets.forget(job_id)
         try:
             try:
                 rel_error = write_result(self.store, job_id, spec, indices, scene=scene,
