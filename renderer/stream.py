@@ -8,7 +8,7 @@ files without the frame's float64 sums in memory.
 `film.merge` adds every unit's film into whole-frame float64 arrays (sums,
 squares, weights, AOVs, splats: 56 to 300 bytes a pixel) and the images
 are made from those. Here the frame is made one band of rows at a time
-(`film.frame_bands`): a band's sums are the units' rows in it added in unit
+(`images.frame_bands`): a band's sums are the units' rows in it added in unit
 order, exactly as `Film.add` adds them (camera tiles at their region, splat
 batches over the whole frame), then `FrameImages` turns the band into its
 rows of the channels, the PNGs and the error statistic, and the band is
@@ -31,8 +31,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .film import (_WIRE_KINDS, _WIRE_MAGIC, AOV_CHANNELS, Film, FrameImages, PartialFilm, _pad,
-                   frame_bands)
+from .film import _WIRE_KINDS, _WIRE_MAGIC, AOV_CHANNELS, Film, PartialFilm, _pad
+from .images import FrameImages, frame_bands
 
 __all__ = ["StoredFilm", "merge_frame"]
 

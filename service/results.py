@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Iterable
 
 from renderer import RenderSpec
-from renderer.film import denoised_channels, tonemap_rows, write_exr, write_png
+from renderer.images import denoised_channels, tonemap_rows, write_exr, write_png
 from renderer.metadata import exr_metadata
 from renderer.stream import merge_frame
 from renderer.target import Target
