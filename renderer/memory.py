@@ -24,13 +24,14 @@ A unit's film (what a render process returns, what the service stores):
 A render process's peak for a unit (beyond its own baseline, the interpreter,
 Numba and the scene, about 220 MB, which no job changes): the film and the
 method's scratch while it renders (the rasterizer's buffers, the splat
-array's square, SPPM's visible points and state), then the film with its
-bytes (`to_bytes`, one copy), then the bytes with the pipe's pickled message
-(pickle's buffer grows past the bytes: 2.5 x the film in all); plus the
-unit's inputs (photon maps, the previous round's state), decoded and as
-bytes; plus `UNIT_BASE` for what every unit allocates whatever its size
-(the sampler's memo, the camera, per-row stacks; a radiosity solve's
-scene-sized arrays).
+array's square, SPPM's visible points and state, each row's scratch), then
+the film with its bytes (`to_bytes`, one copy), then the bytes with the
+pipe's pickled message (pickle's buffer grows by half past the bytes: 2.5 x
+the film in all, measured; 2.6 counted); plus the unit's inputs (photon
+maps, the previous round's state), decoded and as bytes; plus `UNIT_BASE`
+for what every unit allocates whatever its size (the sampler's memo, the
+camera: 2 to 12 MB measured; not a radiosity solve's arrays, which are the
+scene's, not the frame's).
 
 The service, for one job (see service.results, service.previews,
 service.targets), the larger of:
@@ -66,12 +67,14 @@ AOV = AOV_CHANNELS * F64
 SPLAT = 6 * F64  # splat and splat_sq (RGB), per pixel of the frame
 PHOTON_STATE = (1 + 1 + 3 + 3 + 3 + 3 + 1 + AOV_CHANNELS) * F64  # N, r2, tau, ld, s1, s2, M, aov
 PHOTON_VISIBLE = (1 + 4 * 3 + 3 + 3 + 1) * F64 + 4  # a gather's visible points and sums
+PHOTON_TEMPS = 24 * F64  # a gather's estimate films and the arithmetic making them
 PHOTON_RECORD = 3 * 3 * F32 + 4  # position, direction, power (float32), hit count (int32)
 PHOTON_GATHERED = 3 * 3 * F64 + 4 + 9 * F64  # a gathered photon as float64, and its grid cell
 RASTER_SCRATCH = 4 * F64 + (6 + AOV_CHANNELS) * F64  # sample x/y, z, ids; a block's sums
-SERIALIZED = 2.5  # a film's peak while it becomes bytes and a pipe message (module doc)
+ROW_SCRATCH = 32 << 10  # a unit's row: the path tracer's packet lanes and ring (29 KB), a BVH stack
+SERIALIZED = 2.6  # a film's peak while it becomes bytes and a pipe message (module doc)
 LANDED = 3  # a landed film in the service: the message, its bytes, the decoded film
-UNIT_BASE = 64 << 20  # what every unit allocates whatever its size (module doc)
+UNIT_BASE = 16 << 20  # what every unit allocates whatever its size (module doc)
 ERROR = 2 * F64 + F64 + 1  # the statistic's level and error; the counted copy and mask
 IMAGES = 2 * 3  # the preview's and the noise map's 8-bit RGB
 PNG_ENCODE = 4  # PIL's RGBX copy of an image it encodes
@@ -113,7 +116,7 @@ def job_memory(spec: RenderSpec, *, progressive: bool = False, target: bool = Fa
                denoise: bool = False) -> JobMemory:
     """The bytes a job of `spec` holds (module doc). `target`: a noise-target
     job (tiles x canonical-block passes up to spec.spp, its max_spp)."""
-    from .plan import largest_unit_pixels
+    from .plan import largest_unit
 
     method = METHODS[spec.method]
     options = method.check_options(spec.options)
@@ -131,8 +134,9 @@ def job_memory(spec: RenderSpec, *, progressive: bool = False, target: bool = Fa
     # the largest unit: (region pixels, film bytes, scratch while it renders,
     # inputs, and the part of them a smaller tile would not shrink)
     region, frame_film, scratch, inputs, frame_part = 0, 0, 0, 0, 0
+    rows = min(spec.tile_size, spec.height)  # the tallest unit's rows
     if method.family in ("tile", "radiosity"):
-        region = largest_unit_pixels(spec, progressive or target, small_passes=target)
+        region, rows = largest_unit(spec, progressive or target, small_passes=target)
         if method.name == "raster":
             scratch = region * RASTER_SCRATCH
     elif method.name == "bdpt":
@@ -160,9 +164,11 @@ def job_memory(spec: RenderSpec, *, progressive: bool = False, target: bool = Fa
             inputs = (2 * rounds * photons * PHOTON_RECORD + photons * PHOTON_GATHERED
                       + 2 * region * PHOTON_STATE)
             camera += PHOTON_STATE  # the state rides on the gather film
-            scratch = region * (PHOTON_VISIBLE + PHOTON_STATE + CAMERA + AOV)
+            scratch = region * (PHOTON_VISIBLE + PHOTON_STATE + CAMERA + AOV + PHOTON_TEMPS)
         frame_part = inputs
     unit_film = region * camera + frame_film
+    if region:
+        scratch += rows * ROW_SCRATCH
     unit = (UNIT_BASE + inputs
             + math.ceil(max(unit_film + scratch, SERIALIZED * unit_film)))
     frame_part += math.ceil(SERIALIZED * frame_film)
