@@ -2,7 +2,8 @@
 is the layout's bytes (camera sums, AOVs, jackknife sums, whole-frame
 splats, SPPM's state), and what a render process allocates for a unit grows
 with its pixels no faster than the figure for it (tracemalloc: numpy
-reports its arrays), and not a lot slower either."""
+reports its arrays), and not a lot slower either. A local pool keeps no
+film it handed over."""
 
 from __future__ import annotations
 
@@ -72,3 +73,27 @@ def test01_a_units_film_and_peak_follow_the_layout(method, cornell):
     (p1, u1, n1), (p2, u2, n2) = measured[48], measured[96]
     grows, figured = (p2 - p1) / (n2 - n1), (u2 - u1) / (n2 - n1)
     assert grows <= figured <= 4 * grows + 64, (grows, figured)  # bytes a pixel
+
+
+def test02_a_pool_keeps_no_film_it_handed_over():
+    """The slot thread that received a unit's film waits for the next unit
+    without it (it used to keep the last film and inputs: a 2048^2 tile's
+    470 MB stayed in the service after its job)."""
+    import gc
+
+    from renderer import LocalPool, plan, resolve_document
+    from renderer.runtime import scene_text
+
+    spec = RenderSpec(method="raster", width=512, height=512, tile_size=512, spp=1, depth=1)
+    key, text = scene_text(resolve_document("cornell-box"))
+    with LocalPool(1) as pool:
+        tracemalloc.start()
+        try:
+            future = pool.submit(key, text, spec.to_dict(), plan(spec)[0].to_dict())
+            size = len(future.result(timeout=300))
+            del future
+            gc.collect()
+            held = tracemalloc.get_traced_memory()[0]
+        finally:
+            tracemalloc.stop()
+    assert size > 20_000_000 and held < size // 4, (size, held)
