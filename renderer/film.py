@@ -215,10 +215,12 @@ class PartialFilm:
         return PartialFilm._wire_header(data)[0]["stats"]
 
     @classmethod
-    def from_bytes(cls, data: bytes) -> "PartialFilm":
+    def from_bytes(cls, data: bytes, copy: bool = True) -> "PartialFilm":
         """The film `to_bytes` wrote (or the npz of rayfarm before the wire
         format, so a store written by it still merges). Raises ValueError on
-        bytes that are not a whole film."""
+        bytes that are not a whole film. `copy=False`: its arrays are
+        read-only views into `data` (no second copy of a film that is only
+        read)."""
         if data[:2] == b"PK":
             return cls._from_npz(data)
         header, offset = cls._wire_header(data)
@@ -231,7 +233,8 @@ class PartialFilm:
             nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
             if offset + nbytes > len(data):
                 raise ValueError(f"film bytes cut short in array {name!r}")
-            arrays[name] = np.frombuffer(view[offset:offset + nbytes], dt).reshape(shape).copy()
+            a = np.frombuffer(view[offset:offset + nbytes], dt).reshape(shape)
+            arrays[name] = a.copy() if copy else a
             offset += nbytes + _pad(nbytes)
         x0, y0 = (int(v) for v in header["origin"])
         film = cls(x0, y0, arrays["sum"], arrays["sum_sq"], arrays["weight"], header["stats"])

@@ -3,8 +3,8 @@ admission (service.admission) checks against a role's limits.
 
     mem = job_memory(RenderSpec(method="bdpt", width=2048, height=2048, tile_size=64))
     mem.unit                  # bytes a render process holds for the job's largest unit
-    mem.service(processes=8)  # bytes the service holds for the job at once
-    mem.total(processes=8)    # both: the service and a unit in each of 8 render processes
+    mem.service(processes=8, waiting=128)  # bytes the service holds for the job at once
+    mem.total(processes=8, waiting=128)    # and a unit in each of 8 render processes
 
 A pure function of the request (spec, progressive, target, denoise): no
 scene, no plan built. Each term is a layer of renderer/film.py's contract
@@ -37,9 +37,12 @@ The service, for one job (see service.results, service.previews,
 service.targets), the larger of:
 - while units land: the running preview frame (float32, every layer of
   the film: 28 bytes a pixel and up), a progressive tile job's pass frame
-  (float64 camera sums: 56), a preview write's channels and PNG, and each
-  landed unit's film three times over (the pipe's message, its bytes, the
-  decoded film), for as many units as render processes;
+  (float64 camera sums: 56), a preview write's channels and PNG, the films
+  of the units finished and not yet collected (as bytes; the landed film
+  the service reads is a view of them), as many as the executor keeps in
+  flight (up to 16 a render process for short units: 64 light-tracing
+  batches of 1024^2 pixels held 0.75 GB), and the pipe's message of each
+  film a render process is handing over;
 - the merge (renderer.stream): the float32 channels (28 or 56 bytes a
   pixel), the preview and noise PNGs' pixels (6), the error statistic's two
   float64 a pixel and its percentile's copy (25), PIL's copy while a PNG
@@ -73,7 +76,6 @@ PHOTON_GATHERED = 3 * 3 * F64 + 4 + 9 * F64  # a gathered photon as float64, and
 RASTER_SCRATCH = 4 * F64 + (6 + AOV_CHANNELS) * F64  # sample x/y, z, ids; a block's sums
 ROW_SCRATCH = 32 << 10  # a unit's row: the path tracer's packet lanes and ring (29 KB), a BVH stack
 SERIALIZED = 2.6  # a film's peak while it becomes bytes and a pipe message (module doc)
-LANDED = 3  # a landed film in the service: the message, its bytes, the decoded film
 UNIT_BASE = 16 << 20  # what every unit allocates whatever its size (module doc)
 ERROR = 2 * F64 + F64 + 1  # the statistic's level and error; the counted copy and mask
 IMAGES = 2 * 3  # the preview's and the noise map's 8-bit RGB
@@ -96,14 +98,16 @@ class JobMemory:
     frames: int
     merge: int
 
-    def service(self, processes: int) -> int:
+    def service(self, processes: int, waiting: int | None = None) -> int:
         """The service's peak for the job with `processes` render processes
-        landing units at once."""
-        return max(self.frames + processes * LANDED * self.unit_film, self.merge)
+        handing films over and `waiting` finished units' films not yet
+        collected (default: one a process)."""
+        waiting = processes if waiting is None else waiting
+        return max(self.frames + (waiting + processes) * self.unit_film, self.merge)
 
-    def total(self, processes: int) -> int:
+    def total(self, processes: int, waiting: int | None = None) -> int:
         """The service's peak plus a unit in each of `processes` render processes."""
-        return self.service(processes) + processes * self.unit
+        return self.service(processes, waiting) + processes * self.unit
 
 
 def _photon_records(spec: RenderSpec) -> int:

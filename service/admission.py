@@ -45,6 +45,11 @@ from .settings import Settings
 __all__ = ["limits_for", "check_job", "check_memory", "job_plan", "planned_units", "unit_floor", "admit_job", "count_active_jobs", "RateLimiter",
            "check_submission_rate", "check_upload_rate", "ACTIVE_JOBS_RETRY_AFTER"]
 
+# Finished units whose films may wait in the service to be collected, per
+# render process: what the local executor keeps in flight for short units
+# (LocalExecutor.MAX_AHEAD; Celery's prefetch keeps fewer).
+IN_FLIGHT_PER_PROCESS = 16
+
 # Retry-After of a refusal for too many active jobs: a hint, since nobody knows
 # when one of them finishes (or is canceled).
 ACTIVE_JOBS_RETRY_AFTER = 30.0
@@ -139,14 +144,17 @@ def _frame_field(spec: RenderSpec) -> str:
 
 
 def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progressive: bool,
-                 target: Target | None = None, denoise: bool = False) -> JobMemory:
+                 target: Target | None = None, denoise: bool = False,
+                 units: int | None = None) -> JobMemory:
     """Refuse a job too big to hold for the actor's role (`InvalidRequest`):
     more pixels than `max_pixels_per_job` (on `width` or `height`); a work
     unit whose render process would hold more than `max_unit_bytes` (on
     `tile_size` with the largest tile that fits, or on the frame when
     whole-frame layers alone exceed it: splats, photon maps); a job that
     would hold more than `max_job_bytes` with a unit in every render process
-    (`local_workers`) and the service's share. The bytes are
+    (`local_workers`) and the service's share, with as many of its `units`
+    (its planned units, or a lower bound; default: one a process) finished
+    and waiting to be collected as the executor keeps in flight. The bytes are
     renderer.memory's; returns them."""
     limits = limits_for(settings, actor)
     pixels = spec.width * spec.height
@@ -182,14 +190,15 @@ def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progres
                                  "splats, photon maps): render fewer pixels")
         raise InvalidRequest("tile_size", f"{what}; use tile_size <= {tile}")
     processes = settings.local_workers
-    total = mem.total(processes)
+    waiting = processes if units is None else min(units, processes * IN_FLIGHT_PER_PROCESS)
+    total = mem.total(processes, waiting)
     if total > limits.max_job_bytes:
         setting = _setting(actor, "max_job_bytes")
         what = (f"this job would hold about {_mb(total)} at once (the service "
-                f"{_mb(mem.service(processes))}, {processes} render processes "
+                f"{_mb(mem.service(processes, waiting))}, {processes} render processes "
                 f"{_mb(mem.unit)} each), above the {actor.role} limit of "
                 f"{_mb(limits.max_job_bytes)} per job ({setting})")
-        tile = largest_tile(lambda m: m.total(processes) <= limits.max_job_bytes)
+        tile = largest_tile(lambda m: m.total(processes, waiting) <= limits.max_job_bytes)
         if tile is None:
             raise InvalidRequest(_frame_field(spec), f"{what}: render fewer pixels")
         raise InvalidRequest("tile_size", f"{what}; use tile_size <= {tile}")
@@ -200,9 +209,11 @@ def admit_job(session: Session, settings: Settings, actor: Principal, spec: Rend
               progressive: bool, target: Target | None = None, denoise: bool = False) -> int:
     """Every admission check of a job, cheapest first; returns its planned
     units. A target job is checked at its budget (spp = max_spp)."""
-    check_memory(settings, actor, spec, progressive, target, denoise)
-    check_job(settings, actor, spec, units=unit_floor(spec, progressive, target), active_jobs=0)
+    floor = unit_floor(spec, progressive, target)
+    check_memory(settings, actor, spec, progressive, target, denoise, units=floor)
+    check_job(settings, actor, spec, units=floor, active_jobs=0)
     units = planned_units(spec, progressive, target)
+    check_memory(settings, actor, spec, progressive, target, denoise, units=units)
     check_job(settings, actor, spec, units=units,
               active_jobs=count_active_jobs(session, actor.user))
     return units

@@ -577,7 +577,7 @@ class Scheduler:
         """Apply one observation to a unit; returns True if the job failed."""
         if obs.state == "done":
             try:
-                film = PartialFilm.from_bytes(obs.film)
+                film = PartialFilm.from_bytes(obs.film, copy=False)  # read only: views
             except Exception as exc:  # a corrupt result is a failed attempt
                 obs = Observation("failed", error=f"unreadable partial film: {exc}")
             else:
