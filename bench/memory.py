@@ -17,7 +17,10 @@ job is submitted and waited for, and read back from /proc:
 - service rise: the service's VmHWM after the job minus its VmRSS before;
 - service kept: its VmRSS 3 s after the job minus the same;
 - render: the render process's VmHWM during the job minus its VmRSS before
-  (the largest over the render processes).
+  (the largest over the render processes);
+
+and, where the checkout has renderer/memory.py, its figures for the job
+(the service's share with --workers processes, a unit's render process).
 
 To measure another checkout (the code before a change), run this file from
 that checkout's directory with its `rayfarm` on the path (`--rayfarm`), e.g.
@@ -152,6 +155,20 @@ def run_job(rayfarm: str, body: dict, workers: int, env_extra: dict) -> dict:
             server.wait()
 
 
+def predicted(body: dict, workers: int) -> dict:
+    """renderer.memory's figures for the job (a checkout without it: none)."""
+    try:
+        from renderer import METHODS, RenderSpec
+        from renderer.memory import job_memory
+    except ImportError:
+        return {}
+    spec = RenderSpec(**{k: v for k, v in body.items() if k not in ("scene", "progressive")})
+    units = len(METHODS[spec.method].make_plan(spec, body["progressive"]))
+    mem = job_memory(spec, progressive=body["progressive"])
+    return {"predicted_unit": mem.unit,
+            "predicted_service": mem.service(workers, min(units, 16 * workers))}
+
+
 def name_of(job: dict) -> str:
     return f"{job['method']} {job['width']}x{job['height']} tile {job['tile_size']} spp {job['spp']}"
 
@@ -174,10 +191,13 @@ def main() -> None:
     results = []
     for text in args.jobs:
         result = run_job(args.rayfarm, parse_job(text), args.workers, env)
+        result.update(predicted(result["job"], args.workers))
         results.append(result)
+        figures = (f" (renderer.memory: service {mb(result['predicted_service'])}, unit "
+                   f"{mb(result['predicted_unit'])})" if "predicted_unit" in result else "")
         print(f"{name_of(result['job'])}: {result['status']} in {result['seconds']} s; service "
               f"+{mb(result['service_rise'])} peak, +{mb(result['service_kept'])} kept; "
-              f"render process +{mb(result['render_rise'])}"
+              f"render process +{mb(result['render_rise'])}{figures}"
               + (f" ({result['error'][:200]})" if result["status"] != "done" else ""),
               flush=True)
     if args.save:

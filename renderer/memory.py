@@ -27,11 +27,11 @@ method's scratch while it renders (the rasterizer's buffers, the splat
 array's square, SPPM's visible points and state, each row's scratch), then
 the film with its bytes (`to_bytes`, one copy), then the bytes with the
 pipe's pickled message (pickle's buffer grows by half past the bytes: 2.5 x
-the film in all, measured; 2.6 counted); plus the unit's inputs (photon
-maps, the previous round's state), decoded and as bytes; plus `UNIT_BASE`
-for what every unit allocates whatever its size (the sampler's memo, the
-camera: 2 to 12 MB measured; not a radiosity solve's arrays, which are the
-scene's, not the frame's).
+the film in all traced, a little more resident; 2.75 counted); plus the
+unit's inputs (photon maps, the previous round's state), decoded and as
+bytes; plus `UNIT_BASE` for what every unit allocates whatever its size
+(the sampler's memo, the camera: 2 to 12 MB measured; not a radiosity
+solve's arrays, which are the scene's, not the frame's).
 
 The service, for one job (see service.results, service.previews,
 service.targets), the larger of:
@@ -75,7 +75,7 @@ PHOTON_RECORD = 3 * 3 * F32 + 4  # position, direction, power (float32), hit cou
 PHOTON_GATHERED = 3 * 3 * F64 + 4 + 9 * F64  # a gathered photon as float64, and its grid cell
 RASTER_SCRATCH = 4 * F64 + (6 + AOV_CHANNELS) * F64  # sample x/y, z, ids; a block's sums
 ROW_SCRATCH = 32 << 10  # a unit's row: the path tracer's packet lanes and ring (29 KB), a BVH stack
-SERIALIZED = 2.6  # a film's peak while it becomes bytes and a pipe message (module doc)
+SERIALIZED = 2.75  # a film's peak while it becomes bytes and a pipe message (module doc)
 UNIT_BASE = 16 << 20  # what every unit allocates whatever its size (module doc)
 ERROR = 2 * F64 + F64 + 1  # the statistic's level and error; the counted copy and mask
 IMAGES = 2 * 3  # the preview's and the noise map's 8-bit RGB
