@@ -27,9 +27,10 @@ Frames are float32, every layer of them (28 bytes a pixel, 56 with AOVs,
 more with splats or jackknife sums), and kept up to `PREVIEW_BYTES` in all
 (jobs interleave, so every running job's frame is in use); beyond that the
 one cheapest to rebuild goes. A write makes its images band by band
-(`renderer.Film.images`): its float64 temporaries are a band's. A frame missing after a restart or an eviction is rebuilt from
-the stored films of the done units, at most once per `PREVIEW_INTERVAL` per
-job (a rebuild reads every done unit). The order of addition does not matter
+(`renderer.Film.images`): its float64 temporaries are a band's. A frame
+missing after a restart or an eviction is rebuilt from the stored films of
+the done units, at most once per `PREVIEW_INTERVAL` per job (a rebuild
+reads every done unit). The order of addition does not matter
 for a preview; the final EXR is merged from the stored films in unit order
 (`service.results`).
 """

@@ -169,3 +169,24 @@ def test05_the_merge_holds_what_the_layout_says_a_fraction_of_the_whole_frame_me
     assert banded < bound, (banded / pixels, bound / pixels)
     assert whole > bound, (whole / pixels, bound / pixels)
     assert set(AOV_LAYERS) <= set(images.read_exr(tmp_path / "result.exr")[0])
+
+
+def test06_a_regions_statistic_is_the_whole_frames_there(cornell, monkeypatch):
+    """A noise target's decisions read each unit's region of the frame
+    (`Film.region`) against the frame's floor (`Film.error_floor`, band by
+    band): the values the whole frame's mean and variance give."""
+    from renderer.film import error_floor
+
+    monkeypatch.setattr(images, "BAND_PIXELS", 40)
+    monkeypatch.setattr(images, "_PAIRWISE_LEAF", 136)
+    spec = RenderSpec(method="bdpt", width=30, height=22, tile_size=8, spp=3, depth=3).validate()
+    film = merge(spec.width, spec.height, run_plan(cornell, spec))
+    mean, var = film.mean(), film.variance_of_mean()
+    floor = error_floor(mean)
+    assert film.error_floor() == floor
+    for x0, y0, x1, y1 in ((0, 0, 8, 8), (8, 16, 16, 22), (24, 8, 30, 16), (0, 0, 30, 22)):
+        region = film.region(x0, y0, x1, y1)
+        assert np.array_equal(region.mean(), mean[y0:y1, x0:x1])
+        assert np.array_equal(region.variance_of_mean(), var[y0:y1, x0:x1])
+        assert (image_error(region.mean(), region.variance_of_mean(), floor)
+                == image_error(mean[y0:y1, x0:x1], var[y0:y1, x0:x1], floor))
