@@ -183,7 +183,7 @@ class PartialFilm:
             a = np.asarray(value)
             if a.dtype.kind not in _WIRE_KINDS:
                 raise TypeError(f"film array {name!r} has dtype {a.dtype}, not a number type")
-            a = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
+            a = a.astype(a.dtype.newbyteorder("<"), order="C", copy=False)
             header["arrays"].append([name, a.dtype.str, list(a.shape)])
             # the array's own memory, not a copy of it: the join below is the
             # one copy (a tile of 1024^2 pixels with AOVs is 117 MB)
