@@ -24,21 +24,27 @@ import numpy as np
 
 from .film import Film
 
-__all__ = ["denoise_film", "denoiser_version"]
+__all__ = ["denoise_film", "denoise_images", "denoiser_version"]
 
 
 def denoise_film(film: Film) -> np.ndarray:
     """The film's beauty denoised by OIDN's RT filter (quality "high"), float32
     (h, w, 3); non-finite pixels (no sample yet) are passed as black."""
+    images = film.images(denoise=True)
+    return denoise_images(images.color, images.channels)
+
+
+def denoise_images(color: np.ndarray, channels: dict[str, np.ndarray]) -> np.ndarray:
+    """`denoise_film` of a frame given as its `FrameImages` parts (a merge
+    made band by band: renderer.stream): `color`, the finite beauty as
+    float32 (h, w, 3), and the float32 `channels`, whose albedo and normal
+    AOVs guide the filter where the method wrote them."""
     import pyoidn
 
-    color = np.ascontiguousarray(np.nan_to_num(film.mean(), nan=0.0, posinf=0.0, neginf=0.0),
-                                 dtype=np.float32)
     albedo = normal = None
-    if film.aov is not None:
-        aovs = film.aovs()
-        albedo = np.stack([aovs[f"albedo.{c}"] for c in "RGB"], axis=-1).astype(np.float32)
-        normal = np.stack([aovs[f"normal.{c}"] for c in "XYZ"], axis=-1).astype(np.float32)
+    if "albedo.R" in channels:
+        albedo = np.stack([channels[f"albedo.{c}"] for c in "RGB"], axis=-1).astype(np.float32)
+        normal = np.stack([channels[f"normal.{c}"] for c in "XYZ"], axis=-1).astype(np.float32)
         albedo = np.ascontiguousarray(np.clip(albedo, 0.0, 1.0))
         normal = np.ascontiguousarray(np.clip(normal, -1.0, 1.0))
     return pyoidn.denoise(np.maximum(color, 0.0), albedo, normal, hdr=True, quality="high")

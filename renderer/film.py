@@ -1,4 +1,5 @@
-"""Partial films, their merge, and the finished film's images (EXR, PNG).
+"""Partial films, their merge, and the finished film's estimates (its images,
+EXR and PNG, are renderer/images.py).
 
 A work unit returns a `PartialFilm` over its region: per pixel the sum of
 sample values, the sum of their squares and the sample weight (with filter
@@ -69,25 +70,25 @@ so a unit's good result could fail as "unreadable". JSON has no such state.
 
 from __future__ import annotations
 
-import importlib.metadata
 import io
 import json
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
 
+from .images import (AOV_CHANNELS, AOV_LAYERS, ERROR_LEVEL, NOISE_COLORMAP, NOISE_RANGE,  # noqa: F401
+                     NOISE_UNKNOWN, FrameImages, _PairwiseSum, channel_layers, denoised_channels,
+                     error_floor, frame_bands, image_error, noise_srgb8, read_exr, relative_error,
+                     rgb_of, tonemap_rows, tonemap_srgb8, write_exr, write_png)
+
+# The image functions and constants are renderer.images'; their names here
+# stay for the code that imports them from the film.
 __all__ = ["PartialFilm", "Film", "sample_blocks", "merge", "read_exr", "tonemap_srgb8",
            "relative_error", "error_floor", "image_error", "noise_srgb8", "NOISE_RANGE", "NOISE_COLORMAP",
            "AOV_LAYERS", "AOV_CHANNELS"]
 
-# The AOV channels a film's `aov` sums, in order, and the EXR channels their
-# means are written as: "layer.channel", the convention tev, Nuke and
-# Blender's compositor show as layers (Nuke's own depth layer is depth.Z).
-AOV_LAYERS = ("albedo.R", "albedo.G", "albedo.B", "normal.X", "normal.Y", "normal.Z", "depth.Z")
-AOV_CHANNELS = len(AOV_LAYERS)
 
 # Block sizes grow 1, 1, 2, 4, ... (pbrt-v4's doubling waves) up to this cap.
 MAX_BLOCK = 64
@@ -182,9 +183,11 @@ class PartialFilm:
             a = np.asarray(value)
             if a.dtype.kind not in _WIRE_KINDS:
                 raise TypeError(f"film array {name!r} has dtype {a.dtype}, not a number type")
-            a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+            a = a.astype(a.dtype.newbyteorder("<"), order="C", copy=False)
             header["arrays"].append([name, a.dtype.str, list(a.shape)])
-            blobs.append(a.tobytes())
+            # the array's own memory, not a copy of it: the join below is the
+            # one copy (a tile of 1024^2 pixels with AOVs is 117 MB)
+            blobs.append(memoryview(a.reshape(-1)).cast("B") if a.size else b"")
         head = json.dumps(header, allow_nan=True).encode()
         out = [_WIRE_MAGIC, len(head).to_bytes(4, "little"), head, b"\0" * _pad(len(head) + 12)]
         for blob in blobs:
@@ -212,10 +215,12 @@ class PartialFilm:
         return PartialFilm._wire_header(data)[0]["stats"]
 
     @classmethod
-    def from_bytes(cls, data: bytes) -> "PartialFilm":
+    def from_bytes(cls, data: bytes, copy: bool = True) -> "PartialFilm":
         """The film `to_bytes` wrote (or the npz of rayfarm before the wire
         format, so a store written by it still merges). Raises ValueError on
-        bytes that are not a whole film."""
+        bytes that are not a whole film. `copy=False`: its arrays are
+        read-only views into `data` (no second copy of a film that is only
+        read)."""
         if data[:2] == b"PK":
             return cls._from_npz(data)
         header, offset = cls._wire_header(data)
@@ -228,7 +233,8 @@ class PartialFilm:
             nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize
             if offset + nbytes > len(data):
                 raise ValueError(f"film bytes cut short in array {name!r}")
-            arrays[name] = np.frombuffer(view[offset:offset + nbytes], dt).reshape(shape).copy()
+            a = np.frombuffer(view[offset:offset + nbytes], dt).reshape(shape)
+            arrays[name] = a.copy() if copy else a
             offset += nbytes + _pad(nbytes)
         x0, y0 = (int(v) for v in header["origin"])
         film = cls(x0, y0, arrays["sum"], arrays["sum_sq"], arrays["weight"], header["stats"])
@@ -334,9 +340,45 @@ class Film(PartialFilm):
             out = out + np.where(n > 0, (j - 1.0) / j * spread, 0.0)
         return out
 
+    def band(self, y0: int, y1: int) -> "Film":
+        """This frame's rows [y0, y1) as a Film of views into its arrays, with
+        the frame's splat counts (see BAND_PIXELS)."""
+        return self.region(0, y0, self.width, y1)
+
+    def region(self, x0: int, y0: int, x1: int, y1: int) -> "Film":
+        """The pixels [x0, x1) x [y0, y1) of this frame as a Film of views
+        into its arrays, with the frame's splat counts: its `mean()` and
+        `variance_of_mean()` are those of the frame there, bit for bit."""
+        rows, cols = slice(y0, y1), slice(x0, x1)
+
+        def part(a):
+            return None if a is None else a[rows, cols]
+
+        return Film(self.x0 + x0, self.y0 + y0, self.sum[rows, cols], self.sum_sq[rows, cols],
+                    self.weight[rows, cols], self.stats, splat=part(self.splat),
+                    splat_sq=part(self.splat_sq), splat_paths=self.splat_paths,
+                    splat_batches=self.splat_batches,
+                    splat_scale_rel_var=self.splat_scale_rel_var, artefact=self.artefact,
+                    aov=part(self.aov), jackknife=part(self.jackknife))
+
+    def error_floor(self) -> float:
+        """`error_floor` of this frame's mean, band by band (the same value)."""
+        total = _PairwiseSum(3 * self.width * self.height)
+        for y0, y1 in frame_bands(self.width, self.height):
+            total.add(self.band(y0, y1).mean().reshape(-1))
+        return ERROR_LEVEL * max(float(total.value() / total.n), 0.0)
+
+    def images(self, **what: bool) -> "FrameImages":
+        """`FrameImages` of this frame (`what`: which), made band by band."""
+        images = FrameImages(self.width, self.height, aov=self.aov is not None, **what)
+        for y0, y1 in frame_bands(self.width, self.height):
+            images.add(y0, self.band(y0, y1))
+        return images.finish()
+
     def image_error(self) -> float:
-        """`image_error` of this frame's mean and variance."""
-        return image_error(self.mean(), self.variance_of_mean())
+        """`image_error` of this frame's mean and variance (the same value,
+        made band by band: `FrameImages`)."""
+        return self.images(channels=False, error=True).rel_error
 
     def aovs(self) -> dict[str, np.ndarray]:
         """The AOVs' per-pixel means by EXR channel name (AOV_LAYERS; empty for
@@ -357,18 +399,22 @@ class Film(PartialFilm):
         self.sum[ys, xs] += part.sum
         self.sum_sq[ys, xs] += part.sum_sq
         self.weight[ys, xs] += part.weight
+        # Layers a part brings are added in the frame's own precision (a
+        # running preview's frame is float32: service.previews)
+        dtype = self.sum.dtype
         if part.aov is not None:
             if self.aov is None:
-                self.aov = np.zeros((self.height, self.width, AOV_CHANNELS))
+                self.aov = np.zeros((self.height, self.width, AOV_CHANNELS), dtype)
             self.aov[ys, xs] += part.aov
         if part.jackknife is not None:
             if self.jackknife is None:
-                self.jackknife = np.zeros((self.height, self.width) + part.jackknife.shape[2:])
+                self.jackknife = np.zeros((self.height, self.width) + part.jackknife.shape[2:],
+                                          dtype)
             self.jackknife[ys, xs] += part.jackknife
         if part.splat is not None:
             if self.splat is None:
-                self.splat = np.zeros((self.height, self.width, 3))
-                self.splat_sq = np.zeros((self.height, self.width, 3))
+                self.splat = np.zeros((self.height, self.width, 3), dtype)
+                self.splat_sq = np.zeros((self.height, self.width, 3), dtype)
             self.splat += part.splat
             self.splat_sq += part.splat_sq
             self.splat_paths += part.splat_paths
@@ -380,162 +426,35 @@ class Film(PartialFilm):
 
     def write_exr(self, path: str | Path, metadata: dict | None = None,
                   denoised: np.ndarray | None = None) -> None:
-        """Write float32 R, G, B (mean radiance), var.R/G/B (variance of the
-        mean), the AOVs (`aovs`: samples.Y, and albedo, normal and depth where
-        the method made them), with `metadata` as `rayfarm.<key>` header attributes (see
-        renderer.metadata: strings, 32-bit ints, floats; anything else as
-        JSON) and the standard `software`, `capDate` and `utcOffset`; given
-        `denoised` (h, w, 3: renderer.denoise), also denoised.R/G/B beside the
-        raw beauty, which stays as it is."""
-        import OpenEXR
-
-        channels = self.channels(denoised)
-        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-                  "software": f"rayfarm {_version()}",
-                  "capDate": datetime.now(timezone.utc).strftime("%Y:%m:%d %H:%M:%S"),
-                  "utcOffset": 0.0}
-        for key, value in (metadata or {}).items():
-            header[f"rayfarm.{key}"] = _exr_attribute(key, value)
-        path = Path(path)
-        tmp = path.with_name(path.name + ".part")
-        with OpenEXR.File(header, channels) as exr:
-            exr.write(str(tmp))
-        tmp.replace(path)  # readers never see a half-written file
+        """`write_exr` of this frame's `channels` (with `denoised`, its
+        denoised beauty, beside the raw one)."""
+        write_exr(path, self.channels(denoised), metadata)
 
     def channels(self, denoised: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """The float32 (h, w) channels `write_exr` writes, by EXR name."""
-        mean = self.mean().astype(np.float32)
-        var = self.variance_of_mean().astype(np.float32)
-        channels = {"R": mean[..., 0].copy(), "G": mean[..., 1].copy(), "B": mean[..., 2].copy(),
-                    "var.R": var[..., 0].copy(), "var.G": var[..., 1].copy(),
-                    "var.B": var[..., 2].copy()}
-        channels.update({name: np.ascontiguousarray(a, dtype=np.float32)
-                         for name, a in self.aovs().items()})
+        """The float32 (h, w) channels `write_exr` writes, by EXR name: R, G, B
+        (mean radiance), var.R/G/B (variance of the mean), the AOVs (`aovs`:
+        samples.Y, and albedo, normal and depth where the method made them),
+        and given `denoised` (h, w, 3: renderer.denoise) denoised.R/G/B."""
+        channels = self.images().channels
         if denoised is not None:
-            channels.update({f"denoised.{c}": np.ascontiguousarray(denoised[..., i],
-                                                                   dtype=np.float32)
-                             for i, c in enumerate("RGB")})
+            channels.update(denoised_channels(denoised))
         return channels
 
     def write_png(self, path: str | Path, rgb: np.ndarray | None = None) -> None:
         """Write a tonemapped sRGB preview (exposure 1, clamped) of the film,
         or of `rgb` (its denoised beauty) if given."""
-        from PIL import Image
-
-        path = Path(path)
-        tmp = path.with_name(path.name + ".part")
-        # compress_level 1: previews are rewritten while a job renders; zlib's
-        # default level 6 takes longer for files about as small
-        image = tonemap_srgb8(self.mean() if rgb is None else rgb)
-        Image.fromarray(image).save(tmp, format="PNG", compress_level=1)
-        tmp.replace(path)
+        write_png(path, self.images(channels=False, preview=True).preview if rgb is None
+                  else tonemap_rows(rgb))
 
     def write_noise_png(self, path: str | Path) -> None:
         """Write the per-pixel noise heatmap (`noise_srgb8`) of this film."""
-        from PIL import Image
-
-        path = Path(path)
-        tmp = path.with_name(path.name + ".part")
-        Image.fromarray(noise_srgb8(self.mean(), self.variance_of_mean())).save(
-            tmp, format="PNG", compress_level=1)
-        tmp.replace(path)
-
-
-def tonemap_srgb8(rgb: np.ndarray) -> np.ndarray:
-    """Linear radiance -> 8-bit sRGB (clamp to [0, 1], sRGB transfer curve)."""
-    x = np.clip(np.nan_to_num(rgb, nan=0.0, posinf=1.0), 0.0, 1.0)
-    s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return (s * 255.0 + 0.5).astype(np.uint8)
-
-
-# The noise heatmap shows the relative standard error on a log scale from
-# NOISE_RANGE[0] (darkest) to NOISE_RANGE[1] (brightest) through an
-# inferno-like colormap (stops at 0, 1/8, ..., 1); pixels whose variance is
-# not known yet (fewer than two samples) are grey.
-NOISE_RANGE = (1e-3, 1.0)
-NOISE_COLORMAP = np.array([(0, 0, 4), (31, 12, 72), (85, 15, 109), (136, 34, 106),
-                           (186, 54, 85), (227, 89, 51), (249, 140, 10), (249, 201, 50),
-                           (252, 255, 164)], dtype=np.float64)
-NOISE_UNKNOWN = (128, 128, 128)
-ERROR_FLOOR = 1e-3  # radiance below which a pixel counts as black (avoids 0/0)
-
-
-def relative_error(mean: np.ndarray, variance_of_mean: np.ndarray) -> np.ndarray:
-    """Per-pixel relative standard error of the estimate (h, w): the standard
-    error of the channel average over the channel average,
-    sqrt(mean_c var_c) / max(mean_c mu_c, ERROR_FLOOR). +inf where the
-    variance is unknown. (Channels are treated as independent here; they are
-    correlated, so this is a display measure, not a confidence interval.)"""
-    var = _channel_mean(variance_of_mean)
-    level = np.maximum(_channel_mean(mean), ERROR_FLOOR)
-    with np.errstate(invalid="ignore"):
-        return np.where(np.isfinite(var), np.sqrt(np.maximum(var, 0.0)) / level, np.inf)
+        write_png(path, self.images(channels=False, noise=True).noise)
 
 
 def _per_channel(weight: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """The per-pixel `weight` (h, w) repeated over the channels of `shape`
     (h, w, c), contiguous (see `Film.variance_of_mean`)."""
     return np.repeat(weight[..., None], shape[-1], axis=-1)
-
-
-def _channel_mean(x: np.ndarray) -> np.ndarray:
-    """`np.mean(x, axis=-1)` of RGB pixels, the same bits (the sum of a row of
-    three adds them in order, then divides by 3) at a tenth of its time: a
-    reduction over an axis of three pays numpy's per-row overhead (0.76 ms
-    against 0.06 ms for 256 x 256 pixels; `image_error` of such a frame, run
-    on every pass of a progressive job by the service, took 5 to 8 ms)."""
-    if x.shape[-1] != 3:
-        return np.mean(x, axis=-1)
-    return (x[..., 0] + x[..., 1] + x[..., 2]) / 3.0
-
-
-# The image's error statistic (`image_error`): the ERROR_PERCENTILE-th
-# percentile of the pixels' relative standard error, over the pixels brighter
-# than ERROR_LEVEL times the image's mean.
-ERROR_PERCENTILE = 95.0
-ERROR_LEVEL = 0.01
-
-
-def error_floor(mean: np.ndarray) -> float:
-    """The brightness below which `image_error` does not count a pixel:
-    ERROR_LEVEL times the image's mean (of the channel averages)."""
-    return ERROR_LEVEL * max(float(np.mean(mean)), 0.0)
-
-
-def image_error(mean: np.ndarray, variance_of_mean: np.ndarray,
-                floor: float | None = None) -> float:
-    """One number for how noisy an image is: the 95th percentile over pixels of
-    `relative_error`, counting only pixels brighter than 1 % of the image's
-    mean (black and near-black pixels have a relative error that means nothing
-    to the eye and would decide the statistic). A percentile, not the mean: a
-    mean hides a noisy region behind a clean one; not the maximum: one
-    firefly or an edge pixel would decide it. +inf while some counted pixel's
-    variance is unknown (fewer than two samples); nan for an image with no
-    counted pixel. `floor` (default: `error_floor(mean)`) is the brightness a
-    counted pixel exceeds: a region of an image is judged with the image's."""
-    level = _channel_mean(mean)
-    counted = level > (error_floor(mean) if floor is None else floor)
-    if not counted.any():
-        return float("nan")
-    err = relative_error(mean, variance_of_mean)[counted]
-    if not np.all(np.isfinite(err)):
-        return float("inf")
-    return float(np.percentile(err, ERROR_PERCENTILE))
-
-
-def noise_srgb8(mean: np.ndarray, variance_of_mean: np.ndarray) -> np.ndarray:
-    """The noise heatmap as 8-bit RGB (h, w, 3): `relative_error` through the
-    colormap on a log scale over NOISE_RANGE; unknown variance in grey."""
-    err = relative_error(mean, variance_of_mean)
-    lo, hi = np.log10(NOISE_RANGE[0]), np.log10(NOISE_RANGE[1])
-    with np.errstate(divide="ignore"):
-        t = np.clip((np.log10(np.where(np.isfinite(err), err, 1.0)) - lo) / (hi - lo), 0.0, 1.0)
-    x = t * (len(NOISE_COLORMAP) - 1)
-    i = np.minimum(x.astype(np.int64), len(NOISE_COLORMAP) - 2)
-    f = (x - i)[..., None]
-    rgb = NOISE_COLORMAP[i] * (1.0 - f) + NOISE_COLORMAP[i + 1] * f
-    rgb[~np.isfinite(err)] = NOISE_UNKNOWN
-    return (rgb + 0.5).astype(np.uint8)
 
 
 def merge(width: int, height: int, parts: Iterable[PartialFilm]) -> Film:
@@ -545,60 +464,3 @@ def merge(width: int, height: int, parts: Iterable[PartialFilm]) -> Film:
     for part in parts:
         film.add(part)
     return film
-
-
-def _exr_attribute(key: str, value):
-    """A header value the OpenEXR package writes as the type it is: str, a
-    32-bit int (bools as 0/1), a float; anything else as JSON text. The
-    package stores an int beyond 32 bits as 0 without a word: refused here."""
-    if isinstance(value, bool):
-        return int(value)
-    if isinstance(value, int):
-        if not -(1 << 31) <= value < (1 << 31):
-            raise ValueError(f"EXR attribute {key!r}: {value} does not fit a 32-bit int "
-                             "(write it as a decimal string)")
-        return value
-    if isinstance(value, (str, float)):
-        return value
-    return json.dumps(value, sort_keys=True)
-
-
-def _version() -> str:
-    try:
-        return importlib.metadata.version("rayfarm")
-    except importlib.metadata.PackageNotFoundError:  # a source tree that was never installed
-        return "unknown"
-
-
-def channel_layers(names: Iterable[str]) -> dict[str, list[str]]:
-    """EXR channel names grouped into layers, as tev and Nuke show them: a
-    bare name (R, G, B) is the `beauty` layer, `layer.channel` belongs to
-    `layer` (var, albedo, normal, depth, samples, denoised). Channels keep
-    their order within a layer (R, G, B; X, Y, Z), layers the order given."""
-    order = {c: i for i, c in enumerate("RGBAXYZ")}
-    layers: dict[str, list[str]] = {}
-    for name in names:
-        layer, _, channel = name.rpartition(".")
-        layers.setdefault(layer or "beauty", []).append(name)
-    for layer, members in layers.items():
-        members.sort(key=lambda n: (order.get(n.rpartition(".")[2], 99), n))
-    return layers
-
-
-def rgb_of(channels: dict[str, np.ndarray], layer: str = "") -> np.ndarray:
-    """A layer's R, G, B channels of an EXR read back (`read_exr`) as one float64
-    (h, w, 3) array: the beauty, or with `layer` "var" its variance."""
-    prefix = f"{layer}." if layer else ""
-    return np.stack([channels[f"{prefix}{c}"] for c in "RGB"], -1).astype(np.float64)
-
-
-def read_exr(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
-    """Read an EXR back: (channels by name as float32 (h, w) arrays, header)."""
-    import OpenEXR
-
-    with OpenEXR.File(str(path), separate_channels=True) as exr:
-        part = exr.parts[0]
-        channels = {name: np.array(ch.pixels) for name, ch in part.channels.items()}
-        header = dict(part.header)
-    return channels, header
-

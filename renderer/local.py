@@ -127,6 +127,9 @@ def _child_main(conn, parent_pid: int, cache) -> None:
         except Exception as exc:  # e.g. an exception that does not pickle
             conn.send((False, RuntimeError(f"{type(outcome[1]).__name__}: {outcome[1]} "
                                            f"(not sent whole: {exc})"), outcome[2]))
+        # Sent: the film and the inputs must not live on while the next unit
+        # renders (a splat batch is the whole frame: 200 MB at 2048^2)
+        args = inputs = film = outcome = None
 
 
 class _Process:
@@ -281,6 +284,10 @@ class LocalPool:
                 with self._changed:
                     self._busy -= 1
                     self._changed.notify_all()
+                # This thread waits for the next unit next: what it no longer
+                # needs must not live on in its frame (the last unit's film
+                # and inputs, hundreds of MB for a large tile).
+                item = future = args = outcome = None
         finally:
             if process is not None:
                 process.stop()

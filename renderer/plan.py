@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass
 from .film import sample_blocks
 from .spec import RenderSpec
 
-__all__ = ["Unit", "plan", "count_units"]
+__all__ = ["Unit", "plan", "count_units", "largest_unit"]
 
 
 @dataclass(frozen=True)
@@ -192,3 +192,20 @@ def count_units(spec: RenderSpec, progressive: bool = False, small_passes: bool 
         run, rows = _group_shape(across, pixels * (s1 - s0)) if progressive else (1, 1)
         total += -(-across // run) * -(-down // rows)
     return total
+
+
+def largest_unit(spec: RenderSpec, progressive: bool = False,
+                 small_passes: bool = False) -> tuple[int, int]:
+    """(max(u.pixels), max(u.y1 - u.y0)) over plan(spec, ...), without
+    building the units (renderer/memory.py sizes a unit's film by them)."""
+    across = -(-spec.width // spec.tile_size)
+    tile_w, tile_h = min(spec.tile_size, spec.width), min(spec.tile_size, spec.height)
+    pixels = 0 if small_passes else tile_pixels(spec)
+    largest, tallest = tile_w * tile_h, tile_h
+    if progressive and pixels:
+        for s0, s1 in sample_passes(spec.spp, progressive, pixels):
+            run, rows = _group_shape(across, pixels * (s1 - s0))
+            height = min(rows * spec.tile_size, spec.height)
+            largest = max(largest, min(run * spec.tile_size, spec.width) * height)
+            tallest = max(tallest, height)
+    return largest, tallest

@@ -38,7 +38,7 @@ from typing import Callable
 import numpy as np
 
 from .errors import SpecError
-from .film import Film, PartialFilm, error_floor, image_error, merge
+from .film import Film, PartialFilm, image_error, merge
 from .plan import Unit, plan
 from .registry import METHODS
 from .spec import BOUNDS, RenderSpec
@@ -146,11 +146,11 @@ def units_to_run(film: Film, units: list[Unit], target: Target) -> list[Unit]:
     would otherwise refine pixels the frame's statistic ignores; measured on
     veach-mis, that made the adaptive render dearer than a fixed one). A
     region with no such pixel meets it."""
-    mean, var = film.mean(), film.variance_of_mean()
-    floor = error_floor(mean)
+    floor = film.error_floor()
     todo = []
-    for u in units:
-        e = image_error(mean[u.y0:u.y1, u.x0:u.x1], var[u.y0:u.y1, u.x0:u.x1], floor)
+    for u in units:  # a region at a time: no whole-frame mean and variance
+        region = film.region(u.x0, u.y0, u.x1, u.y1)
+        e = image_error(region.mean(), region.variance_of_mean(), floor)
         if not (math.isnan(e) or e <= target.rel_error):
             todo.append(u)
     return todo

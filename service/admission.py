@@ -5,6 +5,7 @@ the refusals (`InvalidRequest` 422, `Forbidden` 403, `RateLimited` 429 with
 Retry-After).
 
     limits = limits_for(settings, actor)            # the role's RoleLimits
+    check_memory(settings, actor, spec, progressive=True) # pixels, a unit's and the job's bytes
     check_job(settings, actor, spec, units=planned_units(spec, progressive=True),
               active_jobs=count_active_jobs(session, actor.user))
     check_submission_rate(limiter, settings, actor) # POST /jobs per token and minute
@@ -14,8 +15,10 @@ Retry-After).
 Limits are per role (`Settings.limits_admin`, `Settings.limits_artist`;
 `RAYFARM_LIMITS_ARTIST__MAX_ACTIVE_JOBS=5` sets one); a viewer submits
 nothing. They refuse what the farm cannot serve fairly: a job too big to
-finish (samples), one whose plan would swamp the ledger (units), an owner
-queueing more than its share of jobs, a script submitting in a loop.
+finish (samples), one too big to hold (pixels; the bytes a unit's render
+process and the job as a whole would hold, renderer/memory.py), one whose
+plan would swamp the ledger (units), an owner queueing more than its share
+of jobs, a script submitting in a loop.
 """
 
 from __future__ import annotations
@@ -24,11 +27,13 @@ import math
 import threading
 import time
 from collections import deque
+from dataclasses import replace
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from renderer import METHODS, RenderSpec, Unit
+from renderer import BOUNDS, METHODS, RenderSpec, Unit
+from renderer.memory import JobMemory, job_memory
 from renderer.plan_size import plan_size
 from renderer.target import Target, target_plan
 from worker.settings import RoleLimits
@@ -39,8 +44,13 @@ from .errors import InvalidRequest, RateLimited
 from .models import Job
 from .settings import Settings
 
-__all__ = ["limits_for", "check_job", "job_plan", "planned_units", "unit_floor", "admit_job", "count_active_jobs", "RateLimiter",
+__all__ = ["limits_for", "check_job", "check_memory", "job_plan", "planned_units", "unit_floor", "admit_job", "count_active_jobs", "RateLimiter",
            "check_submission_rate", "check_upload_rate", "ACTIVE_JOBS_RETRY_AFTER"]
+
+# Finished units whose films may wait in the service to be collected, per
+# render process: what the local executor keeps in flight for short units
+# (LocalExecutor.MAX_AHEAD; Celery's prefetch keeps fewer).
+IN_FLIGHT_PER_PROCESS = 16
 
 # Retry-After of a refusal for too many active jobs: a hint, since nobody knows
 # when one of them finishes (or is canceled).
@@ -126,12 +136,86 @@ def check_job(settings: Settings, actor: Principal, spec: RenderSpec, units: int
                           "or cancel one", retry_after=ACTIVE_JOBS_RETRY_AFTER)
 
 
+def _mb(n: int) -> str:
+    return f"{n / 1e6:,.0f} MB"
+
+
+def _frame_field(spec: RenderSpec) -> str:
+    """The dimension to name when the frame is too big: the larger one."""
+    return "width" if spec.width >= spec.height else "height"
+
+
+def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progressive: bool,
+                 target: Target | None = None, denoise: bool = False,
+                 units: int | None = None) -> JobMemory:
+    """Refuse a job too big to hold for the actor's role (`InvalidRequest`):
+    more pixels than `max_pixels_per_job` (on `width` or `height`); a work
+    unit whose render process would hold more than `max_unit_bytes` (on
+    `tile_size` with the largest tile that fits, or on the frame when
+    whole-frame layers alone exceed it: splats, photon maps); a job that
+    would hold more than `max_job_bytes` with a unit in every render process
+    (`local_workers`) and the service's share, with as many of its `units`
+    (its planned units, or a lower bound; default: one a process) finished
+    and waiting to be collected as the executor keeps in flight. The bytes are
+    renderer.memory's; returns them."""
+    limits = limits_for(settings, actor)
+    pixels = spec.width * spec.height
+    if pixels > limits.max_pixels_per_job:
+        raise InvalidRequest(_frame_field(spec), f"{spec.width}x{spec.height} = {pixels} pixels "
+                             f"exceed the {actor.role} limit of {limits.max_pixels_per_job} "
+                             f"pixels per job ({_setting(actor, 'max_pixels_per_job')})")
+
+    def memory(tile: int) -> JobMemory:
+        return job_memory(replace(spec, tile_size=tile), progressive=progressive,
+                          target=target is not None, denoise=denoise)
+
+    def largest_tile(fits) -> int | None:
+        """The largest tile size below spec.tile_size for which `fits`, if any."""
+        lo, hi = BOUNDS["tile_size"][0], spec.tile_size - 1
+        if hi < lo or not fits(memory(lo)):
+            return None
+        while lo < hi:  # the bytes grow with the tile
+            mid = (lo + hi + 1) // 2
+            lo, hi = (mid, hi) if fits(memory(mid)) else (lo, mid - 1)
+        return lo
+
+    mem = memory(spec.tile_size)
+    if mem.unit > limits.max_unit_bytes:
+        setting = _setting(actor, "max_unit_bytes")
+        what = (f"a work unit of this {spec.method} job would hold about {_mb(mem.unit)} in its "
+                f"render process, above the {actor.role} limit of "
+                f"{_mb(limits.max_unit_bytes)} ({setting})")
+        tile = largest_tile(lambda m: m.unit <= limits.max_unit_bytes)
+        if tile is None:
+            raise InvalidRequest(_frame_field(spec), f"{what}; {_mb(mem.unit_frame)} of it "
+                                 "does not shrink with the tile (layers over the whole frame: "
+                                 "splats, photon maps): render fewer pixels")
+        raise InvalidRequest("tile_size", f"{what}; use tile_size <= {tile}")
+    processes = settings.local_workers
+    waiting = processes if units is None else min(units, processes * IN_FLIGHT_PER_PROCESS)
+    total = mem.total(processes, waiting)
+    if total > limits.max_job_bytes:
+        setting = _setting(actor, "max_job_bytes")
+        what = (f"this job would hold about {_mb(total)} at once (the service "
+                f"{_mb(mem.service(processes, waiting))}, {processes} render processes "
+                f"{_mb(mem.unit)} each), above the {actor.role} limit of "
+                f"{_mb(limits.max_job_bytes)} per job ({setting})")
+        tile = largest_tile(lambda m: m.total(processes, waiting) <= limits.max_job_bytes)
+        if tile is None:
+            raise InvalidRequest(_frame_field(spec), f"{what}: render fewer pixels")
+        raise InvalidRequest("tile_size", f"{what}; use tile_size <= {tile}")
+    return mem
+
+
 def admit_job(session: Session, settings: Settings, actor: Principal, spec: RenderSpec,
-              progressive: bool, target: Target | None = None) -> int:
+              progressive: bool, target: Target | None = None, denoise: bool = False) -> int:
     """Every admission check of a job, cheapest first; returns its planned
     units. A target job is checked at its budget (spp = max_spp)."""
-    check_job(settings, actor, spec, units=unit_floor(spec, progressive, target), active_jobs=0)
+    floor = unit_floor(spec, progressive, target)
+    check_memory(settings, actor, spec, progressive, target, denoise, units=floor)
+    check_job(settings, actor, spec, units=floor, active_jobs=0)
     units = planned_units(spec, progressive, target)
+    check_memory(settings, actor, spec, progressive, target, denoise, units=units)
     check_job(settings, actor, spec, units=units,
               active_jobs=count_active_jobs(session, actor.user))
     return units

@@ -100,7 +100,8 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
         least = math.ceil(math.sqrt(spec.width * spec.height / settings.max_units))
         raise InvalidRequest("tile_size", f"{tiles} tiles exceed the limit of {settings.max_units} "
                                           f"work units; use tile_size >= {least}")
-    admission.admit_job(session, settings, actor, spec, request.progressive, target)
+    admission.admit_job(session, settings, actor, spec, request.progressive, target,
+                        denoise=request.denoise)
     if key is None:  # an upload's text is stored under its hash already
         key, text = scene_text(doc)
         store.put_scene(key, text)

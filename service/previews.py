@@ -23,11 +23,14 @@ come from the merge (`service.results`) whatever happened here.
     units = previews.refresh(job_id, width, height, landed)   # written: units in it
     if units is not None: previews.publish(job_id, units)
 
-Frames are float32 and kept up to `PREVIEW_BYTES` in all (jobs interleave,
-so every running job's frame is in use); beyond that the one cheapest to
-rebuild goes. A frame missing after a restart or an eviction is rebuilt from
-the stored films of the done units, at most once per `PREVIEW_INTERVAL` per
-job (a rebuild reads every done unit). The order of addition does not matter
+Frames are float32, every layer of them (28 bytes a pixel, 56 with AOVs,
+more with splats or jackknife sums), and kept up to `PREVIEW_BYTES` in all
+(jobs interleave, so every running job's frame is in use); beyond that the
+one cheapest to rebuild goes. A write makes its images band by band
+(`renderer.Film.images`): its float64 temporaries are a band's. A frame
+missing after a restart or an eviction is rebuilt from the stored films of
+the done units, at most once per `PREVIEW_INTERVAL` per job (a rebuild
+reads every done unit). The order of addition does not matter
 for a preview; the final EXR is merged from the stored films in unit order
 (`service.results`).
 """
@@ -57,7 +60,7 @@ PREVIEW_INTERVAL = 1.0  # seconds between two writes of a job's running preview,
 # at PREVIEW_PACE times its own cost apart, a job's previews use at most
 # about 2 % of one.
 PREVIEW_PACE = 50.0
-PREVIEW_BYTES = 256 << 20  # running previews kept in memory (float32: 28 bytes per pixel)
+PREVIEW_BYTES = 256 << 20  # running previews kept in memory (float32: 28 bytes a pixel and up)
 # A client that fetched a job's preview (or noise map) this recently is
 # looking at it: its next writes are made. The dashboard fetches it again
 # after every write, so this only has to outlast the gap between two writes.
@@ -82,8 +85,8 @@ class _Frame:
     @property
     def nbytes(self) -> int:
         f = self.film
-        return sum(a.nbytes for a in (f.sum, f.sum_sq, f.weight, f.splat, f.splat_sq)
-                   if a is not None)
+        return sum(a.nbytes for a in (f.sum, f.sum_sq, f.weight, f.splat, f.splat_sq, f.aov,
+                                      f.jackknife) if a is not None)
 
     def add(self, index: int, part: PartialFilm) -> None:
         if index not in self.added:

@@ -577,7 +577,7 @@ class Scheduler:
         """Apply one observation to a unit; returns True if the job failed."""
         if obs.state == "done":
             try:
-                film = PartialFilm.from_bytes(obs.film)
+                film = PartialFilm.from_bytes(obs.film, copy=False)  # read only: views
             except Exception as exc:  # a corrupt result is a failed attempt
                 obs = Observation("failed", error=f"unreadable partial film: {exc}")
             else:
@@ -759,6 +759,10 @@ class Scheduler:
                 if job.units_skipped else range(n_units))
         error = waiting = None
         rel_error = float("nan")
+        # The running frames are not what the result is made of: freed before
+        # the merge makes the frame's channels.
+        self.previews.drop(job_id)
+        self.targets.forget(job_id)
         try:
             try:
                 rel_error = write_result(self.store, job_id, spec, indices, scene=scene,

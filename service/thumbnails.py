@@ -146,7 +146,16 @@ class Thumbnailer:
         child = self._context.Process(
             target=_render_in_child, name="rayfarm-thumbnail", daemon=True,
             args=([(h, str(self.store.scene_path(h))) for h in todo], sending))
-        child.start()
+        try:
+            child.start()
+        except (EOFError, ConnectionError) as exc:
+            # The forkserver died under us: a SIGTERM to the service's process
+            # group (a stop) reaches it first. Nothing failed: the next start makes them.
+            sending.close()
+            receiving.close()
+            log.warning("the thumbnail process could not start (%s: the forkserver exited)",
+                        type(exc).__name__)
+            return 0
         sending.close()  # the child holds the only sending end: EOF when it exits
         stored, waiting = 0, set(todo)
         try:

@@ -4,6 +4,7 @@ owner's active jobs, and sliding-window rates, with the 429's Retry-After."""
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 from datetime import timedelta
 
 import pytest
@@ -11,7 +12,8 @@ import pytest
 from renderer import RenderSpec
 from service import admission
 from service.access import Principal
-from service.admission import RateLimiter, check_job, count_active_jobs, limits_for
+from service.admission import (RateLimiter, check_job, check_memory, count_active_jobs,
+                               limits_for)
 from service.db import open_ledger
 from service.errors import Forbidden, InvalidRequest, RateLimited
 from service.models import Job, utcnow
@@ -265,3 +267,63 @@ def test10_planned_units_counts_a_plan_without_building_its_units(monkeypatch):
     monkeypatch.setattr(radiosity, "replace", counted(dataclasses.replace))
     assert [planned_units(spec, progressive) for spec, progressive in specs] == exact
     assert not built, f"{len(built)} units built to count {sum(exact)}"
+
+
+def test11_a_frame_above_the_artists_pixels_is_422_on_width_naming_the_setting(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data", local_workers=2)  # the artist defaults
+    body = dict(method="path-mis", spp=1, depth=3, tile_size=64)
+    check_memory(settings, ANA, RenderSpec(width=4096, height=4096, **body), False)
+    for width, height, field in ((4097, 4096, "width"), (4096, 4097, "height")):
+        with pytest.raises(InvalidRequest) as refused:
+            check_memory(settings, ANA, RenderSpec(width=width, height=height, **body), False)
+        assert refused.value.field == field
+        message = str(refused.value)
+        assert "RAYFARM_LIMITS_ARTIST__MAX_PIXELS_PER_JOB" in message and "16777216" in message
+    # an admin's frame may be as large as a frame can be
+    check_memory(settings, ROOT, RenderSpec(width=8192, height=8192, **body), False)
+
+
+def test12_a_unit_above_the_artists_bytes_is_422_on_tile_size_with_one_that_fits(tmp_path):
+    settings = Settings(data_dir=tmp_path / "data", local_workers=2)
+    one_tile = RenderSpec(method="raster", spp=1, depth=3, width=2048, height=2048,
+                          tile_size=2048)  # its film alone is 470 MB, its render 1.2 GB
+    with pytest.raises(InvalidRequest) as refused:
+        check_memory(settings, ANA, one_tile, False)
+    assert refused.value.field == "tile_size"
+    message = str(refused.value)
+    assert "RAYFARM_LIMITS_ARTIST__MAX_UNIT_BYTES" in message
+    tile = int(message.rsplit("tile_size <= ", 1)[1])
+    assert 1024 <= tile < 2048
+    assert check_memory(settings, ANA, replace(one_tile, tile_size=tile), False).unit <= 1 << 30
+    with pytest.raises(InvalidRequest):
+        check_memory(settings, ANA, replace(one_tile, tile_size=tile + 1), False)
+    check_memory(settings, ROOT, one_tile, False)  # an admin's unit may hold 4 GiB
+
+
+def test13_whole_frame_splats_above_the_unit_bytes_are_422_on_the_frame(tmp_path):
+    """BDPT's every tile unit carries a splat batch over the whole frame, so a
+    smaller tile does not help: the refusal names the frame."""
+    settings = Settings(data_dir=tmp_path / "data", local_workers=2)
+    for method in ("bdpt", "light", "mlt"):
+        spec = RenderSpec(method=method, spp=1, depth=3, width=4096, height=4096, tile_size=16)
+        with pytest.raises(InvalidRequest) as refused:
+            check_memory(settings, ANA, spec, False)
+        assert refused.value.field == "width", method
+        assert "RAYFARM_LIMITS_ARTIST__MAX_UNIT_BYTES" in str(refused.value)
+        assert "whole frame" in str(refused.value)
+        check_memory(settings, ANA, replace(spec, width=1024, height=1024), False)
+
+
+def test14_a_job_above_the_artists_bytes_with_every_process_is_422_naming_the_setting(tmp_path):
+    """A unit in each of 16 render processes and the films they land in the
+    service: 6.4 GB for 1024^2-pixel tiles, above the 6 GiB of an artist's job."""
+    settings = Settings(data_dir=tmp_path / "data", local_workers=16)
+    spec = RenderSpec(method="raster", spp=1, depth=3, width=4096, height=4096, tile_size=1024)
+    with pytest.raises(InvalidRequest) as refused:
+        check_memory(settings, ANA, spec, False)
+    assert refused.value.field == "tile_size"
+    message = str(refused.value)
+    assert "RAYFARM_LIMITS_ARTIST__MAX_JOB_BYTES" in message and "16 render processes" in message
+    tile = int(message.rsplit("tile_size <= ", 1)[1])
+    check_memory(settings, ANA, replace(spec, tile_size=tile), False)
+    check_memory(Settings(data_dir=tmp_path / "data", local_workers=2), ANA, spec, False)

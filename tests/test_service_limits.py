@@ -168,3 +168,25 @@ def test04_a_huge_body_to_any_kind_of_route_is_refused_unread_or_at_its_limit(tm
     finally:
         child.stop()
     assert "Traceback" not in child.log(), child.log()
+
+
+def test05_a_frame_too_big_to_hold_is_422_naming_the_field_and_the_setting(farm):
+    """The artist's memory limits are the defaults: 4096^2 pixels a job, 1 GiB
+    a unit's render process (renderer/memory.py)."""
+    dora = farm.artist("dora")
+    wide = dora.post("/jobs", json=dict(TINY, width=4097, height=4096, tile_size=64))
+    assert wide.status_code == 422, wide.text
+    assert wide.json()["detail"][0]["loc"] == ["body", "width"]
+    assert "RAYFARM_LIMITS_ARTIST__MAX_PIXELS_PER_JOB" in wide.text
+    # one tile of 2048^2 pixels: a render process would hold about 1.2 GB
+    tile = dora.post("/jobs", json=dict(TINY, method="raster", width=2048, height=2048,
+                                        tile_size=2048, progressive=False))
+    assert tile.status_code == 422, tile.text
+    assert tile.json()["detail"][0]["loc"] == ["body", "tile_size"]
+    assert "RAYFARM_LIMITS_ARTIST__MAX_UNIT_BYTES" in tile.text and "tile_size <=" in tile.text
+    # BDPT's every unit splats over the whole frame: the frame is what to shrink
+    splats = dora.post("/jobs", json=dict(TINY, method="bdpt", width=4096, height=4096,
+                                          tile_size=64))
+    assert splats.status_code == 422, splats.text
+    assert splats.json()["detail"][0]["loc"] == ["body", "width"]
+    assert "RAYFARM_LIMITS_ARTIST__MAX_UNIT_BYTES" in splats.text

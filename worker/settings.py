@@ -40,6 +40,19 @@ class RoleLimits(BaseModel):
                                                                "minute, an experiment's each "
                                                                "(429 with Retry-After above)")
     uploads_per_hour: int = Field(120, ge=0, description="POST /scenes per owner and hour")
+    # Memory (renderer/memory.py says what a job holds). The defaults are
+    # sized for a machine of 24 GB: an artist's job at most a quarter of it,
+    # an admin's half (docs/hardening.md has the figures).
+    max_pixels_per_job: int = Field(4096 * 4096, gt=0, description="width x height of one job")
+    max_unit_bytes: int = Field(1 << 30, gt=0,
+                                description="bytes a render process may hold for one work unit "
+                                            "of a job: its film (whole-frame splats included), "
+                                            "scratch and inputs")
+    max_job_bytes: int = Field(6 << 30, gt=0,
+                               description="bytes one job may hold at once: the service's "
+                                           "share (running frames, landed films, the merge) "
+                                           "plus a unit in each render process "
+                                           "(local_workers)")
 
 
 class AdminLimits(RoleLimits):
@@ -50,6 +63,9 @@ class AdminLimits(RoleLimits):
     max_active_jobs: int = Field(1000, ge=0)
     submissions_per_minute: int = Field(600, ge=0)
     uploads_per_hour: int = Field(1000, ge=0)
+    max_pixels_per_job: int = Field(8192 * 8192, gt=0)
+    max_unit_bytes: int = Field(4 << 30, gt=0)
+    max_job_bytes: int = Field(12 << 30, gt=0)
 
 
 class Settings(BaseSettings):
