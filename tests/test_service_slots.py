@@ -9,22 +9,66 @@ preempted, and when nobody is); test08/test09 let a newcomer's unit run
 while another owner's long units hold every process, on the embedded pool
 and on Celery, with both images bit-identical to undisturbed renders.
 
-The long units would take minutes if nothing stopped them (about 3.5 us a
-sample on the 2-core machine, where 64 x 64 pixels at 32,768 spp took 465 s),
-so on code that cannot stop a unit each test times out; the waits are
-generous, and no test asserts how fast anything was (bench/preemption.py
-measures that).
+The long units would take minutes if nothing stopped them (the path tracer
+takes about 0.42 us a sample at depth 5 on one core of the 2-core machine),
+so on code that cannot stop a unit each test times out or sees the other
+job finish first; the waits are generous, and no test asserts how fast
+anything was (bench/preemption.py measures that).
 """
 
 from __future__ import annotations
 
 import pytest
 
-from conftest import wait_for
+from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, get_json, poll_job,
+                      submit, wait_for)
 
-# One unit of 64 x 64 pixels at 16,384 spp: minutes on one core.
-LONG = {"scene": "cornell-box", "method": "path", "spp": 16384, "depth": 3, "width": 64,
+# One unit of 64 x 64 pixels at 262,144 spp (2^30 samples): about 7 minutes on one core.
+LONG = {"scene": "cornell-box", "method": "path", "spp": 262144, "depth": 5, "width": 64,
         "height": 64, "tile_size": 64, "progressive": False}
+QUICK = dict(TINY, spp=16, tile_size=32, progressive=False)  # one unit of milliseconds
+
+
+def rendering(get, job_id: str) -> bool:
+    return any(u["state"] == "running" for u in get(f"/jobs/{job_id}/units"))
+
+
+def embedded(tmp_path, **settings):
+    """A TestClient of an embedded service of its own (its pool, its ledger)."""
+    from fastapi.testclient import TestClient
+
+    from service.main import create_app
+    from service.settings import Settings
+
+    settings = Settings(data_dir=tmp_path / "data", broker_url="", database_url="",
+                        poll_interval=0.05, **{"local_workers": 1, **settings})
+    return TestClient(create_app(settings), headers=ADMIN_HEADERS)
+
+
+def on_celery(tmp_path, redis_url, **settings):
+    """A TestClient of a service on this run's Redis (its workers spawned by the test)."""
+    from fastapi.testclient import TestClient
+
+    from service.main import create_app
+    from service.settings import Settings
+
+    settings = Settings(data_dir=tmp_path / "data", broker_url=redis_url, poll_interval=0.05,
+                        **settings)
+    return TestClient(create_app(settings), headers=ADMIN_HEADERS)
+
+
+def cancel_frees_the_process(client) -> None:
+    """A long job renders on the only process; canceling it lets the next job
+    (the same owner's: no fair share involved) render within seconds, where
+    the long unit would have held the process for minutes."""
+    get = get_json(client)
+    long_job = submit(client, LONG)["id"]
+    wait_for(lambda: rendering(get, long_job), 120, "the long unit rendering")
+    quick = submit(client, QUICK)["id"]
+    assert client.post(f"/jobs/{long_job}/cancel").status_code == 200
+    done = poll_job(get, quick, timeout=60)
+    assert done["status"] == "done", done
+    assert [u["attempts"] for u in get(f"/jobs/{quick}/units")] == [1]
 
 
 # -- the local pool ----------------------------------------------------------------------
@@ -34,7 +78,7 @@ def test01_the_local_pool_stops_a_rendering_unit_and_the_slot_takes_the_next():
                           resolve_document, scene_text)
 
     key, text = scene_text(resolve_document("cornell-box"))
-    long_spec = RenderSpec(spp=16384, depth=3, width=64, height=64, tile_size=64)
+    long_spec = RenderSpec(spp=262144, depth=5, width=64, height=64, tile_size=64)
     long_unit = METHODS["path"].make_plan(long_spec, False)[0].to_dict()
     small = RenderSpec(spp=4, depth=1, width=8, height=8, tile_size=8)
     small_unit = METHODS["path"].make_plan(small, False)[0].to_dict()
@@ -52,6 +96,52 @@ def test01_the_local_pool_stops_a_rendering_unit_and_the_slot_takes_the_next():
         # behind the long unit if it had not been stopped).
         assert PartialFilm.from_bytes(after.result(60)).stats["samples"] == 8 * 8 * 4
         assert not pool.stop(1) and not pool.stop(99)  # nothing has those tags now
+
+
+def test02_cancel_of_a_running_job_frees_the_embedded_process(tmp_path):
+    with embedded(tmp_path, local_workers=1) as client:
+        cancel_frees_the_process(client)
+        assert client.get("/workers").json()[0]["running"] == []
+
+
+@pytest.mark.farm
+def test03_cancel_of_a_running_job_frees_the_celery_process(redis_url, spawn_worker, tmp_path):
+    import redis
+
+    worker = spawn_worker(concurrency=1)
+    with on_celery(tmp_path, redis_url) as client:
+        get = get_json(client)
+        wait_for(lambda: any(w["state"] == "idle" for w in get("/workers")), 30, "the worker")
+        cancel_frees_the_process(client)
+        # The killed render process was revoked, not lost: no FAILURE stored, no
+        # crash counted, and the worker shows nothing running.
+        wait_for(lambda: all(not w["running"] for w in get("/workers")), 30,
+                 "the worker's running list to clear")
+    broker = redis.Redis.from_url(redis_url)
+    log = worker.log()
+    assert "WorkerLostError" not in log, log
+    assert "Terminating" in log, log
+    broker.close()
+
+
+def test04_a_unit_over_its_time_budget_is_stopped_and_spends_an_attempt(tmp_path):
+    # A quick job measures the farm's rate; the long job's unit then has a
+    # budget of one second (the floor: the factor is tiny) and is stopped on
+    # each of its two attempts, where it would otherwise render for minutes.
+    with embedded(tmp_path, local_workers=1, unit_budget_floor=1.0, unit_budget_factor=1e-4,
+                  max_attempts=2) as client:
+        get = get_json(client)
+        assert poll_job(get, submit(client, QUICK)["id"], timeout=60)["status"] == "done"
+        long_job = submit(client, LONG)["id"]
+        job = poll_job(get, long_job, timeout=90)
+        assert job["status"] == "failed", job
+        assert job["error"].startswith("unit 0 failed after 2 attempts: stopped after ")
+        assert "over its time budget of 1 s" in job["error"]
+        [unit] = get(f"/jobs/{long_job}/units")
+        assert unit["attempts"] == 2 and unit["tasks"] == 2
+        assert "time budget" in unit["error"]
+        # The process it held renders the next job.
+        assert poll_job(get, submit(client, QUICK)["id"], timeout=60)["status"] == "done"
 
 
 # -- fair share over the render processes, on a fake executor --------------------------------
@@ -251,3 +341,80 @@ def test07_rebalance_splits_processes_by_share():
     assert plan.preempt == (("ja", 1),) and plan.withdraw == (("ja", 2),)
     held = [Holding("a", ("ja", 0), 9.0), Holding("b", ("jb", 0), 9.0)]
     assert rebalance(held, {"c": 1}, {}, 2, {"c"}, 2.0).preempt == ()
+
+
+def test08_budget_rates_come_from_the_job_then_from_the_farm():
+    from service.budget import UnitRates, unit_work
+
+    tile = {"kind": "tile", "x0": 0, "y0": 0, "x1": 16, "y1": 16, "sample_start": 0,
+            "sample_end": 64}
+    assert unit_work(tile) == 16 * 16 * 64
+    rates = UnitRates(factor=10.0, floor=30.0)
+    assert rates.budget("j", "path", 3, tile) is None  # nothing measured
+    rates.note("other", "path", 7, tile, seconds=8.0)  # 1 s per sample and vertex... scaled
+    # The farm's rate for path tiles, per vertex: depth 3 expects half of depth 7's time,
+    # with four times the margin.
+    fallback = rates.budget("j", "path", 3, tile)
+    assert fallback.seconds == pytest.approx(40 * 4.0) and "farm" in fallback.basis
+    rates.note("j", "path", 3, tile, seconds=2.0)
+    own = rates.budget("j", "path", 3, dict(tile, sample_end=256))  # four times the samples
+    assert own.seconds == pytest.approx(10 * 8.0) and "job's measured rate" in own.basis
+    assert rates.budget("j", "path", 3, dict(tile, sample_end=1)).seconds == 30.0  # the floor
+    assert "over its time budget of 80 s" in own.exceeded(95.0)
+    rates.keep_only({"other"})
+    assert "farm" in rates.budget("j", "path", 3, tile).basis
+
+
+# -- fair share over the render processes, on the real executors ----------------------------
+
+# Owner a's jobs: one unit each of 32 x 32 pixels at 16,384 spp (about 7 s on
+# one core); owner b's: one unit of milliseconds. b's unit takes a process
+# within the starved grace (1 s), a's units' half second of `preempt_after`,
+# and a new process's warm-up.
+HELD = dict(LONG, width=32, height=32, tile_size=32, spp=16384)
+NEWCOMER = dict(QUICK, width=16, height=16, tile_size=16)
+
+
+def newcomer_runs_beside_long_units(client, reference_channels) -> None:
+    """Owner a's two one-unit jobs hold both render processes; owner b's job
+    renders while they still render (one of a's units preempted: on code that
+    cannot preempt, b's unit waits for one of a's to finish), and a's images
+    come out bit-identical to undisturbed renders all the same."""
+    from test_service_fairness import submit_as
+
+    get = get_json(client)
+    held = [submit_as(client, "a", HELD) for _ in range(2)]
+    wait_for(lambda: all(rendering(get, j) for j in held), 120, "a's units rendering")
+    newcomer = submit_as(client, "b", NEWCOMER)
+    done = poll_job(get, newcomer, timeout=120)
+    assert done["status"] == "done", done
+    assert [get(f"/jobs/{j}")["status"] for j in held] == ["running", "running"], \
+        "the newcomer waited for one of a's units to finish"
+    for job_id in held:
+        job = poll_job(get, job_id, timeout=240)
+        assert job["status"] == "done", job
+    units = [u for j in held for u in get(f"/jobs/{j}/units")]
+    assert [u["attempts"] for u in units] == [1, 1]  # preemption spends no attempt
+    assert sorted(u["tasks"] for u in units) == [1, 2]  # one of them ran twice
+    for job_id in held:
+        exr = client.get(f"/jobs/{job_id}/result.exr")
+        assert exr.status_code == 200
+        path = client.app.state.farm.store.result_path(job_id)
+        assert_bit_identical(channels_of(path), reference_channels(HELD))
+
+
+def test09_a_newcomer_renders_beside_long_units_on_the_embedded_pool(tmp_path,
+                                                                    reference_channels):
+    with embedded(tmp_path, local_workers=2, preempt_after_seconds=0.5) as client:
+        newcomer_runs_beside_long_units(client, reference_channels)
+
+
+@pytest.mark.farm
+def test10_a_newcomer_renders_beside_long_units_on_celery(redis_url, spawn_worker, tmp_path,
+                                                          reference_channels):
+    worker = spawn_worker(concurrency=2)
+    with on_celery(tmp_path, redis_url, preempt_after_seconds=0.5) as client:
+        get = get_json(client)
+        wait_for(lambda: any(w["state"] == "idle" for w in get("/workers")), 30, "the worker")
+        newcomer_runs_beside_long_units(client, reference_channels)
+    assert "WorkerLostError" not in worker.log()
