@@ -363,13 +363,18 @@ class LocalPool:
         return [p.process.pid for p in self._processes if p is not None and p.process.is_alive()]
 
     def shutdown(self, cancel: bool = True) -> None:
-        """Stop the pool: units still waiting are canceled (or, with `cancel`
-        False, all work is finished first); units in the processes finish."""
+        """Stop the pool: units still waiting are canceled and units rendering
+        are stopped (`UnitStopped`: a unit may render for minutes); with
+        `cancel` False, all work is finished first."""
         with self._changed:
             while not cancel and (self._waiting or self._busy):
                 self._changed.wait()
             self._closed = True
             waiting, self._waiting = list(self._waiting), deque()
+            for slot, tag in enumerate(self._rendering):
+                if tag:
+                    self._stopping[slot] = tag
+                    self._processes[slot].process.kill()
             self._changed.notify_all()
         for future, _args, _tag in waiting:
             future.cancel()
