@@ -5,7 +5,7 @@
     python bench/preemption.py --save after.json     # keep the figures
 
 Artist "a" submits two one-unit jobs (64 x 64 pixels, 32,768 spp, not
-progressive: cornell-box, path, default depth), and once both render,
+progressive: cornell-box, path, the default depth 5), and once both render,
 artist "b" submits a one-unit 16 x 16 job (`--small-spp`, 32,768 by
 default). Then either
 - `cancel`: 3 s later a's jobs are canceled (preemption off, so that cancel
@@ -48,7 +48,7 @@ import time
 from datetime import datetime
 from pathlib import Path
 
-BIG = {"scene": "cornell-box", "method": "path", "spp": 32768, "width": 64, "height": 64,
+BIG = {"scene": "cornell-box", "method": "path", "spp": 32768, "depth": 5, "width": 64, "height": 64,
        "progressive": False}
 
 

@@ -139,9 +139,8 @@ class Holding:
 class Rebalance:
     """What `rebalance` decided: owners that get no new units this tick, the
     units to put back to pending (withdrawn from the queue, or preempted), and
-    how many processes each claimant is to get now (an idle one, or one
-    preempted for it): the units to start for it, and no more, while the
-    others are held back (more would hold the queue in their turn)."""
+    for each claimant still starved how many processes it is to get now (an
+    idle one, or one preempted for it; 0 if none can be had yet)."""
 
     held_back: frozenset[str] = frozenset()
     withdraw: tuple[tuple[str, int], ...] = ()
@@ -215,7 +214,7 @@ def rebalance(holdings: Iterable[Holding], wanting: Mapping[str, int],
         victims.setdefault(h.owner, []).append(h)
     idle = max(processes - sum(running.values()), 0)
     preempt: list[tuple[str, int]] = []
-    claimed: dict[str, int] = {}
+    claimed = dict.fromkeys(claimants, 0)
 
     def load(owner: str) -> tuple:
         share = shares.get(owner, DEFAULT_SHARE)
@@ -236,6 +235,6 @@ def rebalance(holdings: Iterable[Holding], wanting: Mapping[str, int],
                 preempt.append(victims[victim].pop(0).key)
                 running[victim] -= 1
             running[claimant] = running.get(claimant, 0) + 1
-            claimed[claimant] = claimed.get(claimant, 0) + 1
+            claimed[claimant] += 1
             want -= 1
     return Rebalance(held_back, withdraw, tuple(preempt), claimed)

@@ -10,7 +10,10 @@ Each tick:
    and mark it running; observe its units in flight: store a finished
    unit's film (atomically) *before* marking the unit done, exactly once;
    re-enqueue lost units; retry failed ones and ones whose render process
-   crashed (each spends an attempt) up to `max_attempts`, then fail the job; refresh its `preview.png` and `noise.png` from the units landed
+   crashed (each spends an attempt) up to `max_attempts`, then fail the job;
+   stop a unit rendering longer than its time budget (`service.budget`: the
+   measured rate, a generous margin, a floor), which is a failed attempt
+   too; refresh its `preview.png` and `noise.png` from the units landed
    so far and publish a `preview` event; when every unit is done, merge the
    stored films in unit order into `result.exr` + `preview.png` +
    `noise.png`, then mark the job done;
@@ -25,8 +28,14 @@ Each tick:
    units are enqueued in the order they were chosen, so different jobs'
    units interleave in the executor's queue too, and no job can hold it:
    a small job submitted behind a huge one starts within a few ticks.
+   Before that, fair share over the render processes (`_rebalance`,
+   `service.fairshare.rebalance`): while an owner waits for a process, the
+   owners holding their share or more get no new units, their units waiting
+   in the executor's queue are withdrawn, and a unit of one holding more
+   than its share may be preempted; both go back to pending without
+   spending an attempt, and their tasks are stopped (`Executor.stop`).
 Units whose job was canceled (by the API) leave flight; their tasks are
-canceled. The ledger is the truth: after a restart the scheduler picks up
+canceled, and a running one's process is stopped. The ledger is the truth: after a restart the scheduler picks up
 where the rows say it was.
 
 The tick stays cheap with many jobs waiting: its queries count units in
@@ -586,6 +595,7 @@ class Scheduler:
             wanting[c.owner] += census.jobs[c.job_id].open_pending - census.flying[c.job_id]
         owners = {h.owner for h in holdings} | {o for o, n in wanting.items() if n > 0}
         hungry: set[str] = set()
+        shares: dict[str, float] = {}
         if len(owners) > 1:  # one owner alone starves nobody
             with self.sessions() as session:
                 shares = dict(session.execute(select(User.name, User.share)
@@ -631,7 +641,11 @@ class Scheduler:
             self.executor.stop(stopped)
         if not plan.held_back:
             return frozenset(), None
-        return plan.held_back, sum(max(n - queued[o], 0) for o, n in plan.claimed.items())
+        # While others are held back, a claimant gets the units its processes
+        # need (at least one waiting, first in line for the next free process),
+        # and no more: a deep queue of its own would hold the farm in its turn.
+        return plan.held_back, sum(max(max(n, 1) - queued[o], 0)
+                                   for o, n in plan.claimed.items())
 
     def _ready_units(self, session: Session, job: Job, limit: int) -> list[WorkUnit]:
         """Up to `limit` pending units of the job whose needs are all done, in
