@@ -157,7 +157,7 @@ class _Process:
             if self.conn in ready:
                 try:
                     return self.conn.recv() == "ready"
-                except EOFError:
+                except (EOFError, OSError):  # closed, or reset by the process's death
                     break
             if ready:  # the process died
                 break
@@ -177,7 +177,7 @@ class _Process:
             if self.conn in wait_ready([self.conn, self.process.sentinel]) or self.conn.poll():
                 try:
                     return self.conn.recv()
-                except EOFError:
+                except (EOFError, OSError):  # a SIGKILL may reset the pipe, not close it
                     pass
         self.process.join()
         return None
