@@ -1,13 +1,14 @@
 """A running unit can be stopped, and no owner holds the render processes.
 
-test01 stops a rendering unit of the local pool; test02/test03 cancel a
-running job on the embedded service and on a Celery worker, and the freed
-process takes the next job's unit; test04 stops a unit over its time budget
-(an attempt spent each time, then the job fails); test05-07 drive fair share
-over the render processes on a fake executor (who is withdrawn, who is
-preempted, and when nobody is); test08/test09 let a newcomer's unit run
-while another owner's long units hold every process, on the embedded pool
-and on Celery, with both images bit-identical to undisturbed renders.
+test01 stops a rendering unit of the local pool; test02/test03 cancel (and
+delete) a running job on the embedded service and on a Celery worker, and
+the freed process takes the next job's unit; test04 stops a unit over its
+time budget (an attempt spent each time, then the job fails), and test08
+derives budgets from measured rates; test05-07 drive fair share over the
+render processes on a fake executor (who is withdrawn, who is preempted, and
+when nobody is); test09/test10 let a newcomer's unit run while another
+owner's long units hold every process, on the embedded pool and on Celery,
+with the long jobs' images bit-identical to undisturbed renders.
 
 The long units would take minutes if nothing stopped them (the path tracer
 takes about 0.42 us a sample at depth 5 on one core of the 2-core machine),
@@ -57,15 +58,18 @@ def on_celery(tmp_path, redis_url, **settings):
     return TestClient(create_app(settings), headers=ADMIN_HEADERS)
 
 
-def cancel_frees_the_process(client) -> None:
-    """A long job renders on the only process; canceling it lets the next job
-    (the same owner's: no fair share involved) render within seconds, where
-    the long unit would have held the process for minutes."""
+def cancel_frees_the_process(client, delete: bool = False) -> None:
+    """A long job renders on the only process; canceling (or deleting) it lets
+    the next job (the same owner's: no fair share involved) render within
+    seconds, where the long unit would have held the process for minutes."""
     get = get_json(client)
     long_job = submit(client, LONG)["id"]
     wait_for(lambda: rendering(get, long_job), 120, "the long unit rendering")
     quick = submit(client, QUICK)["id"]
-    assert client.post(f"/jobs/{long_job}/cancel").status_code == 200
+    if delete:
+        assert client.delete(f"/jobs/{long_job}").status_code == 204
+    else:
+        assert client.post(f"/jobs/{long_job}/cancel").status_code == 200
     done = poll_job(get, quick, timeout=60)
     assert done["status"] == "done", done
     assert [u["attempts"] for u in get(f"/jobs/{quick}/units")] == [1]
@@ -98,9 +102,10 @@ def test01_the_local_pool_stops_a_rendering_unit_and_the_slot_takes_the_next():
         assert not pool.stop(1) and not pool.stop(99)  # nothing has those tags now
 
 
-def test02_cancel_of_a_running_job_frees_the_embedded_process(tmp_path):
+def test02_cancel_or_delete_of_a_running_job_frees_the_embedded_process(tmp_path):
     with embedded(tmp_path, local_workers=1) as client:
         cancel_frees_the_process(client)
+        cancel_frees_the_process(client, delete=True)
         assert client.get("/workers").json()[0]["running"] == []
 
 
