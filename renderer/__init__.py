@@ -10,7 +10,7 @@ the unit runner and the film merge, and a local process-pool executor::
 
 from .errors import RenderError, SceneError, SpecError
 from .film import Film, PartialFilm, merge, read_exr, sample_blocks
-from .local import LocalPool, RenderProcessDied, process_death, render
+from .local import LocalPool, RenderProcessDied, UnitStopped, process_death, render
 from .plan import Unit, plan
 from .registry import METHODS, SAMPLERS
 from . import integrators  # noqa: F401,E402 (fills the registry's table)
@@ -23,5 +23,5 @@ __all__ = [
     "BOUNDS", "DEFAULT_MAX_WORK", "Film", "LocalPool", "METHODS", "PartialFilm", "RenderError",
     "RenderProcessDied", "RenderSpec", "SAMPLERS", "Scene", "SceneError", "SpecError", "Unit", "build_scene",
     "builtin_scene_names", "execute_unit", "load_scene", "merge", "plan", "process_death", "read_exr", "render",
-    "render_serial", "resolve_document", "run_plan", "run_unit", "sample_blocks", "scene_hash", "scene_text", "warm_up",
+    "render_serial", "resolve_document", "run_plan", "run_unit", "sample_blocks", "scene_hash", "scene_text", "UnitStopped", "warm_up",
 ]

@@ -13,6 +13,12 @@ fails with `RenderProcessDied` (its exit signal or code), the slot starts a
 new process, and the other processes never notice. (A `ProcessPoolExecutor`
 breaks as a whole on one death and fails every unit in flight.)
 
+The same makes a rendering unit stoppable (`LocalPool.stop(tag)`): its slot's
+process is killed, the unit's future fails with `UnitStopped` (not a death),
+and the slot starts a new process and takes the next unit once it has warmed
+up (it loads Numba's on-disk cache: about half a second). A kernel holds the
+GIL for as long as it runs, so nothing short of a signal stops it sooner.
+
 Render processes die with the process that started them: each asks the
 kernel for SIGKILL when its parent thread (the slot) exits (Linux
 PR_SET_PDEATHSIG; a watchdog thread elsewhere), so a SIGKILLed service leaves
@@ -44,7 +50,7 @@ from .scene_format import resolve_document
 from .spec import RenderSpec
 from .unitlog import capture_unit_log
 
-__all__ = ["LocalPool", "RenderProcessDied", "process_death", "render"]
+__all__ = ["LocalPool", "RenderProcessDied", "UnitStopped", "process_death", "render"]
 
 
 def process_death(exitcode: int) -> str:
@@ -65,6 +71,10 @@ class RenderProcessDied(RuntimeError):
     def __init__(self, exitcode: int):
         self.exitcode = exitcode
         super().__init__(process_death(exitcode))
+
+
+class UnitStopped(RuntimeError):
+    """The unit was stopped on request (`LocalPool.stop`) while a process rendered it."""
 
 
 # -- the render process ---------------------------------------------------------------
@@ -150,7 +160,7 @@ class _Process:
             if self.conn in ready:
                 try:
                     return self.conn.recv() == "ready"
-                except EOFError:
+                except (EOFError, OSError):  # closed, or reset by the process's death
                     break
             if ready:  # the process died
                 break
@@ -170,7 +180,7 @@ class _Process:
             if self.conn in wait_ready([self.conn, self.process.sentinel]) or self.conn.poll():
                 try:
                     return self.conn.recv()
-                except EOFError:
+                except (EOFError, OSError):  # a SIGKILL may reset the pipe, not close it
                     pass
         self.process.join()
         return None
@@ -199,7 +209,8 @@ class LocalPool:
     Units wait in the pool's own queue until a process is free, so a future
     canceled while it waits is simply dropped. Each process renders one unit
     at a time; a process that dies fails only its unit, with
-    `RenderProcessDied`, and is replaced (see the module doc).
+    `RenderProcessDied`, and is replaced (see the module doc); `stop(tag)`
+    ends a unit whether it waits or renders.
     """
 
     RESTART_PAUSE = 1.0  # seconds between attempts to start a process that dies in warm-up
@@ -214,6 +225,7 @@ class LocalPool:
         self._context = multiprocessing.get_context("spawn")
         self._cache = cache_root()
         self._rendering = [0] * self.workers  # per slot: the tag of the unit it renders
+        self._stopping = [0] * self.workers  # per slot: the tag `stop` killed its process for
         self._processes: list[_Process | None] = [None] * self.workers  # per slot
         self._waiting: deque[tuple[Future, tuple, int]] = deque()
         self._busy = 0  # slots rendering a unit
@@ -268,12 +280,18 @@ class LocalPool:
                 if item is None:
                     return
                 future, args, tag = item
-                self._rendering[slot] = tag
+                with self._changed:  # `stop` reads both under the lock
+                    self._rendering[slot] = tag
                 try:
                     outcome = process.run(args)
                 finally:
-                    self._rendering[slot] = 0
-                if outcome is None:
+                    with self._changed:
+                        self._rendering[slot] = 0
+                        stopped, self._stopping[slot] = self._stopping[slot] == tag != 0, 0
+                if outcome is None and stopped:
+                    future.set_exception(UnitStopped(f"unit stopped on request "
+                                                     f"({process_death(process.exitcode)})"))
+                elif outcome is None:
                     future.set_exception(RenderProcessDied(process.exitcode))
                 else:
                     future.unit_log = outcome[2]
@@ -317,6 +335,27 @@ class LocalPool:
             time.sleep(self.RESTART_PAUSE)
         return None
 
+    def stop(self, tag: int) -> bool:
+        """Stop the unit submitted with `tag` (nonzero): dropped if it still
+        waits (its future canceled), else its process is killed (its future
+        fails with `UnitStopped`, unless the film was already on its way) and
+        the slot goes on with a new process. False if no unit has that tag."""
+        if not tag:
+            return False
+        with self._changed:
+            for entry in self._waiting:
+                if entry[2] == tag:
+                    self._waiting.remove(entry)
+                    entry[0].cancel()
+                    return True
+            if tag not in self._rendering:
+                return False
+            slot = self._rendering.index(tag)
+            self._stopping[slot] = tag
+            # Under the lock: the slot cannot move on to its next unit meanwhile.
+            self._processes[slot].process.kill()
+            return True
+
     def waiting(self) -> int:
         """Units submitted that no process has taken yet (canceled ones too,
         until a free process drops them)."""
@@ -331,13 +370,18 @@ class LocalPool:
         return [p.process.pid for p in self._processes if p is not None and p.process.is_alive()]
 
     def shutdown(self, cancel: bool = True) -> None:
-        """Stop the pool: units still waiting are canceled (or, with `cancel`
-        False, all work is finished first); units in the processes finish."""
+        """Stop the pool: units still waiting are canceled and units rendering
+        are stopped (`UnitStopped`: a unit may render for minutes); with
+        `cancel` False, all work is finished first."""
         with self._changed:
             while not cancel and (self._waiting or self._busy):
                 self._changed.wait()
             self._closed = True
             waiting, self._waiting = list(self._waiting), deque()
+            for slot, tag in enumerate(self._rendering):
+                if tag:
+                    self._stopping[slot] = tag
+                    self._processes[slot].process.kill()
             self._changed.notify_all()
         for future, _args, _tag in waiting:
             future.cancel()

@@ -43,8 +43,10 @@ log = logging.getLogger(__name__)
 # Why a unit was enqueued again: lost (its worker lost by presence), lease (no
 # unit heartbeat for a lease), message (gone from the broker), declined (by a
 # blocklisted or disabled worker), crash (its render process died: an attempt
-# spent) or failed (an attempt raised and is retried).
-REQUEUE_REASONS = ("lost", "lease", "message", "declined", "crash", "failed")
+# spent), failed (an attempt raised and is retried), preempted or withdrawn (put
+# back to pending for another owner's fair share of the render processes).
+REQUEUE_REASONS = ("lost", "lease", "message", "declined", "crash", "failed", "preempted",
+                   "withdrawn")
 UNMATCHED = "unmatched"  # the route label of a request no route answered (404 of an unknown path)
 _HTTP_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
 # Render seconds of one unit: from a small tile to a long MLT chain.

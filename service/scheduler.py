@@ -10,7 +10,10 @@ Each tick:
    and mark it running; observe its units in flight: store a finished
    unit's film (atomically) *before* marking the unit done, exactly once;
    re-enqueue lost units; retry failed ones and ones whose render process
-   crashed (each spends an attempt) up to `max_attempts`, then fail the job; refresh its `preview.png` and `noise.png` from the units landed
+   crashed (each spends an attempt) up to `max_attempts`, then fail the job;
+   stop a unit rendering longer than its time budget (`service.budget`: the
+   measured rate, a generous margin, a floor), which is a failed attempt
+   too; refresh its `preview.png` and `noise.png` from the units landed
    so far and publish a `preview` event; when every unit is done, merge the
    stored films in unit order into `result.exr` + `preview.png` +
    `noise.png`, then mark the job done;
@@ -25,8 +28,14 @@ Each tick:
    units are enqueued in the order they were chosen, so different jobs'
    units interleave in the executor's queue too, and no job can hold it:
    a small job submitted behind a huge one starts within a few ticks.
+   Before that, fair share over the render processes (`_rebalance`,
+   `service.fairshare.rebalance`): while an owner waits for a process, the
+   owners holding their share or more get no new units, their units waiting
+   in the executor's queue are withdrawn, and a unit of one holding more
+   than its share may be preempted; both go back to pending without
+   spending an attempt, and their tasks are stopped (`Executor.stop`).
 Units whose job was canceled (by the API) leave flight; their tasks are
-canceled. The ledger is the truth: after a restart the scheduler picks up
+canceled, and a running one's process is stopped. The ledger is the truth: after a restart the scheduler picks up
 where the rows say it was.
 
 The tick stays cheap with many jobs waiting: its queries count units in
@@ -69,9 +78,10 @@ from renderer.target import supports_target
 from . import blocklist, events, states
 from .admission import job_plan
 from .artefacts import Artefacts
+from .budget import UnitRates
 from .events import EventHub
 from .executors import Executor, Flight, Observation, Ticket
-from .fairshare import Contender, fair_share
+from .fairshare import Contender, Holding, fair_share, rebalance, starved
 from .leader import Leadership, LeadershipLost
 from .metrics import FarmMetrics
 from .models import Job, User, WorkUnit, utcnow
@@ -120,6 +130,7 @@ class _Advanced(NamedTuple):
     units_done: int
     units_open: int | None
     in_flight: int
+    started: dict[int, datetime | None]  # its units in flight: when each began rendering
 
     @property
     def complete(self) -> bool:
@@ -134,19 +145,28 @@ class _Census:
     to the next tick."""
 
     def __init__(self, jobs: dict[str, _JobRow], flying: Counter[str],
-                 live: set[tuple[str, int]]):
+                 live: set[tuple[str, int]], started: dict[str, dict[int, datetime | None]]):
         self.jobs, self.flying, self.live = jobs, flying, live
+        # Per job, its units in flight: when each began rendering (None: queued).
+        self.started = started
 
     def update(self, job_id: str, after: _Advanced | None) -> None:
         """The job as the tick left it; None: no longer scheduled (or gone)."""
         if after is None or after.status not in states.SCHEDULED_JOB:
             self.jobs.pop(job_id, None)
             self.flying.pop(job_id, None)
+            self.started.pop(job_id, None)
             return
         self.jobs[job_id] = self.jobs[job_id]._replace(
             status=after.status, units_total=after.units_total, units_done=after.units_done,
             units_open=after.units_open)
         self.flying[job_id] = after.in_flight
+        self.started[job_id] = after.started
+
+    def left_flight(self, job_id: str, index: int) -> None:
+        """A unit of the job went back to pending (withdrawn or preempted)."""
+        if self.started.get(job_id, {}).pop(index, False) is not False:
+            self.flying[job_id] -= 1
 
 
 def _attempts_error(unit: WorkUnit, obs: Observation) -> str:
@@ -174,6 +194,11 @@ class Scheduler:
         self._tracked: dict[tuple[str, int], tuple[str, ...]] = {}  # units we put in flight
         self.previews = RunningPreviews(store, self.events, self._done_units)
         self.targets = TargetJobs(store)  # the pass decisions of target jobs
+        # Measured render rates, for the units' time budgets (service.budget).
+        self.rates = UnitRates(settings.unit_budget_factor, settings.unit_budget_floor)
+        self._budget_looked: dict[str, float] = {}  # job -> when a budget last sent a visit
+        # Owners starved of render processes -> since when (service.fairshare).
+        self._starved_since: dict[str, datetime] = {}
         self._stop = threading.Event()
         # Set when the executor reports a unit finished: the next tick starts
         # before poll_interval, so short units don't leave the pool idle
@@ -309,6 +334,8 @@ class Scheduler:
         self._drop_departed_artefacts(census.jobs)
         self.previews.keep_only(census.jobs)
         self.targets.keep_only(census.jobs)
+        self.rates.keep_only(census.jobs)
+        overdue = self._overdue(census)
         self.artefacts.new_tick()
         self._blocked = {}
         try:
@@ -316,7 +343,7 @@ class Scheduler:
                 if self._stop.is_set():
                     return
                 news_of = (news is None or job.id in news or job.id in untracked
-                           or job.id in revisit)
+                           or job.id in revisit or job.id in overdue)
                 if not self._needs_visit(job, census.flying[job.id] if news_of else 0):
                     continue
                 try:
@@ -351,11 +378,35 @@ class Scheduler:
                        Job.units_total, Job.units_done, Job.units_open)
                 .where(Job.status.in_(states.SCHEDULED_JOB))
                 .order_by(Job.priority.desc(), Job.created, Job.id))}
-            live = {(job_id, index) for job_id, index in session.execute(
-                select(WorkUnit.job_id, WorkUnit.index).join(Job, Job.id == WorkUnit.job_id)
+            flights = session.execute(
+                select(WorkUnit.job_id, WorkUnit.index, WorkUnit.state, WorkUnit.started_at)
+                .join(Job, Job.id == WorkUnit.job_id)
                 .where(WorkUnit.state.in_(states.IN_FLIGHT),
-                       Job.status.in_(states.SCHEDULED_JOB)))}
-        return _Census(jobs, Counter(job_id for job_id, _ in live), live)
+                       Job.status.in_(states.SCHEDULED_JOB))).all()
+        live = {(job_id, index) for job_id, index, _, _ in flights}
+        started: dict[str, dict[int, datetime | None]] = {}
+        for job_id, index, state, started_at in flights:
+            started.setdefault(job_id, {})[index] = started_at if state == "running" else None
+        return _Census(jobs, Counter(job_id for job_id, _ in live), live, started)
+
+    # How often a job whose unit has rendered longer than the budget floor is
+    # looked at (its budget checked) when the executor has no news of it.
+    BUDGET_LOOK_SECONDS = 1.0
+
+    def _overdue(self, census: _Census) -> set[str]:
+        """Jobs with a unit rendering for longer than the budget floor, each at
+        most once per BUDGET_LOOK_SECONDS: `_collect` checks its budget."""
+        now, clock = self.clock(), time.monotonic()
+        for job_id in [j for j in self._budget_looked if j not in census.jobs]:
+            del self._budget_looked[job_id]
+        out = set()
+        for job_id, units in census.started.items():
+            if any(t is not None and (now - t).total_seconds() >= self.rates.floor
+                   for t in units.values()) \
+                    and clock - self._budget_looked.get(job_id, -1e9) >= self.BUDGET_LOOK_SECONDS:
+                self._budget_looked[job_id] = clock
+                out.add(job_id)
+        return out
 
     def _needs_visit(self, job: _JobRow, in_flight: int) -> bool:
         """Does the job need its own transaction this tick? A running job that
@@ -420,6 +471,8 @@ class Scheduler:
             if landed:
                 job.note_samples(sum(int(f.stats.get("samples", 0)) for _, f in landed), now)
             in_flight = sum(u.state in states.IN_FLIGHT for u in flying)
+            started = {u.index: u.started_at if u.state == "running" else None
+                       for u in flying if u.state in states.IN_FLIGHT}
             if landed and job.progressive and job.target is None \
                     and supports_target(job.spec.get("method", "")):
                 self.targets.note_passes(session, job, now)  # the convergence, pass by pass
@@ -429,7 +482,7 @@ class Scheduler:
                 # landed pass and its decision commit together.
                 self.targets.decide(session, job, now)
             after = _Advanced(job.status, job.units_total, job.units_done, job.units_open,
-                              in_flight)
+                              in_flight, started)
             width, height, method = job.width, job.height, job.spec.get("method", "")
             written = None
             if landed and not self.previews.ever_written(job_id):
@@ -466,14 +519,21 @@ class Scheduler:
     def _dispatch(self, census: _Census) -> None:
         """Fill the executor's free slots by fair share (module doc, step 3).
         Asked after collecting (the census as the tick left it), so finished
-        units have freed their slots."""
+        units have freed their slots. First, fair share over the render
+        processes (`_rebalance`): owners holding more than their share while
+        another waits get nothing new, and may give up queued or running units."""
         jobs, flying = census.jobs, census.flying
         contenders = [Contender(j.id, j.owner, j.priority or 0, j.created, flying[j.id])
                       for j in jobs.values() if j.status == "running"
                       and j.open_pending - flying[j.id] > 0]
+        held_back, cap = self._rebalance(census, contenders)
+        contenders = [Contender(c.job_id, c.owner, c.priority, c.created, flying[c.job_id])
+                      for c in contenders if c.owner not in held_back]
         if not contenders:
             return
         slots = max(self.executor.capacity(sum(flying.values())), 0)
+        if cap is not None:
+            slots = min(slots, cap)
         if not slots:
             return
         owner_in_flight: Counter[str] = Counter()
@@ -504,9 +564,88 @@ class Scheduler:
                 except Exception as exc:  # broker down: keep what was sent, retry later
                     enqueue_error = exc
                     break
-                unit.attempts = 1
+                unit.attempts = max(unit.attempts or 0, 1)  # a preempted unit keeps its count
         if enqueue_error is not None:
             raise enqueue_error
+
+    # How long an owner must have been starved of render processes before
+    # others are held back or preempted for it: the ledger sees a unit begin
+    # rendering a tick or so late, and a short unit's process frees itself.
+    STARVED_GRACE = 1.0
+
+    def _rebalance(self, census: _Census,
+                   contenders: list[Contender]) -> tuple[frozenset[str], int | None]:
+        """Fair share over the render processes (service.fairshare.rebalance):
+        withdraw and preempt what it says (back to pending, no attempt spent;
+        their tasks stopped); returns the owners held back this tick and, while
+        some are, how many units the dispatch may enqueue (the claimants'
+        processes, less their units already queued), else None."""
+        processes = self.executor.render_processes() if self.settings.preemption else None
+        if not processes:
+            self._starved_since.clear()
+            return frozenset(), None
+        now = self.clock()
+        holdings = [Holding(census.jobs[job_id].owner, (job_id, index),
+                            None if began is None else max((now - began).total_seconds(), 0.0))
+                    for job_id, units in census.started.items() if job_id in census.jobs
+                    for index, began in units.items()]
+        queued = Counter(h.owner for h in holdings if h.running_for is None)
+        wanting = Counter(queued)  # an upper bound: pending units may wait for their needs
+        for c in contenders:
+            wanting[c.owner] += census.jobs[c.job_id].open_pending - census.flying[c.job_id]
+        owners = {h.owner for h in holdings} | {o for o, n in wanting.items() if n > 0}
+        hungry: set[str] = set()
+        shares: dict[str, float] = {}
+        if len(owners) > 1:  # one owner alone starves nobody
+            with self.sessions() as session:
+                shares = dict(session.execute(select(User.name, User.share)
+                                              .where(User.name.in_(owners))).all())
+            hungry = starved(holdings, wanting, shares, processes)
+        for owner in [o for o in self._starved_since if o not in hungry]:
+            del self._starved_since[owner]
+        claimants = {o for o in hungry if (now - self._starved_since.setdefault(o, now))
+                     .total_seconds() >= self.STARVED_GRACE}
+        if not claimants:
+            return frozenset(), None
+        stopped: list[str] = []
+        left: list[tuple[str, int]] = []
+        with self.sessions.begin() as session:
+            # What the claimants can start now, exactly (a DAG stage may wait).
+            for owner in claimants:
+                wanting[owner] = queued[owner]
+            for c in contenders:
+                if c.owner in claimants:
+                    job = session.get(Job, c.job_id)
+                    if job is not None and job.status == "running":
+                        wanting[c.owner] += len(self._ready_units(session, job, processes))
+            plan = rebalance(holdings, wanting, shares, processes, claimants,
+                             self.settings.preempt_after_seconds)
+            for key, was, reason in (
+                    [(k, "queued", "withdrawn from the executor's queue") for k in plan.withdraw]
+                    + [(k, "running", "preempted") for k in plan.preempt]):
+                unit = session.get(WorkUnit, key)
+                if unit is None or unit.state != was:
+                    continue  # it moved on meanwhile (landed, failed, canceled)
+                states.change_unit(unit, "pending", self.clock())
+                unit.requeue_reason = f"{reason}: another owner waited for a render process"
+                stopped.extend(unit.task_ids)
+                left.append(key)
+        for key in left:  # committed: their tasks go, their slots free
+            census.left_flight(*key)
+            self._tracked.pop(key, None)
+            self.metrics.requeued("preempted" if key in plan.preempt else "withdrawn")
+        if left:
+            log.info("fair share over %d render processes: %d units withdrawn, %d preempted "
+                     "for %s", processes, len(left) - sum(k in plan.preempt for k in left),
+                     sum(k in plan.preempt for k in left), ", ".join(sorted(claimants)))
+            self.executor.stop(stopped)
+        if not plan.held_back:
+            return frozenset(), None
+        # While others are held back, a claimant gets the units its processes
+        # need (at least one waiting, first in line for the next free process),
+        # and no more: a deep queue of its own would hold the farm in its turn.
+        return plan.held_back, sum(max(max(n, 1) - queued[o], 0)
+                                   for o, n in plan.claimed.items())
 
     def _ready_units(self, session: Session, job: Job, limit: int) -> list[WorkUnit]:
         """Up to `limit` pending units of the job whose needs are all done, in
@@ -600,6 +739,8 @@ class Scheduler:
                 unit.worker = obs.worker or unit.worker
                 self._keep_log(job, unit, obs, now)
                 unit.seconds = float(film.stats.get("seconds", 0.0))
+                self.rates.note(job.id, job.spec.get("method", ""), int(job.spec.get("depth", 0)),
+                                unit.unit, unit.seconds)
                 job.units_done += 1
                 job.samples += int(film.stats.get("samples", 0))
                 job.rays += int(film.stats.get("rays", 0))
@@ -611,6 +752,11 @@ class Scheduler:
                 landed.append((unit.index, film))
                 self._tracked.pop((job.id, unit.index), None)
                 return False
+        if obs.state == "running" and unit.state == "running":
+            over = self._over_budget(session, job, unit, now)
+            if over is not None:  # stopped; a failed attempt (below)
+                self.executor.stop(unit.task_ids)
+                obs = Observation("failed", error=over, worker=obs.worker or unit.worker)
         if obs.state == "running":
             if unit.state == "queued":
                 states.change_unit(unit, "running", now)
@@ -635,6 +781,29 @@ class Scheduler:
             self._enqueue(job, unit, now)
             self.metrics.requeued("crash" if obs.state == "crashed" else "failed")
         return False
+
+    def _over_budget(self, session: Session, job: Job, unit: WorkUnit,
+                     now: datetime) -> str | None:
+        """The error of a unit rendering for longer than its time budget
+        (service.budget), or None. A job's rates are read back from its done
+        units once after a restart (the scheduler keeps them in memory)."""
+        if unit.started_at is None:
+            return None
+        elapsed = (now - unit.started_at).total_seconds()
+        if elapsed < self.rates.floor:
+            return None
+        method, depth = job.spec.get("method", ""), int(job.spec.get("depth", 0))
+        if job.units_done and not self.rates.knows(job.id):
+            for done, seconds in session.execute(
+                    select(WorkUnit.unit, WorkUnit.seconds).where(
+                        WorkUnit.job_id == job.id, WorkUnit.state == "done",
+                        WorkUnit.seconds.is_not(None)).limit(64)):
+                self.rates.note(job.id, method, depth, done, seconds)
+        budget = self.rates.budget(job.id, method, depth, unit.unit)
+        if budget is None or elapsed <= budget.seconds:
+            return None
+        log.warning("unit %s/%d: %s", job.id, unit.index, budget.exceeded(elapsed))
+        return budget.exceeded(elapsed)
 
     def _keep_log(self, job: Job, unit: WorkUnit, obs: Observation, now: datetime) -> None:
         """Keep what the unit's latest task logged (GET /jobs/{id}/units/{i}/log).

@@ -337,7 +337,8 @@ class UnitPublic(BaseModel):
     requeue_reason: str | None = Field(
         None, description="why it was last enqueued again without spending an attempt: its "
                           "worker lost, no heartbeat for a lease, its message lost, declined "
-                          "by a worker (null if never)")
+                          "by a worker, withdrawn or preempted for another owner's fair share "
+                          "of the render processes (null if never)")
     film_digest: str | None = Field(
         None, description="SHA-256 of the unit's stored partial film, once done: the name "
                           "later units of a DAG job and the workers know it by")

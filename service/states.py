@@ -13,6 +13,8 @@
               │          └──┘ (enqueued again: lost message or retry)
               └──────────┴────────────┴──► failed | canceled
               failed | canceled ──► pending   (retry of a failed job)
+              queued | running ──► pending    (withdrawn or preempted: fair share
+                                               over render processes, no attempt spent)
               pending ──► skipped   (a target job's region met its target: service.targets)
 
 Nothing else assigns `Job.status` or `WorkUnit.state`; a change the table does
@@ -47,8 +49,9 @@ JOB_TRANSITIONS: dict[str, frozenset[str]] = {
 UNIT_TRANSITIONS: dict[str, frozenset[str]] = {
     "pending": frozenset({"queued", "canceled", "skipped"}),
     # queued -> queued: the message was lost, or the attempt failed and is retried.
-    "queued": frozenset({"queued", "running", "done", "failed", "canceled"}),
-    "running": frozenset({"queued", "done", "failed", "canceled"}),
+    # queued, running -> pending: withdrawn or preempted (service.fairshare), no attempt spent.
+    "queued": frozenset({"queued", "running", "done", "failed", "canceled", "pending"}),
+    "running": frozenset({"queued", "done", "failed", "canceled", "pending"}),
     "done": frozenset(),
     "skipped": frozenset(),
     # A retry of a failed job: its failed units and those canceled with it run again.
@@ -101,14 +104,16 @@ def change_unit(unit: WorkUnit, new: str, now: datetime, *, error: str | None = 
     allowed = UNIT_TRANSITIONS[unit.state]
     if new not in allowed:
         raise IllegalTransition("unit", f"{unit.job_id}/{unit.index}", unit.state, new, allowed)
-    unit.state = new
+    old, unit.state = unit.state, new
     if new == "queued":
         unit.enqueued_at, unit.started_at = now, None
     elif new == "running":
         unit.started_at = now
-    elif new == "pending":  # retried: a fresh start
-        unit.enqueued_at = unit.started_at = unit.finished_at = unit.error = None
-        unit.attempts = 0
+    elif new == "pending":
+        unit.enqueued_at = unit.started_at = None
+        if old in FINAL_UNIT:  # retried: a fresh start
+            unit.finished_at = unit.error = None
+            unit.attempts = 0
     if new in FINAL_UNIT:
         unit.finished_at = now
     if error is not None:

@@ -10,6 +10,9 @@ put in flight, and in which order, can be read exactly.
     executor.fail(job_id, 4, "ValueError: x", worker="w1")  # its latest task failed on w1
     executor.lose(job_id, 5, cause="worker", error="worker w1 lost")
     executor.live = ["w1", "w2"]  # what workers() shows (idle Celery-like workers)
+    executor.processes = 2      # render processes (fair share over them; None: unknown)
+    executor.start(job_id, 6)   # its latest task renders (observed running)
+    executor.stopped            # task ids the scheduler stopped (preempted, withdrawn...)
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ class FakeExecutor(Executor):
         self._outcomes: dict[str, Observation] = {}  # task id -> a scripted failure or loss
         self.live: list[str] = []
         self.disabled: set[str] = set()
+        self.processes: int | None = None
+        self.rendering: set[str] = set()  # task ids observed running
+        self.stopped: list[str] = []
 
     def submit(self, ticket: Ticket) -> str:
         task_id = uuid.uuid4().hex
@@ -68,6 +74,10 @@ class FakeExecutor(Executor):
         self._outcomes[self._latest_task(job_id, index)] = Observation("lost", cause=cause,
                                                                        error=error)
 
+    def start(self, job_id: str, index: int) -> None:
+        """The unit's latest task renders (seen at the next tick)."""
+        self.rendering.add(self._latest_task(job_id, index))
+
     def tickets_of(self, job_id: str, index: int) -> list[Ticket]:
         return [t for t in self.submitted if (t.job_id, t.index) == (job_id, index)]
 
@@ -76,8 +86,10 @@ class FakeExecutor(Executor):
         for flight in flights:
             films = [self._films[t] for t in flight.task_ids if t in self._films]
             scripted = self._outcomes.get(flight.task_ids[-1]) if flight.task_ids else None
+            running = flight.task_ids and flight.task_ids[-1] in self.rendering
             out.append(Observation("done", film=films[0], worker="fake") if films
-                       else scripted or Observation("queued"))
+                       else scripted or Observation("running" if running else "queued",
+                                                    worker="fake"))
         return out
 
     def workers(self) -> list[WorkerInfo]:
@@ -91,6 +103,13 @@ class FakeExecutor(Executor):
 
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
         self.canceled.extend(task_ids)
+
+    def stop(self, task_ids: Sequence[str]) -> None:
+        self.stopped.extend(task_ids)
+        self.rendering.difference_update(task_ids)
+
+    def render_processes(self) -> int | None:
+        return self.processes
 
     def capacity(self, in_flight: int) -> int:
         return max(self.slots - in_flight, 0)

@@ -32,8 +32,9 @@ def test01_the_tables_are_exactly_these():
         "done": {"queued"}, "failed": {"queued", "running"}, "canceled": {"queued"}}
     assert {k: set(v) for k, v in states.UNIT_TRANSITIONS.items()} == {
         "pending": {"queued", "canceled", "skipped"},  # skipped: a target job's (targets.py)
-        "queued": {"queued", "running", "done", "failed", "canceled"},
-        "running": {"queued", "done", "failed", "canceled"},
+        # -> pending: withdrawn or preempted for another owner (fairshare.py)
+        "queued": {"queued", "running", "done", "failed", "canceled", "pending"},
+        "running": {"queued", "done", "failed", "canceled", "pending"},
         "done": set(), "skipped": set(), "failed": {"pending"}, "canceled": {"pending"}}
 
 

@@ -15,6 +15,14 @@ attempt, and the ledger's attempt count decides whether it runs again. (With
 redelivery on, a unit that crashes every process looped forever.) A message
 that Redis itself loses is the service's business: it watches heartbeats and
 enqueues the unit again (see service/executors).
+
+The service stops a unit it no longer wants rendered (its job canceled, the
+unit preempted or over its time budget) with `revoke(terminate=True,
+signal="SIGKILL")`. Celery then records the task REVOKED, acknowledges its
+message and kills the render process; billiard reports that death as
+`Terminated`, not as `WorkerLostError`, so no FAILURE is stored and nothing
+counts it as a crash (and the service has moved the unit on under a new
+task anyway).
 """
 
 from __future__ import annotations
@@ -23,7 +31,8 @@ import logging
 
 from celery import Celery
 from celery.signals import (after_setup_logger, after_setup_task_logger, task_failure,
-                            worker_init, worker_process_init, worker_ready, worker_shutdown)
+                            task_revoked, worker_init, worker_process_init, worker_ready,
+                            worker_shutdown)
 
 from .keys import QUEUE
 from .settings import Settings
@@ -200,3 +209,21 @@ def _forget_dead_render_process(sender=None, exception=None, args=None, **_kwarg
                               payload if isinstance(payload, dict) else None)
     except Exception:  # presence is for the dashboard; never stop the worker for it
         log.exception("could not clear a dead render process's presence")
+
+
+@task_revoked.connect
+def _forget_stopped_unit(request=None, terminated=False, **_kwargs) -> None:
+    # In the main process, when the service stopped a rendering unit: its render
+    # process was killed and never said it finished, so drop its unit's
+    # heartbeat (the unit may run again elsewhere) and its "running" entry.
+    if _presence is None or not terminated:
+        return
+    from .presence import forget_dead_processes
+
+    args = getattr(request, "args", None) or ()
+    payload = args[0] if args else None
+    try:
+        forget_dead_processes(_presence.client, _presence.name,
+                              payload if isinstance(payload, dict) else None)
+    except Exception:  # presence is for the dashboard; never stop the worker for it
+        log.exception("could not clear a stopped render process's presence")

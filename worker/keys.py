@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 __all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "FILM_TTL", "scene_key", "heartbeat_key",
-           "cancel_key", "job_films_key", "worker_key", "worker_running_key", "input_key", "unit_log_key",
+           "cancel_key", "stopped_key", "job_films_key", "worker_key", "worker_running_key", "input_key", "unit_log_key",
            "DISABLED_WORKERS"]
 
 TASK_RENDER_UNIT = "rayfarm.render_unit"
@@ -41,6 +41,13 @@ def heartbeat_key(job_id: str, index: int) -> str:
 def cancel_key(job_id: str) -> str:
     """Set when a job is canceled or failed, so workers skip its queued units."""
     return f"rayfarm:cancel:{job_id}"
+
+
+def stopped_key(task_id: str) -> str:
+    """Set when the service stopped one task (preempted, withdrawn, over its
+    time budget) while its job goes on: a worker that missed the revoke
+    broadcast (started later, or reconnecting) skips the task all the same."""
+    return f"rayfarm:stopped:{task_id}"
 
 
 def job_films_key(job_id: str) -> str:

@@ -89,6 +89,20 @@ class Settings(BaseSettings):
                                 "queued unit missing from an empty queue this long, is "
                                 "enqueued again")
     max_attempts: int = Field(3, ge=1, description="attempts of a failing unit before its job fails")
+    unit_budget_factor: float = Field(
+        10.0, gt=0, description="a rendering unit is stopped (a failed attempt) once it has "
+                                "run this many times as long as its samples take at the "
+                                "measured rate (service/budget.py)")
+    unit_budget_floor: float = Field(
+        120.0, gt=0, description="seconds a unit may always render, whatever the measured "
+                                 "rate says (short units are never stopped for time)")
+    preemption: bool = Field(
+        True, description="while an owner waits for a render process, stop (and later "
+                          "render again) a unit of an owner holding more than its share "
+                          "(service/fairshare.py)")
+    preempt_after_seconds: float = Field(
+        2.0, ge=0, description="a unit that has rendered less than this is never preempted "
+                               "(short units free their process on their own)")
     worker_failures_per_job: int = Field(
         3, ge=0, description="failed units of one job on one worker before that worker is "
                              "blocklisted for the job (its units go to other workers; when "

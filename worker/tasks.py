@@ -16,9 +16,14 @@ kernel) tells the service the unit is alive, and the worker's presence record
 (worker/presence.py) shows the unit (with its task id) and, once it is done,
 counts it.
 
-A unit whose job was canceled (`cancel_key`) before it started is skipped,
-and one canceled while it rendered does not publish its film (`publish_film`); both
-return ``{"canceled": True, "worker": name}``.
+A unit whose job was canceled (`cancel_key`), or whose task the service
+stopped (`stopped_key`: preempted, withdrawn or over its time budget), before
+it started is skipped, and one whose job was canceled while it rendered does
+not publish its film (`publish_film`); all return ``{"canceled": True,
+"worker": name}``. A task stopped while it renders is not asked: the service
+revokes it with SIGKILL (a Numba kernel holds the GIL for as long as it runs,
+so a check in Python would wait for the kernel), and the worker's pool starts
+a new render process.
 
 A worker declines a unit, returning ``{"declined": reason, "worker": name}``
 at once without rendering, when it is blocklisted for the unit's job (the
@@ -44,7 +49,7 @@ from renderer.unitlog import capture_unit_log
 
 from . import presence
 from .keys import (FILM_TTL, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, job_films_key,
-                   scene_key, unit_log_key)
+                   scene_key, stopped_key, unit_log_key)
 
 __all__ = ["register_tasks", "render_unit", "publish_film", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
 
@@ -181,7 +186,7 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
     unit put them).
     """
     job_id, index, scene = payload["job_id"], int(payload["index"]), payload["scene_hash"]
-    if client.exists(cancel_key(job_id)):
+    if client.exists(cancel_key(job_id), *([stopped_key(task_id)] if task_id else [])):
         return {"canceled": True, "worker": worker}
     if worker in (payload.get("blocked") or ()):
         return {"declined": "blocklisted for the job", "worker": worker}

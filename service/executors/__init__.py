@@ -2,7 +2,8 @@
 
 Both have one interface (`Executor`), used by the scheduler thread only:
 `submit` a `Ticket`, `observe` the units in flight, `release` what was
-stored, `cancel` what is no longer wanted, and say how many more units to
+stored, `cancel` what is no longer wanted and `stop` a unit preempted or
+over its time budget (both end a running unit too), and say how many more units to
 send (`capacity`: each keeps little beyond what it can run at once). `make_executor(settings, ...)`
 picks one: Celery when `broker_url` is set, else the local pool.
 """

@@ -140,7 +140,23 @@ class Executor(ABC):
 
     @abstractmethod
     def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
-        """Stop these tasks if possible; their results will be ignored."""
+        """The job is over for these tasks: stop them, queued or running (a
+        running unit's process is stopped, not left to finish); their results
+        will be ignored."""
+
+    def stop(self, task_ids: Sequence[str]) -> None:
+        """Stop these tasks, queued or running, and forget them; the job goes on
+        (the unit was preempted, withdrawn or ran over its time budget, and the
+        scheduler puts it back to pending or enqueues it again under a new
+        task). A stopped task's outcome is never reported as a crash.
+        Optional: an executor that cannot stop tasks lets them finish unseen."""
+
+    def render_processes(self) -> int | None:
+        """How many units this executor renders at once (its live, enabled
+        render processes), for fair share over those processes
+        (`service.fairshare.rebalance`); None if unknown: then no unit is
+        preempted or withdrawn."""
+        return None
 
     @abstractmethod
     def capacity(self, in_flight: int) -> int:

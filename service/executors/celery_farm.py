@@ -48,6 +48,15 @@ Redis serves a queue first in, first out (per message priority), so the
 executor keeps only a few units per live render process in it (`limit`):
 the scheduler's fair share decides what runs next, not a deep queue filled
 by whichever job came first.
+
+`cancel` and `stop` end tasks whether they wait or render: a revoke with
+terminate and SIGKILL (a Numba kernel holds the GIL, so a gentler signal
+would wait for it), which kills the render process and records the task
+REVOKED, never a crash (worker/celery_app.py); plus a marker in Redis that
+workers check before they start a unit (the job's `cancel_key`, or the
+task's `stopped_key`), since a revoke broadcast reaches only the workers
+listening at that moment. A unit whose latest task is REVOKED (e.g. by
+another scheduler that lost its lease) is lost and enqueued again.
 """
 
 from __future__ import annotations
@@ -69,7 +78,7 @@ import redis
 from renderer import process_death
 from worker.celery_app import create_celery_app
 from worker.keys import (FILM_TTL, QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key,
-                         job_films_key, scene_key, unit_log_key)
+                         job_films_key, scene_key, stopped_key, unit_log_key)
 from worker.presence import forget_worker, read_workers, set_disabled
 from celery.utils.nodenames import worker_direct
 
@@ -318,6 +327,9 @@ class CeleryExecutor(Executor):
                                    error="the worker found its job canceled")
             return Observation("lost", cause="declined", worker=result.get("worker"),
                                error=f"declined by {result.get('worker')}: {result['declined']}")
+        if status == "REVOKED":  # stopped by a scheduler that no longer wanted it
+            return Observation("lost", cause="message", worker=(latest or {}).get("worker"),
+                               error="its task was revoked")
         if status == "FAILURE":
             crash = _process_death(latest)
             if crash is not None:
@@ -427,13 +439,31 @@ class CeleryExecutor(Executor):
         # any, get their inputs uploaded again, `_refresh_inputs`.)
         self.redis.set(cancel_key(job_id), "1", ex=CANCEL_TTL)
         self._uncanceled.discard(job_id)
-        if task_ids:
-            self.app.control.revoke(list(task_ids))
+        self._revoke(task_ids)
         published = sorted(d.decode() for d in self.redis.smembers(job_films_key(job_id)))
         self.redis.delete(job_films_key(job_id))
         if published:
             self.drop_films(published)
         self.release(task_ids)
+
+    def stop(self, task_ids: Sequence[str]) -> None:
+        if not task_ids:
+            return
+        pipe = self.redis.pipeline(transaction=False)
+        for task_id in task_ids:
+            pipe.set(stopped_key(task_id), "1", ex=CANCEL_TTL)
+        pipe.execute()
+        self._revoke(task_ids)
+        self.release(task_ids)
+
+    def _revoke(self, task_ids: Sequence[str]) -> None:
+        """Revoke the tasks on every worker, killing a render process that runs
+        one (see the module doc)."""
+        if task_ids:
+            self.app.control.revoke(list(task_ids), terminate=True, signal="SIGKILL")
+
+    def render_processes(self) -> int:
+        return self._live_processes()
 
     def limit(self) -> int:
         """Units to keep in flight (running, reserved by a worker or waiting in

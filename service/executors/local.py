@@ -5,7 +5,9 @@ It reports a unit `running` only while a pool process renders it (the pool's
 units, samples and render seconds the pool has done: the one worker of the
 embedded mode, as `workers()` shows it. A unit whose render process died is
 `crashed` (an attempt spent); the pool replaced that process, and the other
-units in flight never noticed.
+units in flight never noticed. `cancel` and `stop` end a unit whether it
+waits in the pool's queue or renders (the pool kills its process, which it
+replaces); such a unit's outcome is never reported.
 
 A DAG unit's inputs come by digest (`Ticket.inputs`) and go to the pool as
 bytes: the films of units that later units read (`Ticket.is_input`) are kept
@@ -186,7 +188,7 @@ class LocalExecutor(Executor):
             return Observation("running", worker=self.worker_name)
         return Observation("queued")
 
-    def _forget(self, task_id: str) -> Future | None:
+    def _forget(self, task_id: str) -> tuple[Future | None, int | None]:
         with self._lock:
             fut = self._futures.pop(task_id, None)
             tag = self._tag_of.pop(task_id, None)
@@ -194,17 +196,23 @@ class LocalExecutor(Executor):
             self._since.pop(tag, None)
             self._counted.discard(task_id)
             self._input_tasks.discard(task_id)
-        return fut
+        return fut, tag
 
     def release(self, task_ids: Sequence[str]) -> None:
         for task_id in task_ids:
             self._forget(task_id)
 
-    def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
+    def stop(self, task_ids: Sequence[str]) -> None:
         for task_id in task_ids:
-            fut = self._forget(task_id)
-            if fut is not None:
-                fut.cancel()  # only units not yet started; running ones finish unseen
+            fut, tag = self._forget(task_id)
+            if fut is not None and not fut.done():
+                self._pool.stop(tag)  # dropped if it waits, its process killed if it renders
+
+    def cancel(self, job_id: str, task_ids: Sequence[str]) -> None:
+        self.stop(task_ids)
+
+    def render_processes(self) -> int:
+        return 0 if self.disabled else self.processes
 
     def workers(self) -> list[WorkerInfo]:
         now = datetime.now(timezone.utc)
