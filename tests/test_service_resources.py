@@ -124,20 +124,20 @@ def test02_a_full_disk_is_visible_and_loses_nothing(tmp_path, monkeypatch, refer
 
 def test03_a_full_disk_while_writing_the_result_waits_instead_of_failing(
         tmp_path, monkeypatch, reference_channels):
-    from renderer.film import Film
+    from service import results
 
     full = threading.Event()
     full.set()
     refused: list[str] = []
-    write_exr = Film.write_exr
+    write_exr = results.write_exr
 
-    def write_or_enospc(self, path, *args, **kwargs):
+    def write_or_enospc(path, *args, **kwargs):
         if full.is_set():
             refused.append(str(path))
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-        return write_exr(self, path, *args, **kwargs)
+        return write_exr(path, *args, **kwargs)
 
-    monkeypatch.setattr(Film, "write_exr", write_or_enospc)
+    monkeypatch.setattr(results, "write_exr", write_or_enospc)
     settings = Settings(data_dir=tmp_path / "data", local_workers=1, poll_interval=0.05,
                         admin_token=TEST_ADMIN_TOKEN)
     with TestClient(create_app(settings), headers=ADMIN_HEADERS) as client:
