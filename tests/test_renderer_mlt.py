@@ -1,4 +1,4 @@
-"""`mlt` (primary-sample-space Metropolis over BDPT): issue 5, point 10.
+"""`mlt` (primary-sample-space Metropolis over BDPT): its normalisation, image and variance.
 
 Tolerances come from the estimators' own standard errors (Z = 4.5, fixed
 seeds). b's standard error is the bootstrap's (`b_stderr` in its artefact);

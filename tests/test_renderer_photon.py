@@ -1,4 +1,4 @@
-"""Photon mapping (`photon`, renderer/integrators/photon.py), issue 5 test 11.
+"""Photon mapping (`photon`, renderer/integrators/photon.py): what SPPM and the photon map must do.
 
 - the progressive radius update r'^2 / r^2 = (N + gamma M) / (N + M) with
   gamma = 2/3, on random inputs and on a real render's per-pixel state;
