@@ -14,12 +14,19 @@ measured error), as the estimator lab does.
     report = compare_jobs(session, store, actor, ["a1...", "b2..."], reference="c3...")
 
 `GET /compare.png` draws the same with matplotlib, for reports.
+
+A comparison holds whole-frame float64 films (the job's passes as they add
+up, their mean and variance, the reference's channels: about 250 bytes a
+pixel), so it takes frames of at most `MAX_PIXELS` and runs one at a time in
+a service: another caller meanwhile is told to retry (429), instead of N
+requests holding N such frames.
 """
 
 from __future__ import annotations
 
 import io
 import math
+import threading
 
 import numpy as np
 from sqlalchemy import select
@@ -30,14 +37,17 @@ from renderer.film import image_error, read_exr, rgb_of
 from renderer.lab import corrected_mse
 
 from .access import Principal
-from .errors import InvalidRequest, NotFound
+from .errors import InvalidRequest, NotFound, RateLimited
 from .jobs import get_job
 from .models import Job, WorkUnit
 from .store import Store
 
-__all__ = ["MAX_JOBS", "compare_jobs", "compare_figure"]
+__all__ = ["MAX_JOBS", "MAX_PIXELS", "compare_jobs", "compare_figure"]
 
 MAX_JOBS = 8
+MAX_PIXELS = 2048 * 2048  # about 1 GB of float64 frames while a comparison runs
+_RUNNING = threading.Lock()  # one comparison at a time (module doc)
+RETRY_AFTER = 5.0
 
 
 def _film(width: int, height: int) -> Film:
@@ -103,6 +113,22 @@ def compare_jobs(session: Session, store: Store, actor: Principal, ids: list[str
             raise InvalidRequest("jobs", f"job '{job_id}' is {job.status}; compare done jobs",
                                  source="query")
         jobs.append(job)
+    for job in jobs:
+        if job.width * job.height > MAX_PIXELS:
+            raise InvalidRequest("jobs", f"job '{job.id}' has {job.width}x{job.height} pixels; "
+                                         f"a comparison takes frames of at most {MAX_PIXELS} "
+                                         "pixels (2048x2048)", source="query")
+    if not _RUNNING.acquire(blocking=False):
+        raise RateLimited("another comparison is running in this service; retry in a few "
+                          "seconds", retry_after=RETRY_AFTER)
+    try:
+        return _compare(session, store, actor, jobs, reference)
+    finally:
+        _RUNNING.release()
+
+
+def _compare(session: Session, store: Store, actor: Principal, jobs: list[Job],
+             reference: str | None) -> dict:
     ref = None
     if reference:
         try:

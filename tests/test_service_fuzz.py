@@ -165,7 +165,8 @@ def _admin_of_its_own(app, name: str) -> TestClient:
     """A client of `app` (its farm the fixture's) as a new admin with a token of
     its own: a fresh submission budget, whatever the other tests spent."""
     admin = TestClient(app, headers=ADMIN_HEADERS)
-    assert admin.post("/users", json={"name": name, "role": "admin"}).status_code == 201
+    created = admin.post("/users", json={"name": name, "role": "admin"})
+    assert created.status_code == 201, created.text
     secret = admin.post("/tokens", json={"user": name}).json()["token"]
     return TestClient(app, headers={"Authorization": f"Bearer {secret}"})
 

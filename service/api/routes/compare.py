@@ -24,7 +24,7 @@ def _ids(jobs: str) -> list[str]:
     return [j for j in (part.strip() for part in jobs.split(",")) if j]
 
 
-@router.get("", responses=responses(422))
+@router.get("", responses=responses(422, 429))
 def compare_jobs(session: SessionDep, farm: FarmDep, actor: ActorDep, jobs: Jobs,
                  reference: Reference = None) -> dict:
     """Each job's error against samples and render seconds, pass by pass (its
@@ -33,7 +33,7 @@ def compare_jobs(session: SessionDep, farm: FarmDep, actor: ActorDep, jobs: Jobs
 
 
 @router.get(".png", response_class=Response,
-            responses={200: {"content": {"image/png": {}}}, **responses(422)})
+            responses={200: {"content": {"image/png": {}}}, **responses(422, 429)})
 def compare_png(session: SessionDep, farm: FarmDep, actor: ActorDep, jobs: Jobs,
                 reference: Reference = None) -> Response:
     """The same drawn with matplotlib (log-log, against samples and seconds)."""
