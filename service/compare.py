@@ -16,10 +16,10 @@ measured error), as the estimator lab does.
 `GET /compare.png` draws the same with matplotlib, for reports.
 
 A comparison holds whole-frame float64 films (the job's passes as they add
-up, their mean and variance, the reference's channels: about 250 bytes a
-pixel), so it takes frames of at most `MAX_PIXELS` and runs one at a time in
-a service: another caller meanwhile is told to retry (429), instead of N
-requests holding N such frames.
+up, their mean and variance, the reference's channels: 440 bytes a pixel
+traced at 512x512), so it takes frames of at most `MAX_PIXELS` and runs one
+at a time in a service: another caller meanwhile is told to retry (429),
+instead of N requests holding N such frames.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ from .store import Store
 __all__ = ["MAX_JOBS", "MAX_PIXELS", "compare_jobs", "compare_figure"]
 
 MAX_JOBS = 8
-MAX_PIXELS = 2048 * 2048  # about 1 GB of float64 frames while a comparison runs
+MAX_PIXELS = 2048 * 2048  # about 1.9 GB while a comparison runs (module doc)
 _RUNNING = threading.Lock()  # one comparison at a time (module doc)
 RETRY_AFTER = 5.0
 

@@ -80,3 +80,26 @@ def test03_bad_comparisons_are_422s_naming_the_parameter(local_client, three):
         assert field in str(response.json()["detail"]), (params, response.text)
     assert local_client.get("/compare").status_code == 422  # jobs is required
 
+
+
+def test04_a_comparison_is_bounded_in_pixels_and_runs_one_at_a_time(local_client, three,
+                                                                   monkeypatch):
+    """It holds whole-frame float64 films: frames above MAX_PIXELS are a 422
+    naming `jobs`, and a second comparison while one runs is a 429 to retry,
+    not a second set of frames in memory."""
+    from service import compare
+
+    a, b, ref = three
+    monkeypatch.setattr(compare, "MAX_PIXELS", 16 * 16 - 1)
+    big = local_client.get("/compare", params={"jobs": a})
+    assert big.status_code == 422 and "jobs" in str(big.json()["detail"]), big.text
+    monkeypatch.setattr(compare, "MAX_PIXELS", 16 * 16)
+    assert compare._RUNNING.acquire(blocking=False)  # a comparison under way
+    try:
+        for path in ("/compare", "/compare.png"):
+            busy = local_client.get(path, params={"jobs": a, "reference": ref})
+            assert busy.status_code == 429, busy.text
+            assert int(busy.headers["retry-after"]) >= 1
+    finally:
+        compare._RUNNING.release()
+    assert local_client.get("/compare", params={"jobs": a, "reference": ref}).status_code == 200
