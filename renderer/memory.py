@@ -90,13 +90,17 @@ class JobMemory:
     `unit`: a render process's peak for it; `frames`: the service's frames
     of the job in flight; `merge`: the service's peak while it merges.
     `unit_frame`: the part of `unit` that a smaller tile does not shrink
-    (whole-frame splats, photon maps), which admission names the frame for."""
+    (whole-frame splats, photon maps), which admission names the frame for.
+    `stored`: the bytes of all its unit films in the store, where they stay
+    until the job is deleted (a comparison's passes and a partial result read
+    them): a disk figure, not a memory one."""
 
     unit_film: int
     unit: int
     unit_frame: int
     frames: int
     merge: int
+    stored: int = 0
 
     def service(self, processes: int, waiting: int | None = None) -> int:
         """The service's peak for the job with `processes` render processes
@@ -171,6 +175,7 @@ def job_memory(spec: RenderSpec, *, progressive: bool = False, target: bool = Fa
             scratch = region * (PHOTON_VISIBLE + PHOTON_STATE + CAMERA + AOV + PHOTON_TEMPS)
         frame_part = inputs
     unit_film = region * camera + frame_film
+    stored = _stored(spec, progressive, target, method, options, camera, frame_film)
     if region:
         scratch += rows * ROW_SCRATCH
     unit = (UNIT_BASE + inputs
@@ -186,7 +191,38 @@ def job_memory(spec: RenderSpec, *, progressive: bool = False, target: bool = Fa
     merge = (pixels * (F32 * channels + IMAGES + ERROR + PNG_ENCODE + (DENOISE if denoise else 0))
              + band)
     return JobMemory(unit_film=unit_film, unit=unit, unit_frame=UNIT_BASE + frame_part,
-                     frames=frames, merge=merge)
+                     frames=frames, merge=merge, stored=stored)
+
+
+def _stored(spec: RenderSpec, progressive: bool, target: bool, method, options: dict,
+            camera: int, frame_film: int) -> int:
+    """`JobMemory.stored`: every pass of a tile plan covers the frame once
+    (camera sums of each pixel per pass); a splat method's units each carry a
+    whole-frame splat film (BDPT: every tile of every pass); a photon job
+    stores each iteration's photons and each gather round's frame of state."""
+    from .plan import sample_passes, tile_pixels
+    from .plan_size import plan_size
+
+    pixels = spec.width * spec.height
+    tiles = -(-spec.width // spec.tile_size) * -(-spec.height // spec.tile_size)
+    if method.family in ("tile", "radiosity"):
+        passes = len(sample_passes(spec.spp, progressive or target,
+                                   0 if target else tile_pixels(spec)))
+        return passes * pixels * camera
+    if method.family == "photons":
+        from .integrators.photon import (PHOTONMAP, _iterations_per_unit, _typed,
+                                         photons_per_iteration)
+
+        typed = _typed(options)
+        records = photons_per_iteration(spec, typed) * _photon_records(spec) * PHOTON_RECORD
+        if typed["mode"] == PHOTONMAP:
+            return records + pixels * camera
+        rounds = -(-spec.spp // _iterations_per_unit(spec, typed))
+        return spec.spp * records + rounds * pixels * camera
+    units = plan_size(spec, progressive)
+    if method.name == "bdpt":  # tiles x passes, each with the frame's splats
+        return (units // tiles) * pixels * camera + units * frame_film
+    return units * frame_film  # light tracing, MLT: a few dozen whole-frame batches
 
 
 def _tile_plan():

@@ -156,8 +156,10 @@ def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progres
     would hold more than `max_job_bytes` with a unit in every render process
     (`local_workers`) and the service's share, with as many of its `units`
     (its planned units, or a lower bound; default: one a process) finished
-    and waiting to be collected as the executor keeps in flight. The bytes are
-    renderer.memory's; returns them."""
+    and waiting to be collected as the executor keeps in flight; unit films
+    that would take more than `max_job_store_bytes` of the store (on
+    `tile_size` for BDPT, whose every tile stores the frame's splats, else on
+    the frame). The bytes are renderer.memory's; returns them."""
     limits = limits_for(settings, actor)
     pixels = spec.width * spec.height
     if pixels > limits.max_pixels_per_job:
@@ -204,7 +206,30 @@ def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progres
         if tile is None:
             raise InvalidRequest(_frame_field(spec), f"{what}: render fewer pixels")
         raise InvalidRequest("tile_size", f"{what}; use tile_size <= {tile}")
+    if mem.stored > limits.max_job_store_bytes:
+        what = (f"this job's unit films would take about {_mb(mem.stored)} of the store, above "
+                f"the {actor.role} limit of {_mb(limits.max_job_store_bytes)} per job "
+                f"({_setting(actor, 'max_job_store_bytes')})")
+        if METHODS[spec.method].name == "bdpt":  # each tile unit stores the frame's splats
+            tile = _smallest_tile(spec, lambda t: memory(t).stored <= limits.max_job_store_bytes)
+            if tile is not None:
+                raise InvalidRequest("tile_size", f"{what}; every tile of every pass stores "
+                                                  f"the frame's splats: use tile_size >= {tile}")
+        raise InvalidRequest(_frame_field(spec), f"{what}: render fewer pixels or samples")
     return mem
+
+
+def _smallest_tile(spec: RenderSpec, fits) -> int | None:
+    """The smallest tile size above spec.tile_size for which `fits` (fewer,
+    larger tiles), if any."""
+    lo, hi = spec.tile_size + 1, max(spec.width, spec.height, spec.tile_size + 1)
+    hi = min(hi, BOUNDS["tile_size"][1])
+    if lo > hi or not fits(hi):
+        return None
+    while lo < hi:
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if fits(mid) else (mid + 1, hi)
+    return lo
 
 
 def admit_job(session: Session, settings: Settings, actor: Principal, spec: RenderSpec,

@@ -97,3 +97,26 @@ def test02_a_pool_keeps_no_film_it_handed_over():
         finally:
             tracemalloc.stop()
     assert size > 20_000_000 and held < size // 4, (size, held)
+
+
+@pytest.mark.parametrize("method", sorted(METHOD_UNITS))
+def test03_the_stored_figure_bounds_the_films_a_job_leaves(method, cornell):
+    """`JobMemory.stored`, which admission holds against a role's store limit,
+    is at least the bytes of every unit film a job leaves in the store (but a
+    radiosity solution, which is the scene's), and not far above them:
+    photon maps are figured at 4 records a photon, cornell-box leaves about
+    one. BDPT's every tile of every pass carries the frame's splats."""
+    options, _ = METHOD_UNITS[method]
+    spec = RenderSpec(method=method, width=48, height=32, tile_size=16, spp=8, depth=3,
+                      options=options).validate()
+    for progressive in (False, True):
+        films: dict[int, bytes] = {}
+        for unit in METHODS[method].make_plan(spec, progressive):
+            inputs = {i: PartialFilm.from_bytes(films[i]) for i in unit.needs}
+            films[unit.index] = run_unit(cornell, spec, unit, inputs).to_bytes()
+        kinds = {u.index: u.kind for u in METHODS[method].make_plan(spec, progressive)}
+        stored = sum(len(b) for i, b in films.items() if kinds[i] != "solve")
+        figure = job_memory(spec, progressive=progressive).stored
+        headers = 4096 * len(films)  # a film's header and small artefacts
+        assert stored <= figure + headers, (progressive, stored, figure)
+        assert figure <= 4 * stored, (progressive, stored, figure)

@@ -311,7 +311,8 @@ def test13_whole_frame_splats_above_the_unit_bytes_are_422_on_the_frame(tmp_path
         assert refused.value.field == "width", method
         assert "RAYFARM_LIMITS_ARTIST__MAX_UNIT_BYTES" in str(refused.value)
         assert "whole frame" in str(refused.value)
-        check_memory(settings, ANA, replace(spec, width=1024, height=1024), False)
+        # (larger tiles: BDPT's 16-pixel ones would store the frame's splats 4096 times)
+        check_memory(settings, ANA, replace(spec, width=1024, height=1024, tile_size=256), False)
 
 
 def test14_a_job_above_the_artists_bytes_with_every_process_is_422_naming_the_setting(tmp_path):
@@ -327,3 +328,25 @@ def test14_a_job_above_the_artists_bytes_with_every_process_is_422_naming_the_se
     tile = int(message.rsplit("tile_size <= ", 1)[1])
     check_memory(settings, ANA, replace(spec, tile_size=tile), False)
     check_memory(Settings(data_dir=tmp_path / "data", local_workers=2), ANA, spec, False)
+
+
+def test15_a_job_whose_films_would_fill_the_store_is_422_naming_the_setting(tmp_path):
+    """Unit films stay in the store until their job is deleted. BDPT stores the
+    frame's splats with every tile of every pass: 2048^2 pixels in 64-pixel
+    tiles are about 1 TB of films; the refusal names tile_size and the
+    smallest tile that fits."""
+    settings = Settings(data_dir=tmp_path / "data", local_workers=2)
+    spec = RenderSpec(method="bdpt", spp=16, depth=5, width=2048, height=2048, tile_size=64)
+    with pytest.raises(InvalidRequest) as refused:
+        check_memory(settings, ANA, spec, True)
+    assert refused.value.field == "tile_size"
+    message = str(refused.value)
+    assert "RAYFARM_LIMITS_ARTIST__MAX_JOB_STORE_BYTES" in message
+    tile = int(message.rsplit("tile_size >= ", 1)[1])
+    fits = check_memory(settings, ANA, replace(spec, tile_size=tile), True)
+    assert fits.stored <= settings.limits_artist.max_job_store_bytes
+    with pytest.raises(InvalidRequest):
+        check_memory(settings, ANA, replace(spec, tile_size=tile - 1), True)
+    # the artist's largest path-traced frame at the most samples stores less
+    big = RenderSpec(method="path-mis", spp=64, depth=5, width=4096, height=4096, tile_size=64)
+    assert check_memory(settings, ANA, big, True).stored <= 16 << 30

@@ -53,6 +53,11 @@ class RoleLimits(BaseModel):
                                            "share (running frames, landed films, the merge) "
                                            "plus a unit in each render process "
                                            "(local_workers)")
+    # Disk: unit films stay in the store until their job is deleted.
+    max_job_store_bytes: int = Field(16 << 30, gt=0,
+                                     description="bytes one job's unit films may take in the "
+                                                 "store (renderer/memory.py: BDPT stores the "
+                                                 "frame's splats with every tile of every pass)")
 
 
 class AdminLimits(RoleLimits):
@@ -66,6 +71,7 @@ class AdminLimits(RoleLimits):
     max_pixels_per_job: int = Field(8192 * 8192, gt=0)
     max_unit_bytes: int = Field(4 << 30, gt=0)
     max_job_bytes: int = Field(12 << 30, gt=0)
+    max_job_store_bytes: int = Field(64 << 30, gt=0)
 
 
 class Settings(BaseSettings):
