@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -153,6 +154,7 @@ def run_job(rayfarm: str, body: dict, workers: int, env_extra: dict) -> dict:
         except subprocess.TimeoutExpired:
             server.kill()
             server.wait()
+        shutil.rmtree(data_dir, ignore_errors=True)  # a 4096^2 job's films are gigabytes
 
 
 def predicted(body: dict, workers: int) -> dict:

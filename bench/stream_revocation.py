@@ -38,8 +38,8 @@ def main(rounds: int = 5) -> int:
     from service.settings import Settings
 
     events.KEEPALIVE = 3600.0
-    app = create_app(Settings(data_dir=tempfile.mkdtemp(prefix="rayfarm-revocation-"),
-                              local_workers=1))
+    scratch = tempfile.TemporaryDirectory(prefix="rayfarm-revocation-")
+    app = create_app(Settings(data_dir=scratch.name, local_workers=1))
     results: dict[str, list[float]] = {}
     calls: list[float] = []  # seconds the revoking call itself took
     with TestClient(app, headers={"Authorization": f"Bearer {ADMIN}"}) as admin:
