@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+import secrets
 import time
 from collections import Counter
 
@@ -163,8 +164,11 @@ def _job_cases(methods: list[dict]) -> list[tuple[str, dict]]:
 
 def _admin_of_its_own(app, name: str) -> TestClient:
     """A client of `app` (its farm the fixture's) as a new admin with a token of
-    its own: a fresh submission budget, whatever the other tests spent."""
+    its own: a fresh submission budget, whatever the other tests spent. The
+    name gets a random suffix: Hypothesis draws string constants it finds in
+    this module's source, so the fuzzer of test01 may have made `name` already."""
     admin = TestClient(app, headers=ADMIN_HEADERS)
+    name = f"{name}-{secrets.token_hex(4)}"
     created = admin.post("/users", json={"name": name, "role": "admin"})
     assert created.status_code == 201, created.text
     secret = admin.post("/tokens", json={"user": name}).json()["token"]
