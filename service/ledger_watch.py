@@ -28,8 +28,6 @@ commit, once here), which a stream shows as the same state again.
 from __future__ import annotations
 
 import itertools
-import logging
-import threading
 from typing import Callable
 
 from sqlalchemy import or_, select
@@ -38,56 +36,39 @@ from sqlalchemy.orm import Session, sessionmaker
 from . import states
 from .events import EventHub
 from .models import Job, WorkUnit, utcnow
+from .poller import Poller
 from .previews import preview_event
 
 __all__ = ["LedgerWatch"]
 
-log = logging.getLogger(__name__)
 
-
-class LedgerWatch:
+class LedgerWatch(Poller):
     """Polls the ledger for changes while `leading()` is false (module doc)."""
+
+    what = "ledger watch"
 
     def __init__(self, sessions: sessionmaker[Session], hub: EventHub,
                  leading: Callable[[], bool], interval: float = 0.5):
-        self.sessions, self.hub, self.leading, self.interval = sessions, hub, leading, interval
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        super().__init__(interval)
+        self.sessions, self.hub, self.leading = sessions, hub, leading
         # id -> (version, owner, units done, status), as of the last poll
         self._jobs: dict[str, tuple[int, str, int, str]] | None = None
         self._units: dict[tuple[str, int], int] = {}  # (job, index) -> version
         self._previews = itertools.count(1)
-        self.polls = 0
 
     def start(self) -> None:
         """Take the first reading now (the service starts before it serves a
         stream: none misses what happens between its snapshot and this
         reading), then poll from a thread."""
-        if not self.leading():
-            try:
-                self.poll()
-            except Exception as exc:  # the thread tries again
-                log.warning("ledger watch: %s: %s", type(exc).__name__, exc)
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="rayfarm-ledger-watch",
-                                        daemon=True)
-        self._thread.start()
+        if self.wanted():
+            self.try_poll()
+        super().start()
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
-            self._thread = None
+    def wanted(self) -> bool:
+        return not self.leading()
 
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval):
-            if self.leading():
-                self._jobs = None  # polled afresh (and streams resynced) if it stands by again
-                continue
-            try:
-                self.poll()
-            except Exception as exc:  # the ledger may be busy; try again next time
-                log.warning("ledger watch: %s: %s", type(exc).__name__, exc)
+    def idle(self) -> None:
+        self._jobs = None  # polled afresh (and streams resynced) if it stands by again
 
     def poll(self) -> None:
         """Publish what changed since the last poll (the first only records)."""

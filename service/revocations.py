@@ -20,53 +20,33 @@ the ledger, is seen the same way on SQLite and PostgreSQL.
 
 from __future__ import annotations
 
-import logging
-import threading
-
 from sqlalchemy.orm import Session, sessionmaker
 
 from . import auth
 from .events import EventHub
+from .poller import Poller
 
 __all__ = ["RevocationWatch", "INTERVAL"]
-
-log = logging.getLogger(__name__)
 
 INTERVAL = 0.5  # seconds between two reads of the mark while streams are open
 
 
-class RevocationWatch:
+class RevocationWatch(Poller):
     """Polls `auth.logins_mark` while `hub` has subscribers (module doc)."""
+
+    what = "revocation watch"
 
     def __init__(self, sessions: sessionmaker[Session], hub: EventHub,
                  interval: float = INTERVAL):
-        self.sessions, self.hub, self.interval = sessions, hub, interval
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        super().__init__(interval)
+        self.sessions, self.hub = sessions, hub
         self._mark: tuple | None = None
-        self.polls = 0
 
-    def start(self) -> None:
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="rayfarm-revocations",
-                                        daemon=True)
-        self._thread.start()
+    def wanted(self) -> bool:
+        return bool(self.hub.subscribers)
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(5)
-            self._thread = None
-
-    def _run(self) -> None:
-        while not self._stop.wait(self.interval):
-            if not self.hub.subscribers:
-                self._mark = None  # unknown from here on: the next read wakes the streams
-                continue
-            try:
-                self.poll()
-            except Exception as exc:  # the ledger may be busy; the streams' keep-alives check too
-                log.warning("revocation watch: %s: %s", type(exc).__name__, exc)
+    def idle(self) -> None:
+        self._mark = None  # unknown from here on: the next read wakes the streams
 
     def poll(self) -> None:
         """Read the mark; wake the streams if it moved since the last read, or
