@@ -166,10 +166,12 @@ def test06_plan_size_is_the_plans_length_without_building_it(method):
         options += [{"iterations_per_unit": 1}, {"iterations_per_unit": 5},
                     {"photons": 200_000}, {"mode": "photonmap"},
                     {"mode": "photonmap", "photons": 300_000}]
+    # A photon plan of one-pixel tiles is a gather unit per pixel and round (2560
+    # x 64 of them here): seconds to build, no shape the 8-pixel tiles miss.
+    tiles = (8, 16, 64) if METHODS[method].family == "photons" else (1, 8, 16, 64)
     checked = 0
     for width, height, tile, spp, progressive, opts in itertools.product(
-            (1, 7, 33, 64), (1, 16, 40), (1, 8, 16, 64), (1, 2, 3, 17, 64), (False, True),
-            options):
+            (1, 7, 33, 64), (1, 16, 40), tiles, (1, 2, 3, 17, 64), (False, True), options):
         spec = RenderSpec(method=method, spp=spp, width=width, height=height, tile_size=tile,
                           options=opts)
         assert plan_size(spec, progressive) == len(METHODS[method].make_plan(spec, progressive)), \
