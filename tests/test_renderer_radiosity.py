@@ -1,4 +1,4 @@
-"""Radiosity (issue 5, point 12): form factors, the solve, the display, the cache.
+"""Radiosity: form factors, the solve, the display, the cache.
 
 Tolerances. Form factors are Monte Carlo estimates; each test states the
 estimator's own error and why the tolerance covers it:

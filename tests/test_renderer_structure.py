@@ -1,4 +1,4 @@
-"""The renderer's structure (issue 13): its import graph has no cycle, counting
+"""The renderer's structure: its import graph has no cycle, counting
 imports inside functions too (three of them used to dodge a 21-module cycle
 between the registry and every plugin), and the registry is a plain table
 that the plugins never read back."""
