@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 
 from renderer import RenderSpec, images, load_scene, merge
-from renderer.film import AOV_LAYERS, image_error, noise_srgb8, tonemap_srgb8
+from renderer.film import AOV_LAYERS, image_error
 from renderer.memory import job_memory
 from renderer.runtime import run_plan, run_unit
 from renderer.stream import merge_frame
 from renderer.target import Target, target_plan
+from whole_frame import whole_frame
 
 JOBS = {
     "path-mis grouped": (dict(method="path-mis", width=40, height=30, tile_size=8, spp=6), True),
@@ -34,21 +35,6 @@ JOBS = {
 @pytest.fixture(scope="module")
 def cornell():
     return load_scene("cornell-box")
-
-
-def whole_frame(width: int, height: int, films) -> dict:
-    """What the frame's files were made of before: the whole frame's float64
-    sums (`renderer.merge`), its mean and variance at once."""
-    film = merge(width, height, films)
-    mean, var = film.mean(), film.variance_of_mean()
-    m32, v32 = mean.astype(np.float32), var.astype(np.float32)
-    channels = {c: m32[..., i].copy() for i, c in enumerate("RGB")}
-    channels.update({f"var.{c}": v32[..., i].copy() for i, c in enumerate("RGB")})
-    channels.update({name: np.ascontiguousarray(a, dtype=np.float32)
-                     for name, a in film.aovs().items()})
-    return {"channels": channels, "rel_error": image_error(mean, var),
-            "preview": tonemap_srgb8(mean), "noise": noise_srgb8(mean, var),
-            "stats": film.stats}
 
 
 def stored(tmp_path, films) -> list:

@@ -1,4 +1,4 @@
-"""Every bad input is a 4xx that names the problem, never a 500 (issue 11).
+"""Every bad input is a 4xx that names the problem, never a 500.
 
 Each case here answered 500, or was accepted, before its fix: non-finite
 JSON numbers (Python's reader takes NaN, Infinity and 1e999; no JSON writer
