@@ -390,29 +390,34 @@ def _read_obj(data: bytes, label: str, max_triangles: int) -> MeshData:
     else:
         ti_k = ti if has_t else np.full_like(ti, -1)
         ni_k = ni if has_n else np.full_like(ni, -1)
-        nt, nn = len(tlines) + 1, len(nlines) + 1
-        if (len(vlines) + 1) * nt * nn < (1 << 62):
-            key = (vi * nt + (ti_k + 1)) * nn + (ni_k + 1)
-            ukeys, inverse = np.unique(key, return_inverse=True)
-            uv_ = ukeys // (nt * nn)
-            ut = (ukeys // nn) % nt - 1
-            un = ukeys % nn - 1
-        else:
-            rows = np.stack([vi, ti_k, ni_k], axis=1)
-            urows, inverse = np.unique(rows, axis=0, return_inverse=True)
-            uv_, ut, un = urows[:, 0], urows[:, 1], urows[:, 2]
-        inverse = inverse.reshape(-1)
-        if len(np.unique(uv_)) == len(uv_):
-            # every position pairs with one UV and normal: keep the file's vertices
+        # Does every position pair with one UV and one normal? (a scatter and a
+        # gather: most exporters write such files, and then nothing is split)
+        functional = True
+        for attr in (ti_k, ni_k):
+            seen = np.full(len(positions), -2, np.int64)
+            seen[vi] = attr
+            functional = functional and bool(np.array_equal(seen[vi], attr))
+        if functional:
             faces = vi[tri_corners]
             if has_t:
                 uvs = np.zeros((len(positions), 2))
-                uvs[uv_] = np.where((ut >= 0)[:, None], texcoords[np.maximum(ut, 0)], 0.0)
+                uvs[vi] = np.where((ti_k >= 0)[:, None], texcoords[np.maximum(ti_k, 0)], 0.0)
             if has_n:
                 normals = np.zeros((len(positions), 3))
-                normals[uv_] = normals_in[un]
+                normals[vi] = normals_in[ni_k]
         else:
-            faces = inverse[tri_corners]
+            nt, nn = len(tlines) + 1, len(nlines) + 1
+            if (len(vlines) + 1) * nt * nn < (1 << 62):
+                key = (vi * nt + (ti_k + 1)) * nn + (ni_k + 1)
+                ukeys, inverse = np.unique(key, return_inverse=True)
+                uv_ = ukeys // (nt * nn)
+                ut = (ukeys // nn) % nt - 1
+                un = ukeys % nn - 1
+            else:
+                rows = np.stack([vi, ti_k, ni_k], axis=1)
+                urows, inverse = np.unique(rows, axis=0, return_inverse=True)
+                uv_, ut, un = urows[:, 0], urows[:, 1], urows[:, 2]
+            faces = inverse.reshape(-1)[tri_corners]
             positions = positions[uv_]
             if has_t:
                 uvs = np.where((ut >= 0)[:, None], texcoords[np.maximum(ut, 0)], 0.0)

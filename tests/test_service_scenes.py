@@ -266,7 +266,7 @@ def _cases():
                        id="mesh-parent")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", bad_obj),),
                        ["body", "scene", f"shapes[{MESH}].file"],
-                       ("cannot parse line 3 of cube.obj", "v 1 x -1"), id="mesh-unparsable")
+                       ("cube.obj:3: cannot parse", "v 1 x -1"), id="mesh-unparsable")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 9\n"),),
                        ["body", "scene", f"shapes[{MESH}].file"],
                        ("line 3 of cube.obj", "face vertex index 9 is out of range",
