@@ -290,8 +290,9 @@ def _resolve_index(raw, before, total, corner_line, label, what):
     bad = (raw != 0) & ((idx < 0) | (idx >= total))
     if np.any(bad):
         c = int(np.argmax(bad))
-        raise SceneError(f"{what} index {int(raw[c])} is out of range (the file has {total} "
-                         f"{what}s{' above this line' if raw[c] < 0 else ''})",
+        plural = {"vertex": "vertices"}.get(what, what + "s")
+        raise SceneError(f"face {what} index {int(raw[c])} is out of range (the file has {total} "
+                         f"{plural}{' above this line' if raw[c] < 0 else ''})",
                          f"{label}:{int(corner_line[c]) + 1}")
     return idx
 
