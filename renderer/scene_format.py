@@ -11,11 +11,14 @@ A scene is one JSON object (`docs/scene-format.md` documents every field)::
       "emitters": [{"type": "point", "position": [0, 0, 0], "intensity": [1, 1, 1]}]
     }
 
-`resolve_document` turns any accepted input (a built-in name, a path, a dict)
-into a *resolved document*: validated, defaults filled in, mesh files read and
-inlined, every transform a 4x4 matrix. The resolved document is
-self-contained, so its canonical JSON hash (`scene_hash`) identifies the
-scene wherever it travels: the farm ships scenes to workers by that hash.
+`resolve_scene` turns any accepted input (a built-in name, a path, a dict)
+into a *resolved document* and its assets: validated, defaults filled in,
+every mesh (a file, inline arrays or a digest) an asset named by its digest
+(renderer.assets), every transform a 4x4 matrix; `resolve_document` returns
+the document carrying its assets (`ResolvedDocument`). The document names
+each asset by digest, so its canonical JSON hash (`scene_hash`) identifies
+the scene wherever it travels: the farm ships scenes to workers by that hash
+and their assets by digest. Fields allowed in each object: `FIELDS`.
 
 Errors are `SceneError`s whose `location` names the offending field, e.g.
 ``shapes[2].to_world``.
