@@ -297,6 +297,14 @@ def test08_meshes_become_assets_from_every_source(tmp_path):
     tri = world.positions[world.faces[0]]
     geometric = np.cross(tri[1] - tri[0], tri[2] - tri[0])
     assert np.dot(geometric, world.normals[0]) > 0  # shading and geometric sides agree
+    # admission counts the scene's triangles from the document, no asset decoded
+    from renderer import RenderSpec
+    from renderer.memory import SCENE_TRIANGLE, job_memory, scene_memory
+
+    assert scene_memory(json.loads(json.dumps(doc))) == 2 * SCENE_TRIANGLE
+    spec = RenderSpec(method="path", spp=1, width=8, height=8, tile_size=8)
+    bare, counted = job_memory(spec), job_memory(spec, scene=scene_memory(doc))
+    assert counted.total(2) - bare.total(2) == 2 * 2 * SCENE_TRIANGLE
     # face_normals drops the vertex normals from the asset
     flat = resolve_document(_doc(dict(inline, face_normals=True)))
     assert decode_asset(flat.assets[flat["shapes"][0]["mesh"]]).normals is None
