@@ -12,7 +12,7 @@ import numpy as np
 
 from . import assets
 from .errors import SceneError
-from .meshio import MESH_SUFFIXES, read_mesh
+from .meshio import MESH_SUFFIXES, read_mesh, vertex_normals
 
 __all__ = ["AssetStore", "MeshLimits", "resolve_mesh"]
 
@@ -146,16 +146,6 @@ def _mesh_arrays(shape: dict, loc: str, base_dir: Path | None, root: Path | None
             else f_raw, *extra), where
 
 
-def _smooth_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (zero where no face has an area)."""
-    tri = positions[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    out = np.zeros_like(positions)
-    for k in range(3):
-        np.add.at(out, faces[:, k], cross)
-    return out
-
-
 def resolve_mesh(shape: dict, out: dict, loc: str, base_dir: Path | None, root: Path | None,
                  store: AssetStore, limits: MeshLimits):
     """Resolve a mesh shape's source into an asset: `out` gets `mesh` (its
@@ -179,10 +169,10 @@ def resolve_mesh(shape: dict, out: dict, loc: str, base_dir: Path | None, root: 
         normals = None  # shading uses each triangle's own normal
     if normals is not None:
         length = np.linalg.norm(normals, axis=1)
-        if np.any(length == 0):  # e.g. "vn 0 0 0": the faces around the vertex decide
+        if np.any(length == 0):  # e.g. "vn 0 0 0": the faces around the vertex decide, as Mitsuba would
             normals = np.array(normals, dtype=np.float64)
             zero = length == 0
-            normals[zero] = _smooth_normals(v, f)[zero]
+            normals[zero] = vertex_normals(v, f)[zero]
             still = np.linalg.norm(normals, axis=1) == 0
             normals[still] = [0.0, 0.0, 1.0]  # only degenerate faces touch it: never hit
     blob = assets.encode_mesh(v, f, normals, uvs)

@@ -30,12 +30,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SceneError
-from .common import MAX_HEADER_BYTES, MAX_MESH_FILE_BYTES, MAX_MESH_TRIANGLES, MESH_SUFFIXES, MeshData
+from .common import (MAX_HEADER_BYTES, MAX_MESH_FILE_BYTES, MAX_MESH_TRIANGLES, MESH_SUFFIXES,
+                     MeshData, vertex_normals)
 from .obj import _read_obj, read_mtl
 from .ply import _read_ply
 from .serialized import _read_serialized, write_serialized
 
-__all__ = ["MeshData", "read_mesh", "read_mtl", "write_serialized", "MESH_SUFFIXES",
+__all__ = ["MeshData", "read_mesh", "read_mtl", "write_serialized", "vertex_normals", "MESH_SUFFIXES",
            "MAX_MESH_FILE_BYTES", "MAX_MESH_TRIANGLES", "MAX_HEADER_BYTES"]
 
 

@@ -69,3 +69,24 @@ def _fan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     j = np.arange(len(poly)) - first_tri[poly] + 1
     base = starts[poly]
     return np.stack([base, base + j, base + j + 1], axis=1), poly
+
+
+def vertex_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Smooth vertex normals as Mitsuba 3 computes them for a mesh file
+    without any (unless face_normals): each face's unit normal weighted by
+    its angle at the vertex (Thuermer and Wuethrich 1998), normalised; zero
+    where no face around a vertex has an area."""
+    p = np.asarray(positions, dtype=np.float64)[faces]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    length = np.linalg.norm(n, axis=1)
+    valid = length > 0
+    n = np.where(valid[:, None], n / np.where(valid, length, 1.0)[:, None], 0.0)
+    out = np.zeros((len(positions), 3))
+    for k in range(3):
+        a = p[:, (k + 1) % 3] - p[:, k]
+        b = p[:, (k + 2) % 3] - p[:, k]
+        angle = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))
+        for c in range(3):
+            out[:, c] += np.bincount(faces[:, k], weights=n[:, c] * angle, minlength=len(out))
+    length = np.linalg.norm(out, axis=1, keepdims=True)
+    return np.where(length > 0, out / np.where(length > 0, length, 1.0), 0.0)
