@@ -346,3 +346,26 @@ def test09_unknown_fields_are_refused_at_every_level(where, change):
         resolve_document(doc)
     assert info.value.location == where
     assert "aperture" not in FIELDS["camera"] and "uv" not in FIELDS["shape.mesh"]
+
+
+def test10_import_scene_reads_a_native_scene_folder(tmp_path):
+    """A JSON scene's mesh files (relative paths, subfolders) become assets;
+    nothing leaves the root; an unknown suffix is refused."""
+    from renderer.importers import Imported, import_scene
+
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "tri.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    scene = tmp_path / "scene.json"
+    scene.write_text(json.dumps(_doc({"type": "mesh", "material": "m",
+                                      "file": "models/tri.obj"})))
+    imported = import_scene(scene)
+    assert isinstance(imported, Imported) and imported.report == []
+    assert list(imported.assets) == [imported.doc["shapes"][0]["mesh"]]
+    assert scene_hash(resolve_document(imported.doc, assets=imported.assets)) == \
+        scene_hash(imported.doc)
+    scene.write_text(json.dumps(_doc({"type": "mesh", "material": "m", "file": "../x.obj"})))
+    with pytest.raises(SceneError, match="inside the scene's directory"):
+        import_scene(scene)
+    (tmp_path / "scene.txt").write_text("{}")
+    with pytest.raises(SceneError, match="unknown scene file type"):
+        import_scene(tmp_path / "scene.txt")
