@@ -17,6 +17,8 @@ def _line_table(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Start and end (exclusive, before the newline) offsets of every line, and
     each line's kind, classified from its first bytes."""
     buf = np.frombuffer(data, np.uint8)
+    if not len(buf):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.uint8)
     ends = np.flatnonzero(buf == 10)
     if len(buf) and (not len(ends) or ends[-1] != len(buf) - 1):
         ends = np.concatenate([ends, [len(buf)]])
