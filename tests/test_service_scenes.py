@@ -412,11 +412,11 @@ def test11b_an_uploads_mesh_files_are_parsed_outside_the_serving_process(local_c
     # Parsing a large .obj holds the GIL for tens of seconds: in the service's
     # own process it stalled every request. A child process parses it, and a
     # reader patched here (in the serving process) is never called.
-    from renderer import scene_format
+    from renderer import scene_meshes
 
     parsed = []
-    original = scene_format.read_mesh
-    monkeypatch.setattr(scene_format, "read_mesh",
+    original = scene_meshes.read_mesh
+    monkeypatch.setattr(scene_meshes, "read_mesh",
                         lambda path, **kw: parsed.append(path) or original(path, **kw))
     response = upload(local_client, scene_bytes(room("test11b-room")))
     assert response.status_code == 201, response.text
