@@ -24,7 +24,9 @@ from xml.parsers import expat
 
 import numpy as np
 
+from ..assets import asset_digest, encode_mesh
 from ..errors import SceneError
+from ..meshio import read_mesh
 from ..primitives import world_mesh
 from . import Imported, ReportEntry
 from .spectra import blackbody, spectrum_to_rgb, srgb_to_linear, uniform_to_rgb
@@ -919,17 +921,11 @@ class _Importer:
                             for z in (lo[2], hi[2])], dtype=np.float64)
         self.bounds.append(corners @ m[:3, :3].T + m[:3, 3])
 
-    def _mesh(self, path: Path, fmt: str, shape_index: int, flip_uv: bool) -> tuple | None:
-        """(digest, lo, hi) of a mesh file as an asset, or None until the
-        mesh readers are there."""
-        try:
-            from ..assets import asset_digest, encode_mesh  # type: ignore[attr-defined]
-            from ..meshio import read_mesh  # type: ignore[import-not-found]
-        except ImportError:
-            return None
+    def _mesh(self, path: Path, fmt: str, shape_index: int, flip_uv: bool) -> tuple:
+        """(digest, lo, hi, face normals?, reader's notes) of a mesh file, as an asset."""
         key = (path, fmt, shape_index, flip_uv)
         if key not in self.mesh_cache:
-            mesh = read_mesh(path, fmt=fmt, shape_index=shape_index)
+            mesh = read_mesh(path, fmt=fmt, shape_index=shape_index, label=self.rel(path))
             uvs = mesh.uvs
             if flip_uv and uvs is not None:
                 uvs = np.array(uvs, dtype=np.float64)
@@ -938,7 +934,8 @@ class _Importer:
             digest = asset_digest(blob)
             self.assets[digest] = blob
             pos = np.asarray(mesh.positions)
-            self.mesh_cache[key] = (digest, pos.min(axis=0), pos.max(axis=0))
+            self.mesh_cache[key] = (digest, pos.min(axis=0), pos.max(axis=0), mesh.face_normals,
+                                    list(mesh.notes))
         return self.mesh_cache[key]
 
     def shape(self, node: _Node) -> list[dict]:
@@ -1010,13 +1007,12 @@ class _Importer:
             shape_index = obj.int("shape_index", 0) if t == "serialized" else 0
             flip_uv = obj.bool("flip_tex_coords", True) if t == "obj" else False
             out["type"] = "mesh"
-            mesh = self._mesh(path, t, shape_index, flip_uv)
-            if mesh is None:
-                out["file"] = self.rel(path)
-            else:
-                out["mesh"] = mesh[0]
-                self._track_bounds(mesh[1], mesh[2], m)
-            if obj.bool("face_normals", False):
+            digest, lo, hi, face_normals, notes = self._mesh(path, t, shape_index, flip_uv)
+            out["mesh"] = digest
+            self._track_bounds(lo, hi, m)
+            for text in notes:
+                self.note(obj.props["filename"], text)
+            if obj.bool("face_normals", False) or face_normals:
                 out["face_normals"] = True
             obj.ignore("max_smooth_angle", "ignored: the file's vertex normals are used as "
                                            "they are (rayfarm does not re-smooth)")
