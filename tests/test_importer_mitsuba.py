@@ -377,3 +377,39 @@ def test_the_shared_real_scenes_import_with_their_quirks_reported():
     assert 'bsdf type="plastic" (in bsdf type="twosided" id="FluorescentTube")' in text
     assert classroom.doc["defaults"] == {"max_depth": 16}
     assert math.isclose(classroom.doc["camera"]["fov"], 60)
+
+
+def test_mesh_files_become_assets_with_mitsubas_uv_convention(tmp_path):
+    from renderer.assets import decode_asset
+    from renderer.meshio import MeshData, write_serialized
+
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "quad.obj").write_text(
+        "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0.25\nvt 1 0.25\nvt 1 1\nvt 0 1\n"
+        "f 1/1 2/2 3/3 4/4\n")
+    (tmp_path / "m" / "tri.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nproperty float u\nproperty float v\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n"
+        "0 0 0 0 0.25\n1 0 0 1 0.25\n0 1 0 0 1\n3 0 1 2\n")
+    tri = MeshData(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]]))
+    big = MeshData(np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 2, 0.0]]),
+                   np.array([[0, 1, 2], [1, 3, 2]]), face_normals=True)
+    write_serialized(tmp_path / "m" / "two.serialized", [tri, big])
+    out = load(tmp_path, """
+      <shape type="obj"><string name="filename" value="m/quad.obj"/></shape>
+      <shape type="obj"><string name="filename" value="m\\quad.obj"/></shape>
+      <shape type="ply"><string name="filename" value="m/tri.ply"/>
+        <boolean name="face_normals" value="true"/></shape>
+      <shape type="serialized"><string name="filename" value="m/two.serialized"/>
+        <integer name="shape_index" value="1"/></shape>""")
+    shapes = out.doc["shapes"]
+    assert shapes[0]["mesh"] == shapes[1]["mesh"] and set(out.assets) == {
+        s["mesh"] for s in shapes}
+    quad = decode_asset(out.assets[shapes[0]["mesh"]])
+    ply = decode_asset(out.assets[shapes[2]["mesh"]])
+    ser = decode_asset(out.assets[shapes[3]["mesh"]])
+    assert len(quad.faces) == 2 and np.allclose(sorted(set(quad.uvs[:, 1])), [0.0, 0.75])
+    assert np.allclose(sorted(set(ply.uvs[:, 1])), [0.25, 1.0])  # PLY: v as written
+    assert shapes[2]["face_normals"] and shapes[3]["face_normals"] and len(ser.faces) == 2
+    assert "face_normals" not in shapes[0]
