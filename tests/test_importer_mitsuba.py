@@ -413,3 +413,18 @@ def test_mesh_files_become_assets_with_mitsubas_uv_convention(tmp_path):
     assert np.allclose(sorted(set(ply.uvs[:, 1])), [0.25, 1.0])  # PLY: v as written
     assert shapes[2]["face_normals"] and shapes[3]["face_normals"] and len(ser.faces) == 2
     assert "face_normals" not in shapes[0]
+
+
+def test_named_nested_objects_as_mitsuba3_exporters_write_them(tmp_path):
+    out = load(tmp_path, CAMERA_3 + """
+      <texture type="checkerboard" id="c"/>
+      <bsdf type="diffuse" id="d"><ref name="reflectance" id="c"/></bsdf>
+      <shape type="rectangle"><ref name="bsdf" id="d"/></shape>
+      <shape type="rectangle"><bsdf type="twosided" name="bsdf">
+        <bsdf type="conductor" name="bsdf"/></bsdf></shape>""")
+    mats = [out.doc["materials"][s["material"]] for s in out.doc["shapes"]]
+    assert mats[0] == {"type": "diffuse", "albedo": {"texture": "c"}}
+    assert mats[1] == {"type": "mirror", "tint": [1.0, 1.0, 1.0], "twosided": True}
+    assert not any("bsdf" in e.element for e in out.report)  # nothing reported as ignored
+    err = refused(tmp_path, scene('<shape type="sphere"><float name="radius" value="$r"/></shape>'))
+    assert "$r has no value" in str(err) and err.location == "scene.xml:3"

@@ -89,6 +89,10 @@ def _snake(name: str) -> str:
 
 
 def _numbers(text: str, node: _Node, what: str) -> list[float]:
+    if "$" in text:
+        name = re.search(r"\$[A-Za-z_][A-Za-z0-9_]*", text)
+        raise SceneError(f"{what}: the parameter {name.group(0) if name else '$'} has no value "
+                         "(no <default> gives one)", node.loc)
     try:
         values = [float(t) for t in re.split(r"[,\s]+", text.strip()) if t]
     except ValueError:
@@ -188,18 +192,20 @@ class _Obj:
         self.objects: list[_Node] = []
         self.used: set[str] = set()
         for ch in node.children:
-            named = ch.tag in PROPERTY_TAGS or (ch.tag in OBJECT_TAGS | {"ref"} and "name" in ch.attrs)
-            if named:
+            # A named property; a texture (or a ref to one) with a name is a
+            # parameter too, while other objects (a shape's bsdf, a twosided's
+            # nested bsdf) are nested objects, named or not (Mitsuba 3's
+            # exporters name them).
+            target = imp.deref(ch) if ch.tag == "ref" else ch
+            if ch.tag in PROPERTY_TAGS or (target.tag == "texture" and "name" in ch.attrs):
                 if "name" not in ch.attrs:
                     raise SceneError(f"<{ch.tag}> needs a name attribute", ch.loc)
                 key = _snake(ch.attrs["name"])
                 if key in self.props:
                     imp.note(self.props[key], "given twice: ignored, the later value is used")
                 self.props[key] = ch
-            elif ch.tag in OBJECT_TAGS:
-                self.objects.append(ch)
-            elif ch.tag == "ref":
-                self.objects.append(imp.deref(ch))
+            elif target.tag in OBJECT_TAGS:
+                self.objects.append(target)
             else:
                 imp.note(ch, "ignored (not an element Mitsuba defines here)")
 
