@@ -48,7 +48,6 @@ from urllib.parse import quote
 import httpx
 
 __all__ = ["RayfarmClient", "DEFAULT_SERVER", "ServerSentEvent", "parse_sse", "mesh_files",
-           "scene_files",
            "ClientError", "ServerUnavailable", "ServerError", "NotSupported", "NotFound",
            "Conflict", "Invalid", "Unauthorized", "Forbidden", "RateLimited", "FINAL_STATUSES",
            "find_token"]
@@ -249,97 +248,6 @@ def mesh_files(doc: dict, scene_dir: Path) -> list[Path]:
                                    "tells uploaded files apart by base name only")])
         found[path.name] = path
     return list(found.values())
-
-
-IMPORTED_SUFFIXES = (".xml", ".gltf", ".glb")  # scene files the service imports
-_MAX_INCLUDES = 8
-
-
-def scene_files(path: Path) -> list[tuple[str, Path]]:
-    """The files a Mitsuba XML or glTF scene file names (meshes, textures,
-    includes, buffers), as (path relative to the scene's folder, path): what
-    an upload must carry beside it. Found without the renderer: the XML's
-    `filename`s (after `<default>` substitution, through includes), the
-    glTF's non-data `uri`s. A file that is missing or outside the scene's
-    folder is left out: the service's refusal names it, with file and line."""
-    base = path.parent.resolve()
-    found: dict[str, Path] = {}
-
-    def add(name: str, where: Path) -> Path | None:
-        name = name.replace("\\", "/")
-        for folder in dict.fromkeys((where.parent, path.parent)):
-            candidate = (folder / name).resolve()
-            if (base == candidate or base in candidate.parents) and candidate.is_file():
-                found[candidate.relative_to(base).as_posix()] = candidate
-                return candidate
-        return None  # the service names what is missing or outside, with file and line
-
-    suffix = path.suffix.lower()
-    if suffix == ".xml":
-        _xml_files(path, add, {}, [path.resolve()])
-    elif suffix == ".gltf":
-        try:
-            doc = json.loads(path.read_bytes())
-        except (OSError, ValueError, UnicodeDecodeError) as exc:
-            raise Invalid([("scene", f"{path} is not a glTF JSON file ({exc})")]) from None
-        for key in ("buffers", "images"):
-            items = doc.get(key) if isinstance(doc, dict) else None
-            for item in items if isinstance(items, list) else []:
-                uri = item.get("uri") if isinstance(item, dict) else None
-                if isinstance(uri, str) and uri and not uri.startswith("data:"):
-                    from urllib.parse import unquote
-                    add(unquote(uri), path)
-    return sorted(found.items())
-
-
-def _xml_files(path: Path, add, params: dict, chain: list[Path]) -> None:
-    """Collect the files one Mitsuba XML file names (see scene_files)."""
-    import re
-    from xml.parsers import expat
-
-    def substitute(text: str) -> str:
-        return re.sub(r"\$([A-Za-z_][A-Za-z0-9_]*)",
-                      lambda m: params.get(m.group(1), m.group(0)), text)
-
-    stack: list[str] = []
-
-    def start(tag, attrs):
-        stack.append(tag)
-        attrs = {k: substitute(v) for k, v in attrs.items()}
-        if "film" in stack:
-            return  # a film's filename is where Mitsuba would write its image
-        if tag == "default" and "name" in attrs and "value" in attrs:
-            params.setdefault(attrs["name"], attrs["value"])
-        elif tag == "include" and "filename" in attrs:
-            target = add(attrs["filename"], path)
-            if target is None:
-                return
-            if target in chain or len(chain) > _MAX_INCLUDES:
-                raise Invalid([("scene", f"{path.name} includes {attrs['filename']} in a cycle "
-                                         "or too deep")])
-            _xml_files(target, add, params, chain + [target])
-        elif "filename" in attrs:
-            add(attrs["filename"], path)
-        elif attrs.get("name") in ("filename", "fileName") and "value" in attrs and \
-                tag == "string":
-            add(attrs["value"], path)
-
-    def refuse(*_args):
-        raise Invalid([("scene", f"{path.name} declares a DOCTYPE or entities, which the "
-                                 "service refuses")])
-
-    parser = expat.ParserCreate()
-    parser.StartDoctypeDeclHandler = refuse
-    parser.EntityDeclHandler = refuse
-    parser.StartElementHandler = start
-    parser.EndElementHandler = lambda tag: stack.pop()
-    try:
-        parser.Parse(path.read_bytes(), True)
-    except OSError as exc:
-        raise Invalid([("scene", f"cannot read {path}: {exc.strerror or exc}")]) from None
-    except expat.ExpatError as exc:
-        raise Invalid([("scene", f"{path.name} is not well-formed XML: line {exc.lineno}: "
-                                 f"{expat.ErrorString(exc.code)}")]) from None
 
 
 def _read_scene(path: Path) -> tuple[bytes, dict]:
@@ -619,24 +527,15 @@ class RayfarmClient:
     # -- scenes and the registries -------------------------------------------------------
     def upload_scene(self, path: str | os.PathLike) -> dict:
         """POST /scenes: the scene JSON file and the mesh files its shapes
-        reference (by `"file"`, relative to its directory), or a Mitsuba XML
-        or glTF file and the files it names (`scene_files`). Returns the stored
+        reference (by `"file"`, relative to its directory). Returns the stored
         scene's record; its `id` is what a job's `scene` takes. `NotSupported`
         if the service takes no uploads; `Invalid` for an unreadable file."""
         path = Path(path)
-        if path.suffix.lower() in IMPORTED_SUFFIXES:  # Mitsuba XML, glTF: files by relative path
-            try:
-                raw = path.read_bytes()
-            except OSError as exc:
-                raise Invalid([("scene", f"cannot read {path}: {exc.strerror or exc}")]) from None
-            files = [("scene", (path.name, raw, "application/octet-stream"))]
-            files += [("files", (rel, p.read_bytes(), "application/octet-stream"))
-                      for rel, p in scene_files(path)]
-        else:
-            raw, doc = _read_scene(path)
-            files = [("scene", (path.name, raw, "application/json"))]
-            for mesh in mesh_files(doc, path.parent):
-                files.append(("files", (mesh.name, mesh.read_bytes(), "text/plain")))
+        raw, doc = _read_scene(path)
+        files: list[tuple[str, tuple[str, bytes, str]]] = [
+            ("scene", (path.name, raw, "application/json"))]
+        for mesh in mesh_files(doc, path.parent):
+            files.append(("files", (mesh.name, mesh.read_bytes(), "text/plain")))
         try:
             response = self._http.post("/scenes", files=files)
         except httpx.TransportError as exc:

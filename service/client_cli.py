@@ -30,9 +30,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from .client import (DEFAULT_SERVER, FINAL_STATUSES, IMPORTED_SUFFIXES, ClientError, Conflict,
-                     Invalid, NotFound, NotSupported, RayfarmClient, ServerError,
-                     ServerUnavailable, mesh_files)
+from .client import (DEFAULT_SERVER, FINAL_STATUSES, ClientError, Conflict, Invalid, NotFound,
+                     NotSupported, RayfarmClient, ServerError, ServerUnavailable, mesh_files)
 
 __all__ = ["add_client_commands", "EXIT_FAILED", "EXIT_INVALID", "EXIT_UNAVAILABLE"]
 
@@ -145,16 +144,12 @@ def _scene_field(client: RayfarmClient, scene: str) -> str | dict:
     service without uploads gets a mesh-less file inline. Names and ids pass."""
     path = Path(scene)
     if not path.is_file():
-        if path.suffix.lower() in (".json", *IMPORTED_SUFFIXES) or os.sep in scene:
+        if path.suffix.lower() == ".json" or os.sep in scene:
             raise Invalid([("scene", f"no such scene file: {scene}")])
         return scene  # a built-in scene's name or an uploaded scene's id
     try:
         record = client.upload_scene(path)
     except NotSupported:
-        if path.suffix.lower() in IMPORTED_SUFFIXES:
-            raise NotSupported(f"the service at {client.base_url} takes no scene uploads, and "
-                               f"{path.name} is a scene only an upload carries; update the "
-                               "service") from None
         doc = json.loads(path.read_bytes())  # upload_scene has read and checked it
         meshes = mesh_files(doc, path.parent)
         if meshes:
@@ -165,17 +160,7 @@ def _scene_field(client: RayfarmClient, scene: str) -> str | dict:
         _say("submit", f"the service takes no scene uploads; sending {path.name} inline")
         return doc
     _say("submit", f"uploaded {path.name} as scene {record['id']}")
-    _print_report("submit", record.get("report"))
     return record["id"]
-
-
-def _print_report(command: str, report: Any) -> None:
-    """A scene's import report: what it does not render as written."""
-    for entry in report if isinstance(report, list) else []:
-        if isinstance(entry, dict):
-            line = entry.get("line")
-            where = f"{entry.get('file')}:{line}" if line is not None else entry.get("file")
-            _say(command, f"import: {where}: {entry.get('element')}: {entry.get('action')}")
 
 
 def _submit(args: argparse.Namespace, client: RayfarmClient) -> int:
@@ -556,8 +541,7 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                             description="Submit a render job to the service; prints the job id "
                                         "(alone) on stdout.")
     submit.add_argument("scene", help="a built-in scene name, an uploaded scene's id, or a path "
-                                      "to a scene file (.json, Mitsuba .xml, .gltf, .glb; "
-                                      "uploaded with the files it names)")
+                                      "to a scene JSON file (uploaded with its mesh files)")
     submit.add_argument("--method", default="path", help="rendering method (default: path; "
                                                          "the service lists them at /methods)")
     submit.add_argument("--spp", type=int, default=16, help="samples per pixel (default: 16)")
