@@ -428,3 +428,21 @@ def test_named_nested_objects_as_mitsuba3_exporters_write_them(tmp_path):
     assert not any("bsdf" in e.element for e in out.report)  # nothing reported as ignored
     err = refused(tmp_path, scene('<shape type="sphere"><float name="radius" value="$r"/></shape>'))
     assert "$r has no value" in str(err) and err.location == "scene.xml:3"
+
+
+def test_a_scaled_sensor_transform_is_made_rigid_and_reported(tmp_path):
+    out = load(tmp_path, """
+      <sensor type="perspective"><transform name="to_world"><scale x="-2" y="2" z="2"/>
+        <translate z="3"/></transform>
+        <film type="hdrfilm"><rfilter type="tent"><float name="radius" value="50"/></rfilter>
+        </film></sensor>
+      <shape type="rectangle"/>""")
+    assert np.allclose(out.doc["camera"]["to_world"],
+                       [[-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]])
+    assert out.doc["camera"]["filter"] == {"type": "tent", "radius": 8.0}
+    text = "\n".join(actions(out))
+    assert "scale [2.0, 2.0, 2.0] is divided out" in text and "clamped to 8" in text
+    err = refused(tmp_path, scene('<sensor type="perspective"><transform name="to_world">\n'
+                                  '<matrix value="1 1 0 0 0 1 0 0 0 0 1 0 0 0 0 1"/>'
+                                  '</transform></sensor>'))
+    assert "shears" in str(err) and err.location == "scene.xml:3"

@@ -1112,7 +1112,7 @@ class _Importer:
         if t not in ("perspective", "thinlens"):
             raise SceneError(f"unsupported sensor type '{t}' (rayfarm renders perspective and "
                              "thinlens cameras; another projection would be misread)", node.loc)
-        cam: dict = {"type": t, "to_world": obj.transform("to_world").tolist()}
+        cam: dict = {"type": t, "to_world": self.sensor_to_world(obj)}
         films = obj.children("film")
         width, height = 768, 576
         filt: dict = {"type": "gaussian", "stddev": 0.5}
@@ -1157,6 +1157,28 @@ class _Importer:
         obj.finish(("film", "sampler", "medium"))
         return cam
 
+    def sensor_to_world(self, obj: _Obj) -> list:
+        """The sensor's to_world: a rotation (or a mirror) and a translation.
+        Mitsuba 3 refuses a scale there; a uniform or per-axis scale is divided
+        out (reported), a shear refused."""
+        m = obj.transform("to_world")
+        r = m[:3, :3]
+        if np.allclose(r.T @ r, np.eye(3), atol=1e-4):
+            return m.tolist()
+        lengths = np.linalg.norm(r, axis=0)
+        if not np.all(lengths > 0):
+            raise SceneError("the sensor's to_world is singular", obj.props["to_world"].loc)
+        r = r / lengths
+        if not np.allclose(r.T @ r, np.eye(3), atol=1e-4):
+            raise SceneError("the sensor's to_world shears: a camera's transform must be a "
+                             "rotation (or a mirror) and a translation", obj.props["to_world"].loc)
+        self.note(obj.props["to_world"], f"approximated: its scale {lengths.round(6).tolist()} "
+                                         "is divided out (a camera's transform has none; "
+                                         "Mitsuba 3 refuses it)")
+        m = m.copy()
+        m[:3, :3] = r
+        return m.tolist()
+
     def sampler(self, node: _Node) -> None:
         obj = _Obj(self, node)
         spp = obj.int("sample_count", None)
@@ -1197,9 +1219,9 @@ class _Importer:
                 self.note(obj.props["radius"], "ignored: rayfarm's box filter is one pixel wide")
             out = {"type": "box"}
         elif t == "tent":
-            out = {"type": "tent", "radius": obj.float("radius", 1.0)}
+            out = {"type": "tent", "radius": self._clamped(obj, "radius", 1.0, 0.01, 8.0)}
         elif t == "gaussian":
-            out = {"type": "gaussian", "stddev": obj.float("stddev", 0.5)}
+            out = {"type": "gaussian", "stddev": self._clamped(obj, "stddev", 0.5, 0.01, 2.0)}
         else:
             for key in list(obj.props):
                 obj.ignore(key)
@@ -1208,6 +1230,15 @@ class _Importer:
             out = {"type": "gaussian", "stddev": 0.5}
         obj.finish()
         return out
+
+    def _clamped(self, obj: _Obj, key: str, default: float, lo: float, hi: float) -> float:
+        v = obj.float(key, default)
+        if not lo <= v <= hi:
+            clamped = min(max(v, lo), hi)
+            self.note(obj.props[key], f"clamped to {clamped:g}: rayfarm's filters take {lo:g} "
+                                      f"to {hi:g} pixels")
+            return clamped
+        return v
 
     def integrator(self, node: _Node) -> int:
         """Rayfarm's default depth (bounces) from the block's max_depth."""
