@@ -41,6 +41,9 @@ MAX_INCLUDE_DEPTH = 8  # includes inside includes
 MAX_REF_DEPTH = 16  # objects inside objects (bsdf in twosided in mask ...), refs followed
 # Mitsuba's max_depth -1 means unbounded; a job takes at most 64 bounces (spec.py).
 UNBOUNDED_DEPTH = 64
+# rayfarm renders no cut-outs yet: a mask's opacity is reported, not passed on
+# (the native format refuses opacity other than 1 until the renderer has them).
+OPACITY_MASKS = False
 CYLINDER_SEGMENTS = 64
 
 PROPERTY_TAGS = {"float", "integer", "boolean", "string", "rgb", "srgb", "spectrum", "blackbody",
@@ -694,7 +697,7 @@ class _Importer:
             return {"file": self.rel(path), **({"raw": True} if raw else {})}
         key = (path, raw)
         if key not in self.texture_cache:
-            blob = encode_texture(read_texture(path, raw=raw))
+            blob = encode_texture(read_texture(path, raw=raw, name=self.rel(path)))
             digest = asset_digest(blob)
             self.assets[digest] = blob
             self.texture_cache[key] = digest
@@ -744,8 +747,12 @@ class _Importer:
         if t == "mask":
             opacity = obj.scalar_or_texture("opacity", 0.5)
             mat, inner = self._nested_bsdf(obj, node)
-            mat = dict(mat)
-            mat["opacity"] = opacity
+            if OPACITY_MASKS:
+                mat = dict(mat)
+                mat["opacity"] = opacity
+            else:
+                self.note(node, "approximated: the opacity mask is ignored, the surface renders "
+                                "solid (rayfarm does not render cut-outs yet)")
             obj.finish(("bsdf",))
             return mat
         if t in ("bumpmap", "normalmap", "coating", "roughcoating"):
@@ -792,9 +799,8 @@ class _Importer:
         if t in ("dielectric", "roughdielectric", "thindielectric"):
             return self._dielectric(obj, node)
         if t == "null":
-            self.note(node, "approximated: an invisible surface (opacity 0)")
             obj.finish()
-            return {"type": "diffuse", "albedo": [0.0, 0.0, 0.0], "opacity": 0.0}
+            return {"type": "null"}  # the shape decides: left out, or a black emitter
         if t == "principled":
             base = obj.color("base_color", 0.5)
             metallic = obj.float("metallic", 0.0)
@@ -990,6 +996,18 @@ class _Importer:
                 out["emitter"] = emitter
         for ch in obj.children("medium"):
             self.note(ch, "ignored: rayfarm renders no participating media")
+        if self.materials[out["material"]]["type"] == "null":
+            if "emitter" not in out:
+                self.note(node, "left out: its null bsdf makes it invisible")
+                for key in list(obj.props):
+                    obj.ignore(key)
+                obj.finish(("bsdf", "emitter", "medium", "texture"))
+                return []
+            black = f"{out['material']} (black)"
+            self.materials[black] = {"type": "diffuse", "albedo": [0.0, 0.0, 0.0]}
+            self.note(bsdfs[0], "approximated: an emitter with a null bsdf is a black diffuse "
+                                "surface (it blocks the light that Mitsuba lets through it)")
+            out["material"] = black
         if "id" in node.attrs:
             out["name"] = node.attrs["id"]
         flip = obj.bool("flip_normals", False)
@@ -1325,6 +1343,7 @@ class _Importer:
                              f"default depth is capped at {UNBOUNDED_DEPTH} bounces")
         if not cameras:
             cameras.append(self.default_camera(scene))
+        self.materials = {k: v for k, v in self.materials.items() if v["type"] != "null"}
         self.check_sides(cameras[0])
         name = self.path.stem if self.path.stem != "scene" else (self.path.parent.name or "scene")
         doc: dict = {"name": name, "camera": cameras[0], "materials": self.materials,
