@@ -350,7 +350,18 @@ def _real(name: str):
     return import_scene(path)
 
 
-def test_the_shared_real_scenes_import_with_their_quirks_reported():
+def _without_decoding(monkeypatch):
+    """Meshes and images found and named but not decoded (seconds for the two
+    big scenes; the mesh and texture readers have their own tests)."""
+    from renderer.importers import mitsuba
+    from renderer.meshio import MeshData
+
+    triangle = MeshData(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]]))
+    monkeypatch.setattr(mitsuba, "read_mesh", lambda path, **kw: triangle)
+    monkeypatch.setattr(mitsuba._Importer, "_image", lambda self, path, raw: {"image": path.name})
+
+
+def test_the_shared_real_scenes_import_with_their_quirks_reported(monkeypatch):
     cornell = _real("cornell-box")
     text = "\n".join(actions(cornell))
     for wall in ("LeftWall", "RightWall", "BackWall"):
@@ -370,6 +381,7 @@ def test_the_shared_real_scenes_import_with_their_quirks_reported():
     assert veach.doc["defaults"] == {"max_depth": 6}
     assert veach.doc["materials"]["Glass"] == {"type": "dielectric", "ior": 1.5}
 
+    _without_decoding(monkeypatch)
     living = _real("living-room")
     text = "\n".join(actions(living))
     assert 'emitter type="envmap": ignored' in text
