@@ -468,6 +468,25 @@ def _resolve_emitter(i: int, em: Any) -> dict:
                                limit=MAX_RADIANCE)}
 
 
+def _resolve_defaults(value: Any) -> dict:
+    """Render defaults a scene file gave (an importer's integrator block):
+    `max_depth`, the depth of a job that names none."""
+    if not isinstance(value, dict):
+        raise SceneError("expected an object such as {\"max_depth\": 5}", "defaults")
+    unknown = sorted(str(k) for k in value if k != "max_depth")
+    if unknown:
+        raise SceneError(f"unknown field(s): {', '.join(unknown)} (allowed: max_depth)",
+                         "defaults")
+    out = {}
+    if "max_depth" in value:
+        depth = value["max_depth"]
+        if isinstance(depth, bool) or not isinstance(depth, int) or not 0 <= depth <= 64:
+            raise SceneError("must be an integer from 0 to 64 (surface bounces)",
+                             "defaults.max_depth")
+        out["max_depth"] = depth
+    return out
+
+
 def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
                      base_dir: Path | None = None) -> dict:
     """Validate a scene and return its resolved, self-contained document.
@@ -506,7 +525,8 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
                          f"{_name_list(builtin_scene_names())}; or give a path to a scene file)")
     if not isinstance(doc, dict):
         raise SceneError("a scene document must be a JSON object")
-    known = {"format", "camera", "materials", "shapes", "emitters", "name", "description"}
+    known = {"format", "camera", "materials", "shapes", "emitters", "name", "description",
+             "defaults"}
     unknown = sorted(set(doc) - known)
     if unknown:
         raise SceneError(f"unknown top-level field(s): {', '.join(unknown)} "
@@ -536,6 +556,8 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
     }
     if not resolved["shapes"]:
         raise SceneError("a scene needs at least one shape", "shapes")
+    if "defaults" in doc:
+        resolved["defaults"] = _resolve_defaults(doc["defaults"])
     return resolved
 
 

@@ -467,3 +467,17 @@ def test_a_scaled_sensor_transform_is_made_rigid_and_reported(tmp_path):
                                   '<matrix value="1 1 0 0 0 1 0 0 0 0 1 0 0 0 0 1"/>'
                                   '</transform></sensor>'))
     assert "shears" in str(err) and err.location == "scene.xml:3"
+
+
+def test_the_integrator_blocks_depth_is_the_jobs_default():
+    from renderer.scene_format import resolve_document
+    from renderer.spec import default_depth
+
+    doc = resolve_document("cornell-box")
+    assert "defaults" not in doc and default_depth(doc) == 5
+    with_defaults = resolve_document(dict(doc, defaults={"max_depth": 12}))
+    assert with_defaults["defaults"] == {"max_depth": 12} and default_depth(with_defaults) == 12
+    for bad in ({"max_depth": 65}, {"max_depth": True}, {"maxDepth": 3}, [3]):
+        with pytest.raises(SceneError) as info:
+            resolve_document(dict(doc, defaults=bad))
+        assert info.value.location.startswith("defaults")
