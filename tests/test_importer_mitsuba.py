@@ -307,6 +307,12 @@ def test_shapegroups_instances_cylinders_and_the_default_camera(tmp_path):
     (scene('<bsdf type="diffuse" id="a"/>\n<bsdf type="diffuse" id="a"/>'), "scene.xml:4",
      "defined twice"),
     (scene('<sensor type="orthographic"/>'), "scene.xml:3", "orthographic"),
+    (scene('<shape type="shapegroup" id="g">\n<shape type="instance"><ref id="g"/></shape>'
+           '</shape>'), "scene.xml:", "reference cycle"),
+    (scene("".join(f'<shape type="shapegroup" id="g{i}">'
+                   + (f'<shape type="instance"><ref id="g{i - 1}"/></shape>' * 40 if i else
+                      '<shape type="cube"/>' * 40) + "</shape>\n" for i in range(4))
+           + '<shape type="instance"><ref id="g3"/></shape>'), "scene.xml:", "more than 100000"),
     (scene('<bsdf type="diffuse" id="a"><rgb name="reflectance" value="nan, 0, 0"/></bsdf>'
            '<shape type="rectangle"><ref id="a"/></shape>'), "scene.xml:3", "finite"),
 ])

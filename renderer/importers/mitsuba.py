@@ -32,13 +32,14 @@ from . import Imported, ReportEntry
 from .spectra import blackbody, spectrum_to_rgb, srgb_to_linear, uniform_to_rgb
 
 __all__ = ["import_mitsuba", "MAX_XML_BYTES", "MAX_ELEMENTS", "MAX_NESTING", "MAX_INCLUDE_DEPTH",
-           "MAX_REF_DEPTH", "UNBOUNDED_DEPTH"]
+           "MAX_REF_DEPTH", "MAX_SHAPES", "UNBOUNDED_DEPTH"]
 
 MAX_XML_BYTES = 32 * 1024 * 1024  # one XML file
 MAX_ELEMENTS = 200_000  # elements over the scene and all its includes
 MAX_NESTING = 32  # elements inside elements, per file
 MAX_INCLUDE_DEPTH = 8  # includes inside includes
 MAX_REF_DEPTH = 16  # objects inside objects (bsdf in twosided in mask ...), refs followed
+MAX_SHAPES = 100_000  # shapes after instances are flattened (each instance copies its group)
 # Mitsuba's max_depth -1 means unbounded; a job takes at most 64 bounces (spec.py).
 UNBOUNDED_DEPTH = 64
 # rayfarm renders no cut-outs yet: a mask's opacity is reported, not passed on
@@ -321,7 +322,8 @@ class _Importer:
         self.map_stack: list[_Node] = []
         self.bounds: list[np.ndarray] = []
         self.groups: dict[int, list[dict]] = {}
-        self.planar: list[tuple[dict, _Node]] = []  # rectangles and disks, to check their sides
+        self.planar: list[tuple[dict, _Node]] = []
+        self.flattened = 0  # shapes instances have copied  # rectangles and disks, to check their sides
 
     # -- reporting and locations ---------------------------------------------------------
     def note(self, node: _Node, action: str) -> None:
@@ -973,6 +975,10 @@ class _Importer:
             group = refs[0]
             if id(group) not in self.groups:
                 self.shape(group)
+            self.flattened += len(self.groups[id(group)])
+            if self.flattened > MAX_SHAPES:
+                raise SceneError(f"instances flatten into more than {MAX_SHAPES} shapes",
+                                 node.loc)
             out = []
             for s in self.groups[id(group)]:
                 s = dict(s)
