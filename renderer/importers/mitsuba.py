@@ -1356,6 +1356,8 @@ class _Importer:
                      "shapes": shapes, "emitters": emitters, "defaults": {"max_depth": depth}}
         if self.textures:
             doc["textures"] = self.textures
+        main = self.rel(self.main)  # the report in file order: the main file's first
+        self.report.sort(key=lambda e: (e.file != main, e.file, e.line or 0))
         return Imported(doc=doc, assets=self.assets, report=self.report)
 
     def check_sides(self, camera: dict) -> None:
