@@ -337,7 +337,18 @@ def test_a_missing_file_names_a_case_insensitive_near_match(tmp_path):
     assert "there is 'Mesh.OBJ'" in str(err)
 
 
-def test_integrator_blocks_are_never_refused(tmp_path):
+def test_integrator_blocks_and_films_are_never_refused(tmp_path):
+    broken = load(tmp_path, """
+      <integrator type="path"><ref id="nobody"/></integrator>
+      <sensor type="perspective"><sampler type="independent">
+        <integer name="sample_count" value="$spp"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="$w"/><rfilter type="tent"/></film>
+      </sensor>
+      <shape type="rectangle"/>""", name="broken.xml")
+    assert broken.doc["defaults"] == {"max_depth": UNBOUNDED_DEPTH}
+    assert (broken.doc["camera"]["width"], broken.doc["camera"]["height"]) == (768, 576)
+    text = "\n".join(actions(broken))
+    assert "unknown id 'nobody'" in text and "$w has no value" in text and "$spp" in text
     out = load(tmp_path, CAMERA_3 + """
       <integrator type="no-such-method"><integer name="max_depth" value="-1"/>
         <string name="mode" value="$undefined"/><integer name="sampleNum" value="100"/>

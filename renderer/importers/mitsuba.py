@@ -1141,7 +1141,11 @@ class _Importer:
         width, height = 768, 576
         filt: dict = {"type": "gaussian", "stddev": 0.5}
         if films:
-            width, height, filt = self.film(films[0])
+            try:
+                width, height, filt = self.film(films[0])
+            except SceneError as exc:  # a film is never a reason to refuse the file
+                self.note(films[0], f"ignored ({exc}): a 768x576 film with a gaussian filter "
+                                    "is used")
         aspect = width / height
         if obj.has("fov") and obj.has("focal_length"):
             raise SceneError("give either fov or focal_length, not both", node.loc)
@@ -1174,7 +1178,10 @@ class _Importer:
         for key in ("principal_point_offset_x", "principal_point_offset_y"):
             obj.ignore(key, "ignored: rayfarm's image centre is the principal point")
         for s in obj.children("sampler"):
-            self.sampler(s)
+            try:
+                self.sampler(s)
+            except SceneError as exc:  # the job's spp decides anyway
+                self.note(s, f"ignored ({exc})")
         for ch in obj.children("medium"):
             self.note(ch, "ignored: rayfarm renders no participating media")
         cam.update({"width": width, "height": height, "filter": filt})
@@ -1284,7 +1291,12 @@ class _Importer:
                 if key != "max_depth":
                     o.ignore(key, "ignored: the job's method and options decide")
 
-        walk(node)
+        try:
+            walk(node)
+        except SceneError as exc:  # an integrator block is never a reason to refuse the file
+            self.note(node, f"ignored ({exc}): the default depth is capped at "
+                            f"{UNBOUNDED_DEPTH} bounces")
+            return UNBOUNDED_DEPTH
         t = node.attrs.get("type", "")
         if not found:
             self.note(node, f"its type '{t}' is not used (the job's method decides how to "
