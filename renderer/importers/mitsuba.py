@@ -1146,7 +1146,6 @@ class _Importer:
             except SceneError as exc:  # a film is never a reason to refuse the file
                 self.note(films[0], f"ignored ({exc}): a 768x576 film with a gaussian filter "
                                     "is used")
-        aspect = width / height
         if obj.has("fov") and obj.has("focal_length"):
             raise SceneError("give either fov or focal_length, not both", node.loc)
         if obj.has("fov"):
@@ -1163,7 +1162,6 @@ class _Importer:
                 raise SceneError("focal_length must be a length like '50mm'", node.loc)
             cam["fov"] = math.degrees(2 * math.atan(math.hypot(36.0, 24.0) / (2 * value[0])))
             cam["fov_axis"] = "diagonal"
-        del aspect
         if t == "thinlens":
             for key, alias in (("aperture_radius", "aperture_radius"),
                                ("focus_distance", "focus_distance")):
