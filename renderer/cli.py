@@ -15,10 +15,13 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import RenderError
+from .errors import RenderError, SceneError
+from .importers import import_scene
 from .registry import METHODS, SAMPLERS
 from .scene_format import builtin_scene_names, resolve_document
-from .spec import RenderSpec
+from .spec import RenderSpec, default_depth
+
+IMPORTED_SUFFIXES = (".xml", ".gltf", ".glb")  # scene files an importer turns into documents
 
 __all__ = ["main", "build_parser"]
 
@@ -27,14 +30,15 @@ def build_parser(prog: str = "rayfarm render") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description="Render a scene locally through the "
                                 "farm's plan -> units -> merge path.")
     p.add_argument("scene", help=f"built-in scene ({', '.join(builtin_scene_names())}) "
-                                 "or a path to a scene JSON file")
+                                 "or a path to a scene file (.json, Mitsuba .xml, .gltf, .glb)")
     p.add_argument("--method", default="path", choices=sorted(METHODS))
     p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="a method option, e.g. --option heuristic=balance (repeatable)")
     p.add_argument("--sampler", default=RenderSpec().sampler, choices=sorted(SAMPLERS))
     p.add_argument("--spp", type=int, default=16, help="samples per pixel")
-    p.add_argument("--depth", type=int, default=5,
-                   help="surface bounces: 0 = emitters only, 1 = direct light")
+    p.add_argument("--depth", type=int, default=None,
+                   help="surface bounces: 0 = emitters only, 1 = direct light (default: the "
+                        "scene's, from an imported file's integrator block, else 5)")
     p.add_argument("--tile-size", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--width", type=int, help="override the scene camera's width")
@@ -74,6 +78,20 @@ def _typed_options(method: str, options: dict[str, str]) -> dict:
     return out
 
 
+def load_scene(scene: str) -> dict:
+    """The resolved document of a built-in scene or a scene file; an
+    imported file's (Mitsuba XML, glTF) report is printed to stderr."""
+    path = Path(scene)
+    if path.suffix.lower() not in IMPORTED_SUFFIXES:
+        return resolve_document(scene)
+    if not path.is_file():
+        raise SceneError(f"no such scene file: {scene}")
+    imported = import_scene(path)
+    for entry in imported.report:
+        print(f"import: {entry}", file=sys.stderr)
+    return resolve_document(imported.doc, base_dir=path.parent, assets=imported.assets)
+
+
 def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
     args = build_parser(prog).parse_args(argv)
     from .local import render
@@ -90,9 +108,10 @@ def main(argv: list[str] | None = None, prog: str = "rayfarm render") -> int:
         options[key] = value
     try:
         options = _typed_options(args.method, options)
-        doc = resolve_document(args.scene)
+        doc = load_scene(args.scene)
         cam = doc["camera"]
-        spec = RenderSpec(method=args.method, spp=args.spp, depth=args.depth,
+        depth = args.depth if args.depth is not None else default_depth(doc)
+        spec = RenderSpec(method=args.method, spp=args.spp, depth=depth,
                           width=args.width or cam["width"], height=args.height or cam["height"],
                           tile_size=args.tile_size, seed=args.seed, sampler=args.sampler,
                           options=options).validate(scene=doc)

@@ -97,7 +97,8 @@ MAX_NESTING = 16  # levels of lists and objects (shapes[i].to_world[j].rotate.ax
 # holds every shape's fields, "shape.<type>" a type's own, likewise for
 # materials and emitters.
 FIELDS: dict[str, set[str]] = {
-    "document": {"format", "camera", "materials", "shapes", "emitters", "name", "description"},
+    "document": {"format", "camera", "materials", "shapes", "emitters", "name", "description",
+                 "defaults"},
     "camera": {"type", "origin", "target", "up", "fov", "fov_axis", "width", "height"},
     "material": {"type"},
     "material.diffuse": {"albedo"},
@@ -459,6 +460,25 @@ def _resolve_emitter(i: int, em: Any) -> dict:
                                limit=MAX_RADIANCE)}
 
 
+def _resolve_defaults(value: Any) -> dict:
+    """Render defaults a scene file gave (an importer's integrator block):
+    `max_depth`, the depth of a job that names none."""
+    if not isinstance(value, dict):
+        raise SceneError("expected an object such as {\"max_depth\": 5}", "defaults")
+    unknown = sorted(str(k) for k in value if k != "max_depth")
+    if unknown:
+        raise SceneError(f"unknown field(s): {', '.join(unknown)} (allowed: max_depth)",
+                         "defaults")
+    out = {}
+    if "max_depth" in value:
+        depth = value["max_depth"]
+        if isinstance(depth, bool) or not isinstance(depth, int) or not 0 <= depth <= 64:
+            raise SceneError("must be an integer from 0 to 64 (surface bounces)",
+                             "defaults.max_depth")
+        out["max_depth"] = depth
+    return out
+
+
 class ResolvedDocument(dict):
     """A resolved document (a plain dict to every reader) that carries the
     assets it names: `assets` is a mapping digest -> blob, or an asset
@@ -581,6 +601,8 @@ def resolve_scene(source: str | Path | dict, *, allow_files: bool = True,
     }
     if not resolved["shapes"]:
         raise SceneError("a scene needs at least one shape", "shapes")
+    if "defaults" in doc:
+        resolved["defaults"] = _resolve_defaults(doc["defaults"])
     named = scene_asset_digests(resolved)
     return resolved, {d: store.produced[d] for d in named if d in store.produced}
 

@@ -13,7 +13,7 @@ from typing import Any
 from .errors import SpecError
 from .registry import METHODS, SAMPLERS
 
-__all__ = ["RenderSpec", "BOUNDS", "DEFAULT_MAX_WORK"]
+__all__ = ["RenderSpec", "BOUNDS", "DEFAULT_MAX_WORK", "default_depth"]
 
 # (lowest, highest) accepted value of each integer parameter.
 BOUNDS: dict[str, tuple[int, int]] = {
@@ -87,3 +87,11 @@ class RenderSpec:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RenderSpec":
         return cls(**{k: v for k, v in data.items() if k in cls.__dataclass_fields__})
+
+
+def default_depth(doc: dict) -> int:
+    """A job's depth when its request gives none: the scene's
+    `defaults.max_depth` (an imported file's integrator block), else 5."""
+    defaults = doc.get("defaults") if isinstance(doc, dict) else None
+    depth = defaults.get("max_depth") if isinstance(defaults, dict) else None
+    return depth if isinstance(depth, int) and not isinstance(depth, bool) else RenderSpec.depth

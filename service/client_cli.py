@@ -545,8 +545,9 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
     submit.add_argument("--method", default="path", help="rendering method (default: path; "
                                                          "the service lists them at /methods)")
     submit.add_argument("--spp", type=int, default=16, help="samples per pixel (default: 16)")
-    submit.add_argument("--depth", type=int, default=5,
-                        help="surface bounces: 0 = emitters only, 1 = direct light (default: 5)")
+    submit.add_argument("--depth", type=int,
+                        help="surface bounces: 0 = emitters only, 1 = direct light (default: the "
+                             "scene's, from an imported file's integrator block, else 5)")
     submit.add_argument("--sampler", help="pixel sampler (default: the service's, sobol)")
     submit.add_argument("--width", type=int, help="image width (default: the scene camera's)")
     submit.add_argument("--height", type=int, help="image height (default: the scene camera's)")

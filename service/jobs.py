@@ -24,6 +24,7 @@ from sqlalchemy.orm.exc import StaleDataError
 from renderer import (METHODS, SAMPLERS, RenderSpec, SceneError, builtin_scene_names,
                       resolve_document, scene_text)
 from renderer.memory import scene_memory
+from renderer.spec import default_depth
 from renderer.target import Target, require_target_support
 
 from . import admission, events, scenes, states
@@ -89,7 +90,8 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
     camera = doc["camera"]
     target = _target(request)
     spec = RenderSpec(method=request.method,
-                      spp=request.spp if target is None else target.max_spp, depth=request.depth,
+                      spp=request.spp if target is None else target.max_spp,
+                      depth=request.depth if request.depth is not None else default_depth(doc),
                       width=camera["width"] if request.width is None else request.width,
                       height=camera["height"] if request.height is None else request.height,
                       tile_size=request.tile_size, seed=request.seed, sampler=request.sampler,

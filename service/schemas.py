@@ -131,7 +131,8 @@ class JobCreate(RequestModel):
                         json_schema_extra={"enum": list(METHODS)})
     spp: _bounded("spp", "samples per pixel (with a target: at most, the default max_spp)") \
         | None = None
-    depth: _bounded("depth", "maximum path depth")
+    depth: _bounded("depth", "maximum path depth; default: the scene's defaults.max_depth (an "
+                             "imported file's integrator block), else 5") | None = None
     tile_size: _bounded("tile_size", "side of a work unit's tile in pixels") = _DEFAULTS.tile_size
     seed: _bounded("seed", "random seed; same seed, same pixels") = _DEFAULTS.seed
     sampler: str = Field(_DEFAULTS.sampler, description="pixel sampler",
