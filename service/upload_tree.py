@@ -150,8 +150,9 @@ class UploadTree:
                    "(RAYFARM_MAX_UPLOAD_PATH_BYTES)")
         if any(len(p.encode()) > MAX_NAME for p in parts):
             refuse(f"a name in its path is longer than {MAX_NAME} bytes")
-        if len(parts) > self.limits.max_depth:
-            refuse(f"its path is {len(parts)} levels deep, more than "
+        folders = len(parts) - (0 if directory else 1)
+        if folders > self.limits.max_depth:
+            refuse(f"its path is {folders} folders deep, more than "
                    f"{self.limits.max_depth} (RAYFARM_MAX_UPLOAD_DEPTH)")
         return parts
 
