@@ -8,7 +8,9 @@ import io
 import json
 import os
 import socket
+import tarfile
 import tempfile
+import zipfile
 from pathlib import Path
 
 import httpx
@@ -339,6 +341,83 @@ def test07_file_names_never_write_outside_the_data_dir(local_client, local_setti
         assert not any("evil" in n for n in set(os.listdir(folder)) - names), folder
     assert not [p for p in data_dir.rglob("*evil*")]
     assert list((data_dir / "uploads").iterdir()) == []  # each upload's directory is deleted
+
+
+# -- folders: relative paths, archives, a folder's files, the main file -----------------------
+
+def _folder(name: str) -> dict[str, bytes]:
+    """A scene's folder (path -> bytes): the room naming its mesh in a subfolder."""
+    doc = room(name, shapes=ROOM["shapes"][:MESH] + [dict(ROOM["shapes"][MESH],
+                                                           file="models/cube.obj")])
+    return {"room.json": scene_bytes(doc), "models/cube.obj": CUBE_OBJ.encode(),
+            "LICENSE.txt": b"CC0\n"}
+
+
+def zipped(files: dict[str, bytes], top: str = "") -> bytes:
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, data in files.items():
+            archive.writestr(top + name, data)
+    return out.getvalue()
+
+
+def tarred(files: dict[str, bytes], mode: str = "w:gz") -> bytes:
+    out = io.BytesIO()
+    with tarfile.open(fileobj=out, mode=mode) as archive:
+        for name, data in files.items():
+            info = tarfile.TarInfo("./" + name)
+            info.size = len(data)
+            archive.addfile(info, io.BytesIO(data))
+    return out.getvalue()
+
+
+def test13_a_scene_folder_comes_as_relative_paths_an_archive_or_a_folder(local_client, tmp_path):
+    """One folder sent four ways is one scene: the scene file with its files
+    at relative paths, a zip of the folder (its top folder kept), a .tar.gz,
+    and the folder's files alone (a browser's folder picker). Files the scene
+    does not name ride along; the record names its main file."""
+    folder = _folder("test13-room")
+    mesh = ("files", ("models/cube.obj", folder["models/cube.obj"], "text/plain"))
+    first = local_client.post("/scenes", files=[
+        ("scene", ("room.json", folder["room.json"], "application/json")), mesh,
+        ("files", ("LICENSE.txt", folder["LICENSE.txt"], "text/plain"))])
+    assert first.status_code == 201, first.text
+    record = first.json()
+    assert record["source"] == "room.json" and record["report"] == []
+    assert record["triangles"] == TRIANGLES
+    local = tmp_path / "local"
+    for name, data in folder.items():
+        (local / name).parent.mkdir(parents=True, exist_ok=True)
+        (local / name).write_bytes(data)
+    assert record["id"] == scene_text(resolve_document(local / "room.json"))[0]
+    ways = {"zip": [("scene", ("room.zip", zipped(folder, "test13/"), "application/zip"))],
+            "tar.gz": [("scene", ("room.tar.gz", tarred(folder), "application/gzip"))],
+            "folder": [("files", (f"test13/{name}", data, "application/octet-stream"))
+                       for name, data in folder.items()]}
+    for way, parts in ways.items():
+        again = local_client.post("/scenes", files=parts)
+        assert again.status_code == 200, (way, again.text)
+        assert again.json()["id"] == record["id"], way
+    # Several scene files at the top level: 422 asking for `main`, which picks one.
+    two = dict(folder, **{"other.json": folder["room.json"]})
+    ambiguous = local_client.post("/scenes", files=[("scene", ("two.zip", zipped(two)))])
+    assert_422(ambiguous, ["body", "main"], "several scene files", "other.json, room.json")
+    chosen = local_client.post("/scenes", files=[("scene", ("two.zip", zipped(two)))],
+                               data={"main": "room.json"})
+    assert chosen.status_code == 200 and chosen.json()["id"] == record["id"], chosen.text
+    assert_422(local_client.post("/scenes", files=[("scene", ("two.zip", zipped(two)))],
+                                 data={"main": "nope.json"}),
+               ["body", "main"], "no file 'nope.json'", "other.json, room.json")
+    assert_422(local_client.post("/scenes", files=[("scene", ("two.zip", zipped(two)))],
+                                 data={"main": "LICENSE.txt"}),
+               ["body", "main"], "not a scene file")
+    assert_422(local_client.post("/scenes", files=[("scene", ("room.json", folder["room.json"])),
+                                                   mesh], data={"main": "room.json"}),
+               ["body", "main"], "with a scene part")
+    assert_422(local_client.post("/scenes", files=[("scene", ("a.zip", zipped(folder))), mesh]),
+               ["body", "files", 0], "an archive alone")
+    assert_422(local_client.post("/scenes", files=[("scene", ("a.zip", b"not a zip"))]),
+               ["body", "scene"], "named like a zip archive but is none")
 
 
 # -- jobs, lookups and deletion --------------------------------------------------------------
