@@ -51,7 +51,9 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from renderer import SceneError, builtin_scene_names, resolve_document, scene_text
+from renderer.importers import import_scene
 from renderer.scene import triangle_count
+from renderer.scene_format import ResolvedDocument
 
 from .access import Principal, require_submit
 from .errors import (Conflict, Forbidden, InvalidRequest, NotFound, RateLimited, ResultNotReady,
@@ -189,7 +191,7 @@ def uploaded_document(session: Session, store: Store, actor: Principal, scene_id
         return None
     if not whole:
         return {"camera": {"width": record.width, "height": record.height}}, record.name
-    return json.loads(store.scene_text(record.id)), record.name
+    return ResolvedDocument(json.loads(store.scene_text(record.id)), store.asset_bytes), record.name
 
 
 def thumbnail_file(session: Session, store: Store, actor: Principal, scene_id: str) -> Path:
@@ -265,9 +267,7 @@ def _store_upload(store: Store, scene: UploadedFile | None, files: list[Uploaded
     """Import an upload and store its canonical text and assets: the record's fields."""
     imported = import_upload(scene, files, directory, main, limits)
     key, text = scene_text(imported.doc)
-    put_asset = getattr(store, "put_asset", None)
-    for digest, blob in imported.assets.items():
-        put_asset(digest, blob)
+    store.put_assets(imported.assets)  # before the text: a stored scene finds its assets
     store.put_scene(key, text)
     doc = imported.doc
     camera = doc["camera"]
@@ -466,20 +466,11 @@ def _import(root: Path, source: str) -> tuple[dict, dict[str, bytes], list[dict]
     folder `root`; SceneError for what is wrong in it."""
     path = root / source
     try:
-        try:
-            from renderer.importers import import_scene
-        except ImportError:  # before the importers: JSON scenes, meshes inlined
-            import_scene = None
-        if import_scene is None:
-            if scene_suffix(source) != ".json":
-                raise SceneError(f"{source}: only JSON scenes can be imported by this version")
-            doc = _parse_scene_file(path, source)
-            return resolve_document(doc, base_dir=path.parent), {}, []
         if scene_suffix(source) == ".json":
             _parse_scene_file(path, source)  # its messages name line and column
         imported = import_scene(path, root=root)
         resolved = resolve_document(imported.doc, assets=imported.assets)
-        return resolved, dict(imported.assets), _report(list(imported.report))
+        return resolved, dict(resolved.assets), _report(list(imported.report))
     except SceneError:
         raise
     except (TypeError, ValueError, KeyError, IndexError, AttributeError, RecursionError,
