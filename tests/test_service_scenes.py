@@ -20,7 +20,7 @@ from PIL import Image
 
 from renderer import builtin_scene_names, resolve_document, scene_text
 
-from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, embedded_env,
+from conftest import (ADMIN_HEADERS, ROOT, TINY, assert_bit_identical, channels_of, embedded_env,
                       get_json, poll_job, start_serve, submit, wait_for)
 
 WALL = {"type": "rectangle", "material": "white"}
@@ -268,11 +268,11 @@ def _cases():
                        id="mesh-parent")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", bad_obj),),
                        ["body", "scene", f"shapes[{MESH}].file"],
-                       ("cannot parse line 3 of cube.obj", "v 1 x -1"), id="mesh-unparsable")
+                       ("cube.obj:3", "cannot parse", "v 1 x -1"), id="mesh-unparsable")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 9\n"),),
                        ["body", "scene", f"shapes[{MESH}].file"],
-                       ("line 3 of cube.obj", "face vertex index 9 is out of range",
-                        "2 vertices"), id="mesh-index")
+                       ("cube.obj:3", "index 9 is out of range", "has 2 vert"),
+                       id="mesh-index")
     # A file's name is its path in the scene's folder: relative, inside it.
     for i, (name, words) in enumerate([
             ("../evil.obj", ("leaves the upload's folder",)),
@@ -420,6 +420,35 @@ def test13_a_scene_folder_comes_as_relative_paths_an_archive_or_a_folder(local_c
                ["body", "scene"], "named like a zip archive but is none")
 
 
+REAL = ROOT.parent / "shared" / "scenes" / "real"
+
+
+def test14_a_mitsuba_scene_uploads_with_its_import_report(local_client):
+    """The shared cornell-box, its folder zipped: the import report (the
+    integrator parameters no Mitsuba release knows, the <mode> element...)
+    comes back from the upload, is stored with the scene and shown by
+    GET /scenes/{id} and GET /scenes; each entry names file and line."""
+    scene = REAL / "cornell-box" / "scene.xml"
+    if not scene.is_file():
+        pytest.skip(f"the shared real scenes are not at {REAL}")
+    pytest.importorskip("renderer.importers.mitsuba",
+                        reason="the Mitsuba importer is not in this checkout")
+    archive = zipped({"cornell-box/scene.xml": scene.read_bytes(),
+                      "cornell-box/LICENSE.txt": (scene.parent / "LICENSE.txt").read_bytes()})
+    response = local_client.post("/scenes", files=[("scene", ("cornell-box.zip", archive))])
+    assert response.status_code in (200, 201), response.text
+    record = response.json()
+    assert record["source"] == "cornell-box/scene.xml"
+    report = record["report"]
+    assert report and all(set(e) == {"element", "file", "line", "action"} for e in report)
+    assert all(e["file"] == "scene.xml" or e["file"].endswith("/scene.xml") for e in report)
+    assert any(isinstance(e["line"], int) and e["line"] > 1 for e in report)
+    assert any("integrator" in e["element"] or "mode" in e["element"] for e in report), report
+    assert local_client.get(f"/scenes/{record['id']}").json()["report"] == report
+    listed = {s["id"]: s for s in local_client.get("/scenes").json()}
+    assert listed[record["id"]]["report"] == report
+
+
 # -- jobs, lookups and deletion --------------------------------------------------------------
 
 def test08_jobs_name_uploads_by_id_and_unknown_ids_are_422(local_client):
@@ -502,9 +531,9 @@ def test11b_an_uploads_mesh_files_are_parsed_outside_the_serving_process(local_c
     from renderer import scene_format
 
     parsed = []
-    original = scene_format._read_mesh_file
-    monkeypatch.setattr(scene_format, "_read_mesh_file",
-                        lambda path, loc: parsed.append(path) or original(path, loc))
+    original = scene_format.read_mesh
+    monkeypatch.setattr(scene_format, "read_mesh",
+                        lambda path, **kw: parsed.append(path) or original(path, **kw))
     response = upload(local_client, scene_bytes(room("test11b-room")))
     assert response.status_code == 201, response.text
     assert response.json()["triangles"] == TRIANGLES
@@ -512,7 +541,7 @@ def test11b_an_uploads_mesh_files_are_parsed_outside_the_serving_process(local_c
     # What the child refuses still names where, as test05 shows for every refusal.
     bad = CUBE_OBJ.replace("v 1 -1 -1", "v 1 x -1").encode()
     assert_422(upload(local_client, scene_bytes(room("test11b-bad")), (("cube.obj", bad),)),
-               ["body", "scene", f"shapes[{MESH}].file"], "cannot parse line 3 of cube.obj")
+               ["body", "scene", f"shapes[{MESH}].file"], "cube.obj:3", "cannot parse")
 
 
 def test11c_a_job_on_an_upload_is_submitted_without_parsing_the_stored_scene(local_client,
