@@ -4,7 +4,7 @@
     mesh = world_mesh_data(shape, assets)         # and normals, uvs (or None)
 
 Mitsuba's primitives (rectangle, disk, cube) are fixed meshes in local
-space; a mesh shape carries its own. `world_mesh` applies `to_world` and
+space; a mesh shape names its asset by digest (`assets` gives the blobs). `world_mesh` applies `to_world` and
 orients the faces the way `build_scene` does (a mirroring transform, or
 `flip_normals`, reverses the winding). The scene format checks these
 world-space triangles (coordinates, emitters' areas) and the radiosity

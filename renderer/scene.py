@@ -118,7 +118,8 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
         mat_param[i, 0] = m.get("ior", 1.0)
         mat_param[i, 1] = m.get("roughness", 0.0)
 
-    tris, tri_mat, tri_light = [], [], []
+    tris, tri_mat, tri_light = [], [], []  # per shape: (F, 3, 3) corners, (F,) ids
+    n_tris = 0
     sph, sph_flip, sph_mat, sph_light = [], [], [], []
     light_type, light_rgb, light_pos, light_sphere = [], [], [], []
     light_groups: list[list[int]] = []  # triangle ids per mesh light
@@ -144,10 +145,11 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
             sph_light.append(light)
             continue
         wv, f = world_mesh(shape, mesh_asset(shape) if "mesh" in shape else None)
-        first = len(tris)
-        tris.extend(wv[f])
-        tri_mat.extend([material] * len(f))
-        tri_light.extend([light] * len(f))
+        first = n_tris
+        tris.append(wv[f])
+        tri_mat.append(np.full(len(f), material, np.int32))
+        tri_light.append(np.full(len(f), light, np.int32))
+        n_tris += len(f)
         if light >= 0:
             light_type.append(LIGHT_MESH)
             light_sphere.append(-1)
@@ -160,7 +162,9 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
         light_sphere.append(-1)
         light_groups.append([])
 
-    tri_p = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+    tri_p = np.concatenate(tris).astype(np.float64) if tris else np.zeros((0, 3, 3))
+    tri_mat = np.concatenate(tri_mat) if tri_mat else np.zeros(0, np.int32)
+    tri_light = np.concatenate(tri_light) if tri_light else np.zeros(0, np.int32)
     cross = np.cross(tri_p[:, 1] - tri_p[:, 0], tri_p[:, 2] - tri_p[:, 0])
     double_area = np.linalg.norm(cross, axis=1)
     keep = double_area > 0  # degenerate triangles can never be hit or sampled

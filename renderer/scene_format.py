@@ -11,11 +11,14 @@ A scene is one JSON object (`docs/scene-format.md` documents every field)::
       "emitters": [{"type": "point", "position": [0, 0, 0], "intensity": [1, 1, 1]}]
     }
 
-`resolve_document` turns any accepted input (a built-in name, a path, a dict)
-into a *resolved document*: validated, defaults filled in, mesh files read and
-inlined, every transform a 4x4 matrix. The resolved document is
-self-contained, so its canonical JSON hash (`scene_hash`) identifies the
-scene wherever it travels: the farm ships scenes to workers by that hash.
+`resolve_scene` turns any accepted input (a built-in name, a path, a dict)
+into a *resolved document* and its assets: validated, defaults filled in,
+every mesh (a file, inline arrays or a digest) an asset named by its digest
+(renderer.assets), every transform a 4x4 matrix; `resolve_document` returns
+the document carrying its assets (`ResolvedDocument`). The document names
+each asset by digest, so its canonical JSON hash (`scene_hash`) identifies
+the scene wherever it travels: the farm ships scenes to workers by that hash
+and their assets by digest. Fields allowed in each object: `FIELDS`.
 
 Errors are `SceneError`s whose `location` names the offending field, e.g.
 ``shapes[2].to_world``.
@@ -50,10 +53,9 @@ from typing import Any
 
 import numpy as np
 
-from . import assets as _assets
 from .errors import SceneError
-from .meshio import MESH_SUFFIXES, read_mesh
 from .primitives import world_mesh
+from .scene_meshes import AssetStore, MeshLimits, resolve_mesh
 
 __all__ = [
     "builtin_scene_names",
@@ -349,171 +351,10 @@ def _resolve_material(name: str, mat: Any) -> dict:
                      f"{loc}.type")
 
 
-class _Assets:
-    """The assets a resolution produces and reads: `produced` (digest ->
-    blob) becomes the resolved scene's assets; `source` is where a `mesh`
-    digest that was not produced here is fetched from."""
-
-    def __init__(self, source):
-        self.source = source
-        self.produced: dict[str, bytes] = {}
-        self.decoded: dict[str, _assets.Asset] = {}
-
-    def add(self, blob: bytes) -> str:
-        digest = _assets.asset_digest(blob)
-        self.produced.setdefault(digest, blob)
-        return digest
-
-    def fetch(self, digest: str, where: str) -> bytes:
-        if digest in self.produced:
-            return self.produced[digest]
-        if isinstance(self.source, _Assets):
-            blob = self.source.fetch(digest, where)
-        else:
-            blob = _assets.load_asset(self.source, digest, where)
-        self.produced[digest] = blob
-        return blob
-
-
-def _mesh_arrays(shape: dict, loc: str, base_dir: Path | None, root: Path | None,
-                 store: _Assets) -> tuple[tuple, str]:
-    """(positions, faces, normals, uvs) of a mesh shape's one source (`mesh`,
-    `file`, or inline `vertices`/`faces`) and the location to name in errors."""
-    given = [k for k in ("mesh", "file", "vertices") if k in shape]
-    if len(given) != 1:
-        raise SceneError("a mesh needs exactly one of 'mesh' (an asset digest), 'file' or "
-                         f"'vertices' + 'faces' (got {', '.join(given) or 'none'})", loc)
-    if "shape_index" in shape and "file" not in shape:
-        raise SceneError("shape_index goes with a .serialized 'file'", f"{loc}.shape_index")
-    for key in ("faces", "normals", "uvs"):
-        if key in shape and "vertices" not in shape:
-            raise SceneError(f"'{key}' goes with inline 'vertices'", f"{loc}.{key}")
-    if "mesh" in shape:
-        where = f"{loc}.mesh"
-        blob = store.fetch(shape["mesh"], where)
-        asset = store.decoded.get(shape["mesh"])
-        if asset is None:
-            try:
-                asset = _assets.decode_asset(blob)
-            except SceneError as exc:
-                raise SceneError(f"asset {shape['mesh'][:12]}: {exc.message}", where) from None
-            if asset.kind != "mesh":
-                raise SceneError(f"asset {shape['mesh'][:12]} is a {asset.kind}, not a mesh",
-                                 where)
-            store.decoded[shape["mesh"]] = asset
-        return (asset.positions, asset.faces, asset.normals, asset.uvs), where
-    if "file" in shape:
-        where = f"{loc}.file"
-        if base_dir is None:
-            raise SceneError("mesh files need a scene file on disk (or inline vertices/faces)",
-                             where)
-        name = shape["file"]
-        if not isinstance(name, str) or not name:
-            raise SceneError("expected a relative path (a string)", where)
-        rel = name.replace("\\", "/")
-        top = Path(root if root is not None else base_dir).resolve()
-        fpath = (Path(base_dir) / rel).resolve()
-        if rel.startswith("/") or (top not in fpath.parents):
-            raise SceneError("mesh file must lie inside the scene's directory", where)
-        if fpath.suffix.lower() not in MESH_SUFFIXES:
-            raise SceneError(f"unsupported mesh file type '{fpath.suffix}' (allowed: "
-                             f"{', '.join(MESH_SUFFIXES)})", where)
-        index = shape.get("shape_index", 0)
-        if isinstance(index, bool) or not isinstance(index, int) or index < 0:
-            raise SceneError("expected an integer >= 0", f"{loc}.shape_index")
-        if "shape_index" in shape and fpath.suffix.lower() != ".serialized":
-            raise SceneError("shape_index goes with a .serialized file", f"{loc}.shape_index")
-        label = str(fpath.relative_to(top)) if top in fpath.parents else fpath.name
-        try:
-            mesh = read_mesh(fpath, shape_index=index, label=label,
-                             max_bytes=MAX_FILE_BYTES, max_triangles=MAX_TRIANGLES)
-        except SceneError as exc:  # named as the file says (models/a.obj:12), from the shape
-            raise SceneError(f"{exc.location}: {exc.message}" if exc.location else exc.message,
-                             where) from None
-        return (mesh.positions, mesh.faces, mesh.normals, mesh.uvs), where
-    where = f"{loc}.vertices"
-    vertices = shape["vertices"]
-    faces = _require(shape, "faces", loc)
-    try:
-        v = np.asarray(vertices, dtype=np.float64)
-        f_raw = np.asarray(faces, dtype=np.float64)
-    except (ValueError, TypeError):
-        raise SceneError("vertices must be [[x, y, z], ...] and faces [[i, j, k], ...]", loc) from None
-    if f_raw.size and (not np.all(np.isfinite(f_raw)) or np.any(f_raw != np.round(f_raw))):
-        raise SceneError("face indices must be integers", f"{loc}.faces")
-    if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
-        raise SceneError("vertices must be a list of finite [x, y, z]", f"{loc}.vertices")
-    extra = []
-    for key, width in (("normals", 3), ("uvs", 2)):
-        if key not in shape:
-            extra.append(None)
-            continue
-        try:
-            a = np.asarray(shape[key], dtype=np.float64)
-        except (ValueError, TypeError):
-            a = np.zeros(0)
-        if a.shape != (len(v), width) or not np.all(np.isfinite(a)):
-            raise SceneError(f"{key} must be one finite [{', '.join('xyz'[:width] if width == 3 else 'uv')}] "
-                             f"per vertex ({len(v)})", f"{loc}.{key}")
-        extra.append(a)
-    return (v, f_raw.astype(np.int64).reshape(-1, 3) if f_raw.ndim == 2 and f_raw.shape[1] == 3
-            else f_raw, *extra), where
-
-
-def _smooth_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (zero where no face has an area)."""
-    tri = positions[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    out = np.zeros_like(positions)
-    for k in range(3):
-        np.add.at(out, faces[:, k], cross)
-    return out
-
-
-def _resolve_mesh(shape: dict, out: dict, loc: str, base_dir: Path | None, root: Path | None,
-                  store: _Assets) -> tuple:
-    (v, f, normals, uvs), where = _mesh_arrays(shape, loc, base_dir, root, store)
-    if not np.all(np.abs(v) <= MAX_COORDINATE):
-        j = int(np.argmax(np.any(np.abs(v) > MAX_COORDINATE, axis=1)))
-        raise SceneError(f"vertex {j} is {v[j].tolist()}; every coordinate must be within "
-                         f"+-{MAX_COORDINATE:g}", where)
-    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-        raise SceneError("faces must be a non-empty list of [i, j, k] triangles",
-                         f"{loc}.faces" if "vertices" in shape else where)
-    if f.min() < 0 or f.max() >= len(v):
-        raise SceneError(f"face index out of range (mesh has {len(v)} vertices)",
-                         f"{loc}.faces" if "vertices" in shape else where)
-    if len(f) > MAX_TRIANGLES:
-        raise SceneError(f"too many triangles (limit {MAX_TRIANGLES})",
-                         f"{loc}.faces" if "vertices" in shape else where)
-    face_normals = _bool(shape.get("face_normals", False), f"{loc}.face_normals")
-    if face_normals:
-        normals = None  # shading uses each triangle's own normal
-    if normals is not None:
-        length = np.linalg.norm(normals, axis=1)
-        if np.any(length == 0):  # e.g. "vn 0 0 0": the faces around the vertex decide
-            normals = np.array(normals, dtype=np.float64)
-            zero = length == 0
-            normals[zero] = _smooth_normals(v, f)[zero]
-            still = np.linalg.norm(normals, axis=1) == 0
-            normals[still] = [0.0, 0.0, 1.0]  # only degenerate faces touch it: never hit
-    blob = _assets.encode_mesh(v, f, normals, uvs)
-    digest = store.add(blob)
-    if "mesh" not in shape or digest != shape["mesh"]:
-        store.decoded[digest] = _assets.decode_asset(blob)
-    if "triangles" in shape and shape["triangles"] != len(f):
-        raise SceneError(f"the mesh has {len(f)} triangles, not {shape['triangles']}",
-                         f"{loc}.triangles")
-    out["mesh"] = digest
-    out["triangles"] = int(len(f))
-    out["face_normals"] = face_normals
-    return store.decoded[digest]
-
-
 def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None,
-                   root: Path | None = None, store: _Assets | None = None) -> dict:
+                   root: Path | None = None, store: AssetStore | None = None) -> dict:
     loc = f"shapes[{i}]"
-    store = store if store is not None else _Assets(None)
+    store = store if store is not None else AssetStore(None)
     if not isinstance(shape, dict):
         raise SceneError("expected an object", loc)
     stype = _require(shape, "type", loc)
@@ -546,7 +387,8 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None,
     asset = None
     where = f"{loc}.to_world"
     if stype == "mesh":
-        asset = _resolve_mesh(shape, out, loc, base_dir, root, store)
+        asset = resolve_mesh(shape, out, loc, base_dir, root, store,
+                             MeshLimits(MAX_COORDINATE, MAX_TRIANGLES, MAX_FILE_BYTES))
         where = f"{loc}.vertices" if "vertices" in shape else \
             f"{loc}.file" if "file" in shape else f"{loc}.mesh"
     em = shape.get("emitter")
@@ -726,7 +568,7 @@ def resolve_scene(source: str | Path | dict, *, allow_files: bool = True,
     emitters_in = doc.get("emitters", [])
     if not isinstance(emitters_in, list):
         raise SceneError("expected a list of emitters", "emitters")
-    store = _Assets(assets)
+    store = AssetStore(assets)
     resolved = {
         "format": SCENE_FORMAT,
         "name": str(doc.get("name", "")),

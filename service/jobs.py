@@ -23,6 +23,7 @@ from sqlalchemy.orm.exc import StaleDataError
 
 from renderer import (METHODS, SAMPLERS, RenderSpec, SceneError, builtin_scene_names,
                       resolve_document, scene_text)
+from renderer.memory import scene_memory
 from renderer.target import Target, require_target_support
 
 from . import admission, events, scenes, states
@@ -102,7 +103,7 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
         raise InvalidRequest("tile_size", f"{tiles} tiles exceed the limit of {settings.max_units} "
                                           f"work units; use tile_size >= {least}")
     admission.admit_job(session, settings, actor, spec, request.progressive, target,
-                        denoise=request.denoise)
+                        denoise=request.denoise, scene=scene_memory(doc))
     if key is None:  # an upload's text is stored under its hash already
         key, text = scene_text(doc)
         store.put_assets(getattr(doc, "assets", None) or {})

@@ -190,7 +190,8 @@ def uploaded_document(session: Session, store: Store, actor: Principal, scene_id
     if record is None:
         return None
     if not whole:
-        return {"camera": {"width": record.width, "height": record.height}}, record.name
+        return {"camera": {"width": record.width, "height": record.height},
+                "triangles": record.triangles}, record.name
     return ResolvedDocument(json.loads(store.scene_text(record.id)), store.asset_bytes), record.name
 
 

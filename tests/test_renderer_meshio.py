@@ -297,6 +297,29 @@ def test08_meshes_become_assets_from_every_source(tmp_path):
     tri = world.positions[world.faces[0]]
     geometric = np.cross(tri[1] - tri[0], tri[2] - tri[0])
     assert np.dot(geometric, world.normals[0]) > 0  # shading and geometric sides agree
+    # admission counts the scene's triangles from the document, no asset decoded
+    from renderer import RenderSpec
+    from renderer.memory import SCENE_TRIANGLE, job_memory, scene_memory
+
+    assert scene_memory(json.loads(json.dumps(doc))) == 2 * SCENE_TRIANGLE
+    spec = RenderSpec(method="path", spp=1, width=8, height=8, tile_size=8)
+    bare, counted = job_memory(spec), job_memory(spec, scene=scene_memory(doc))
+    assert counted.total(2) - bare.total(2) == 2 * 2 * SCENE_TRIANGLE
+    # a zero normal ("vn 0 0 0") becomes Mitsuba's smooth one: unit face
+    # normals weighted by the face's angle at the vertex
+    from renderer.meshio import vertex_normals
+
+    fan = {"type": "mesh", "material": "m", "vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0],
+                                                         [0, 0, 1]],
+           "faces": [[0, 1, 2], [0, 3, 1]], "normals": [[0, 0, 0]] + [[0, 0, 1]] * 3}
+    repaired = resolve_document(_doc(fan))
+    n0 = decode_asset(repaired.assets[repaired["shapes"][0]["mesh"]]).normals[0]
+    want = np.array([0, np.pi / 2, np.pi / 2]) / np.linalg.norm([0, np.pi / 2, np.pi / 2])
+    assert np.allclose(n0, want, atol=1e-7)  # float32 in the asset
+    fan["vertices"][3] = [1, 0, 1]  # the second face's angle at vertex 0 becomes 45 degrees
+    want = np.array([0, np.pi / 4, np.pi / 2]) / np.linalg.norm([0, np.pi / 4, np.pi / 2])
+    assert np.allclose(vertex_normals(np.asarray(fan["vertices"], float),
+                                      np.asarray(fan["faces"]))[0], want)
     # face_normals drops the vertex normals from the asset
     flat = resolve_document(_doc(dict(inline, face_normals=True)))
     assert decode_asset(flat.assets[flat["shapes"][0]["mesh"]]).normals is None
@@ -323,3 +346,26 @@ def test09_unknown_fields_are_refused_at_every_level(where, change):
         resolve_document(doc)
     assert info.value.location == where
     assert "aperture" not in FIELDS["camera"] and "uv" not in FIELDS["shape.mesh"]
+
+
+def test10_import_scene_reads_a_native_scene_folder(tmp_path):
+    """A JSON scene's mesh files (relative paths, subfolders) become assets;
+    nothing leaves the root; an unknown suffix is refused."""
+    from renderer.importers import Imported, import_scene
+
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "tri.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    scene = tmp_path / "scene.json"
+    scene.write_text(json.dumps(_doc({"type": "mesh", "material": "m",
+                                      "file": "models/tri.obj"})))
+    imported = import_scene(scene)
+    assert isinstance(imported, Imported) and imported.report == []
+    assert list(imported.assets) == [imported.doc["shapes"][0]["mesh"]]
+    assert scene_hash(resolve_document(imported.doc, assets=imported.assets)) == \
+        scene_hash(imported.doc)
+    scene.write_text(json.dumps(_doc({"type": "mesh", "material": "m", "file": "../x.obj"})))
+    with pytest.raises(SceneError, match="inside the scene's directory"):
+        import_scene(scene)
+    (tmp_path / "scene.txt").write_text("{}")
+    with pytest.raises(SceneError, match="unknown scene file type"):
+        import_scene(tmp_path / "scene.txt")

@@ -271,7 +271,7 @@ def _cases():
                        ("cube.obj:3", "cannot parse", "v 1 x -1"), id="mesh-unparsable")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 9\n"),),
                        ["body", "scene", f"shapes[{MESH}].file"],
-                       ("cube.obj:3", "index 9 is out of range", "has 2 vert"),
+                       ("cube.obj:3", "face vertex index 9 is out of range", "2 vertices"),
                        id="mesh-index")
     # A file's name is its path in the scene's folder: relative, inside it.
     for i, (name, words) in enumerate([
@@ -528,11 +528,11 @@ def test11b_an_uploads_mesh_files_are_parsed_outside_the_serving_process(local_c
     # Parsing a large .obj holds the GIL for tens of seconds: in the service's
     # own process it stalled every request. A child process parses it, and a
     # reader patched here (in the serving process) is never called.
-    from renderer import scene_format
+    from renderer import scene_meshes
 
     parsed = []
-    original = scene_format.read_mesh
-    monkeypatch.setattr(scene_format, "read_mesh",
+    original = scene_meshes.read_mesh
+    monkeypatch.setattr(scene_meshes, "read_mesh",
                         lambda path, **kw: parsed.append(path) or original(path, **kw))
     response = upload(local_client, scene_bytes(room("test11b-room")))
     assert response.status_code == 201, response.text
