@@ -312,14 +312,18 @@ def check_upload(store: Store, scene: UploadedFile | None, files: list[UploadedF
                             args=(sending, store, scene, files, directory, main, limits))
     child.start()
     sending.close()  # the child holds the only sending end: EOF if it dies
+    kind, payload = "slow", None
     try:
         try:
-            kind, payload = receiving.recv()
+            if receiving.poll(limits.max_seconds):
+                kind, payload = receiving.recv()
+            else:  # a file that makes an importer spin: its process is killed below
+                kind, payload = "slow", None
         except EOFError:
             kind, payload = "died", None
     finally:
         receiving.close()
-        child.join(30)
+        child.join(30 if kind != "slow" else 0)
         if child.is_alive():
             child.kill()
             child.join()
@@ -331,6 +335,9 @@ def check_upload(store: Store, scene: UploadedFile | None, files: list[UploadedF
         raise SceneError(*payload)
     if kind == "large":
         raise TooLarge(*payload)
+    if kind == "slow":
+        raise TooLarge(f"the upload took more than {limits.max_seconds:g} s to check "
+                       "(RAYFARM_UPLOAD_CHECK_SECONDS)")
     code = child.exitcode
     how = (f"signal {signal.Signals(-code).name}" if code is not None and code < 0
            else f"exit code {code}")

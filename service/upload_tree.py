@@ -65,6 +65,7 @@ class UploadLimits:
     max_ratio: float = 200.0
     max_depth: int = 16
     max_path_bytes: int = 1024
+    max_seconds: float = 600.0  # the whole check: unpacking and importing
 
     @classmethod
     def from_settings(cls, settings) -> "UploadLimits":
@@ -72,7 +73,8 @@ class UploadLimits:
                    max_bytes=settings.max_upload_unpacked_bytes,
                    max_ratio=settings.max_upload_ratio,
                    max_depth=settings.max_upload_depth,
-                   max_path_bytes=settings.max_upload_path_bytes)
+                   max_path_bytes=settings.max_upload_path_bytes,
+                   max_seconds=settings.upload_check_seconds)
 
 
 def scene_suffix(name: str) -> str | None:

@@ -420,6 +420,24 @@ def test13_a_scene_folder_comes_as_relative_paths_an_archive_or_a_folder(local_c
                ["body", "scene"], "named like a zip archive but is none")
 
 
+def test13b_a_check_that_takes_too_long_is_stopped(local_app):
+    """An upload whose check outlasts RAYFARM_UPLOAD_CHECK_SECONDS is a 413
+    (a file that makes an importer spin must not hold a slot forever)."""
+    from service import scenes
+    from service.errors import TooLarge
+    from service.upload_tree import UploadLimits
+
+    store = local_app.state.farm.store
+    with store.upload_dir() as directory:
+        (directory / "part-0").write_bytes(scene_bytes(room("test13b")))
+        (directory / "part-1").write_text(CUBE_OBJ)
+        with pytest.raises(TooLarge, match="RAYFARM_UPLOAD_CHECK_SECONDS"):
+            scenes.check_upload(store, scenes.UploadedFile("scene", 0, "room.json",
+                                                           directory / "part-0"),
+                                [scenes.UploadedFile("files", 0, "cube.obj", directory / "part-1")],
+                                directory, None, UploadLimits(max_seconds=1e-3))
+
+
 REAL = ROOT.parent / "shared" / "scenes" / "real"
 
 

@@ -143,6 +143,9 @@ class Settings(BaseSettings):
                                                         "may be")
     max_upload_path_bytes: int = Field(1024, ge=16, description="longest path in an upload, in "
                                                                 "UTF-8 bytes")
+    upload_check_seconds: float = Field(
+        600.0, gt=0, description="longest an upload's check (unpacking, importing, storing) "
+                                 "may take; its process is then stopped (413)")
     max_concurrent_uploads: int = Field(
         4, ge=1, description="POST /scenes received and checked at once by one service (each "
                              "checks its files in a child process); 429 with Retry-After above")
