@@ -48,6 +48,7 @@ from urllib.parse import quote
 import httpx
 
 __all__ = ["RayfarmClient", "DEFAULT_SERVER", "ServerSentEvent", "parse_sse", "mesh_files",
+           "scene_files", "zip_folder",
            "ClientError", "ServerUnavailable", "ServerError", "NotSupported", "NotFound",
            "Conflict", "Invalid", "Unauthorized", "Forbidden", "RateLimited", "FINAL_STATUSES",
            "find_token"]
@@ -225,29 +226,89 @@ def parse_sse(lines: Iterable[str]) -> Iterator[ServerSentEvent | int]:
 
 # -- scene files -------------------------------------------------------------------------
 
-def mesh_files(doc: dict, scene_dir: Path) -> list[Path]:
-    """The `.obj` files a scene document's shapes reference by `"file"`, resolved
-    relative to `scene_dir` (which they must lie inside); raises `Invalid`
-    for a missing file or two different files with one base name (the
-    service matches uploads by base name)."""
+SCENE_SUFFIXES = (".json", ".xml", ".gltf", ".glb")
+ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tbz2", ".tar.xz", ".txz")
+# What a folder sent as one zip may hold: the service's default limits
+# (RAYFARM_MAX_UPLOAD_FILES, RAYFARM_MAX_UPLOAD_UNPACKED_BYTES); a folder
+# past them is refused here, before it is read, with a message saying why.
+MAX_FOLDER_FILES = 4096
+MAX_FOLDER_BYTES = 1 << 30
+# Files already compressed are stored in the zip as they are.
+_STORED = (".png", ".jpg", ".jpeg", ".exr", ".glb", ".zip", ".gz", ".tgz", ".bz2", ".xz",
+           ".serialized")
+
+
+def scene_files(doc: dict, scene_dir: Path) -> list[tuple[str, Path]]:
+    """The files a JSON scene document names by `"file"` (a mesh shape's, a
+    texture's: at any depth), as (path relative to `scene_dir`, the file);
+    each must lie inside `scene_dir`. Raises `Invalid` for a missing file."""
     found: dict[str, Path] = {}
-    shapes = doc.get("shapes") if isinstance(doc, dict) else None
     base = scene_dir.resolve()
-    for i, shape in enumerate(shapes if isinstance(shapes, list) else []):
-        if not isinstance(shape, dict) or "file" not in shape:
-            continue
-        field = f"scene.shapes[{i}].file"
-        path = (base / str(shape["file"])).resolve()
+
+    def visit(node, where: str) -> None:
+        if isinstance(node, dict):
+            for key, value in node.items():
+                field = f"{where}.{key}" if where else str(key)
+                if key == "file" and isinstance(value, str):
+                    add(value, field)
+                else:
+                    visit(value, field)
+        elif isinstance(node, list):
+            for i, item in enumerate(node):
+                visit(item, f"{where}[{i}]")
+
+    def add(ref: str, field: str) -> None:
+        path = (base / ref).resolve()
         if base not in path.parents:
-            raise Invalid([(field, f"{shape['file']} lies outside the scene's directory {base}")])
+            raise Invalid([(f"scene.{field}", f"{ref} lies outside the scene's directory {base}")])
         if not path.is_file():
-            raise Invalid([(field, f"mesh file not found: {path}")])
-        other = found.get(path.name)
-        if other is not None and other != path:
-            raise Invalid([(field, f"{path} and {other} have the same base name; the service "
-                                   "tells uploaded files apart by base name only")])
-        found[path.name] = path
-    return list(found.values())
+            raise Invalid([(f"scene.{field}", f"file not found: {path}")])
+        found[path.relative_to(base).as_posix()] = path
+
+    visit(doc, "")
+    return sorted(found.items())
+
+
+def mesh_files(doc: dict, scene_dir: Path) -> list[Path]:
+    """The files a JSON scene document names (see `scene_files`)."""
+    return [path for _, path in scene_files(doc, scene_dir)]
+
+
+def zip_folder(folder: Path, out) -> int:
+    """Write the folder's files (hidden ones left out; symbolic links to files
+    followed, to folders not) as a zip into the binary file `out`; returns how
+    many files. Raises `Invalid` for a folder past MAX_FOLDER_FILES or
+    MAX_FOLDER_BYTES, before any is read."""
+    import zipfile
+
+    folder = Path(folder)
+    files: list[tuple[str, Path]] = []
+    total = 0
+    for directory, subdirs, names in os.walk(folder):
+        subdirs[:] = sorted(d for d in subdirs if not d.startswith("."))
+        for name in sorted(names):
+            path = Path(directory) / name
+            if name.startswith(".") or not path.is_file():
+                continue
+            files.append((path.relative_to(folder).as_posix(), path))
+            total += path.stat().st_size
+            if len(files) > MAX_FOLDER_FILES or total > MAX_FOLDER_BYTES:
+                raise Invalid([("scene", f"{folder} holds more than {MAX_FOLDER_FILES} files or "
+                                         f"{MAX_FOLDER_BYTES >> 20} MiB, past what the service "
+                                         "takes by default: upload a folder holding only the "
+                                         "scene and its files")])
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, path in files:
+            kind = zipfile.ZIP_STORED if name.lower().endswith(_STORED) else zipfile.ZIP_DEFLATED
+            archive.write(path, name, compress_type=kind)
+    return len(files)
+
+
+def _read_file(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise Invalid([("scene", f"cannot read {path}: {exc.strerror or exc}")]) from None
 
 
 def _read_scene(path: Path) -> tuple[bytes, dict]:
@@ -525,27 +586,56 @@ class RayfarmClient:
         raise ServerError(f"the event stream of job {job_id} ended without an end event")
 
     # -- scenes and the registries -------------------------------------------------------
-    def upload_scene(self, path: str | os.PathLike) -> dict:
-        """POST /scenes: the scene JSON file and the mesh files its shapes
-        reference (by `"file"`, relative to its directory). Returns the stored
-        scene's record; its `id` is what a job's `scene` takes. `NotSupported`
-        if the service takes no uploads; `Invalid` for an unreadable file."""
+    def upload_scene(self, path: str | os.PathLike, main: str | None = None) -> dict:
+        """POST /scenes. `path` is a JSON scene file (sent with the files it
+        names by `"file"`, at their paths relative to it), a Mitsuba .xml or a
+        glTF file (sent with its whole folder, as a zip: the files an XML
+        names are only known to its importer), a folder (zipped; `main`
+        names its scene file where it holds several) or an archive (.zip,
+        .tar, .tar.gz: sent as it is). Returns the stored scene's record, its
+        import report included; its `id` is what a job's `scene` takes.
+        `NotSupported` if the service takes no uploads; `Invalid` for an
+        unreadable file."""
         path = Path(path)
-        raw, doc = _read_scene(path)
-        files: list[tuple[str, tuple[str, bytes, str]]] = [
-            ("scene", (path.name, raw, "application/json"))]
-        for mesh in mesh_files(doc, path.parent):
-            files.append(("files", (mesh.name, mesh.read_bytes(), "text/plain")))
-        try:
-            response = self._http.post("/scenes", files=files)
-        except httpx.TransportError as exc:
-            raise self._unavailable(exc, "while uploading the scene ") from None
+        lowered = path.name.lower()
+        with tempfile.TemporaryFile() as packed:
+            form: dict[str, str] = {}
+            if path.is_dir():
+                zip_folder(path, packed)
+                files = [("scene", (f"{path.name or 'scene'}.zip", packed, "application/zip"))]
+            elif lowered.endswith(ARCHIVE_SUFFIXES):
+                files = [("scene", (path.name, _read_file(path), "application/octet-stream"))]
+            elif lowered.endswith(".json"):
+                raw, doc = _read_scene(path)
+                files = [("scene", (path.name, raw, "application/json"))]
+                files += [("files", (name, _read_file(file), "application/octet-stream"))
+                          for name, file in scene_files(doc, path.parent)]
+            elif lowered.endswith(SCENE_SUFFIXES):
+                _read_file(path)  # a clear message for a file that is not there
+                zip_folder(path.parent, packed)
+                files = [("scene", (f"{path.parent.name or 'scene'}.zip", packed,
+                                    "application/zip"))]
+                main = main or path.name
+            else:
+                raise Invalid([("scene", f"{path} is not a scene file ({', '.join(SCENE_SUFFIXES)}),"
+                                         f" a folder or an archive ({', '.join(ARCHIVE_SUFFIXES)})")])
+            if main is not None:
+                form["main"] = main
+            packed.seek(0)
+            try:
+                response = self._http.post("/scenes", files=files, data=form)
+            except httpx.TransportError as exc:
+                raise self._unavailable(exc, "while uploading the scene ") from None
         if response.status_code == 405 or (response.status_code == 404
                                            and _detail(response) == "Not Found"):
             raise NotSupported(f"the service at {self.base_url} takes no scene uploads "
                                "(POST /scenes); it predates them", response.status_code)
         _raise_for(response)
         return self._parse(response)
+
+    def scene(self, scene_id: str) -> dict:
+        """GET /scenes/{id}: one scene, its import report included."""
+        return self._json("GET", f"/scenes/{_segment(scene_id)}")
 
     def scenes(self) -> list[dict]:
         return self._json("GET", "/scenes")

@@ -7,6 +7,8 @@
     rayfarm cancel $ID
     rayfarm logs $ID [UNIT]            # what units logged (default: those that failed or retried)
     rayfarm workers
+    rayfarm upload scenes/room/scene.xml   # a scene with its folder; prints the scene's id
+    rayfarm scenes [ID]                # the scenes; one with its import report
 
 Every command takes `--server URL` (default: $RAYFARM_SERVER, else
 http://127.0.0.1:8000) and `--token TOKEN` (default: $RAYFARM_TOKEN, the file
@@ -30,8 +32,9 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from .client import (DEFAULT_SERVER, FINAL_STATUSES, ClientError, Conflict, Invalid, NotFound,
-                     NotSupported, RayfarmClient, ServerError, ServerUnavailable, mesh_files)
+from .client import (DEFAULT_SERVER, FINAL_STATUSES, SCENE_SUFFIXES, ClientError, Conflict,
+                     Invalid, NotFound, NotSupported, RayfarmClient, ServerError,
+                     ServerUnavailable, mesh_files)
 
 __all__ = ["add_client_commands", "EXIT_FAILED", "EXIT_INVALID", "EXIT_UNAVAILABLE"]
 
@@ -139,17 +142,45 @@ def _coerce_options(client: RayfarmClient, method: str, items: list[str]) -> dic
     return out
 
 
+def _print_report(command: str, record: dict) -> None:
+    """An uploaded scene's import report, one entry a line, on stderr."""
+    report = record.get("report") or []
+    if not report:
+        return
+    _say(command, f"import report of {record.get('source') or record['name']}: "
+                  f"{len(report)} element{'s' if len(report) != 1 else ''} not rendered as written")
+    for entry in report:
+        print("  " + _report_line(entry), file=sys.stderr, flush=True)
+
+
+def _report_line(entry: dict) -> str:
+    where = entry.get("file") or ""
+    if entry.get("line") is not None:
+        where += f":{entry['line']}"
+    return ": ".join(part for part in (where, entry.get("element"), entry.get("action")) if part)
+
+
+def _upload(command: str, client: RayfarmClient, path: Path, main: str | None = None) -> dict:
+    record = client.upload_scene(path, main=main)
+    _say(command, f"uploaded {path.name} as scene {record['id']}")
+    _print_report(command, record)
+    return record
+
+
 def _scene_field(client: RayfarmClient, scene: str) -> str | dict:
-    """A scene file is uploaded (with its meshes) and its id returned; a
-    service without uploads gets a mesh-less file inline. Names and ids pass."""
+    """A scene file, folder or archive is uploaded (with the files it names)
+    and its id returned; a service without uploads gets a JSON file without
+    files inline. Names and ids pass."""
     path = Path(scene)
-    if not path.is_file():
-        if path.suffix.lower() == ".json" or os.sep in scene:
+    if not path.exists():
+        if path.suffix.lower() in SCENE_SUFFIXES or os.sep in scene:
             raise Invalid([("scene", f"no such scene file: {scene}")])
         return scene  # a built-in scene's name or an uploaded scene's id
     try:
-        record = client.upload_scene(path)
+        record = _upload("submit", client, path)
     except NotSupported:
+        if path.suffix.lower() != ".json" or not path.is_file():
+            raise
         doc = json.loads(path.read_bytes())  # upload_scene has read and checked it
         meshes = mesh_files(doc, path.parent)
         if meshes:
@@ -159,8 +190,44 @@ def _scene_field(client: RayfarmClient, scene: str) -> str | dict:
                 "upload carries; inline them as vertices/faces, or update the service") from None
         _say("submit", f"the service takes no scene uploads; sending {path.name} inline")
         return doc
-    _say("submit", f"uploaded {path.name} as scene {record['id']}")
     return record["id"]
+
+
+def _upload_command(args: argparse.Namespace, client: RayfarmClient) -> int:
+    path = Path(args.path)
+    if not path.exists():
+        raise Invalid([("scene", f"no such file or folder: {args.path}")])
+    print(_upload("upload", client, path, args.main)["id"])
+    return 0
+
+
+def _scenes(args: argparse.Namespace, client: RayfarmClient) -> int:
+    """The scenes as a table (REPORT: entries of its import report), or one
+    scene with its report."""
+    if args.id:
+        scene = client.scene(args.id)
+        if args.json:
+            print(json.dumps(scene, indent=2))
+            return 0
+        for key in ("id", "kind", "name", "source", "description"):
+            if scene.get(key):
+                print(f"{key}: {scene[key]}")
+        print(f"size: {scene['width']}x{scene['height']}, {scene['triangles']} triangles")
+        report = scene.get("report") or []
+        print(f"import report: {len(report)} element{'s' if len(report) != 1 else ''} not "
+              "rendered as written" if report else "import report: every element as written")
+        for entry in report:
+            print("  " + _report_line(entry))
+        return 0
+    items = client.scenes()
+    if args.json:
+        print(json.dumps(items, indent=2))
+        return 0
+    print(_table(["ID", "KIND", "NAME", "SIZE", "TRIANGLES", "REPORT"], [[
+        s["id"] if len(s["id"]) <= 24 else s["id"][:23] + "…", s["kind"], s["name"],
+        f"{s['width']}x{s['height']}", str(s["triangles"]),
+        str(len(s.get("report") or [])) if s["kind"] == "uploaded" else "-"] for s in items]))
+    return 0
 
 
 def _submit(args: argparse.Namespace, client: RayfarmClient) -> int:
@@ -355,9 +422,6 @@ def _listing(fetch: Callable[[RayfarmClient], list[dict]], header: list[str],
     return show
 
 
-_scenes = _listing(RayfarmClient.scenes, ["ID", "KIND", "NAME", "SIZE", "TRIANGLES"], lambda s: [
-    s["id"] if len(s["id"]) <= 24 else s["id"][:23] + "…", s["kind"], s["name"],
-    f"{s['width']}x{s['height']}", str(s["triangles"])])
 _methods = _listing(RayfarmClient.methods,
                     ["METHOD", "ALIASES", "FAMILY", "AOVS", "NOISE TARGET", "OPTIONS"], lambda m: [
     m["name"], ",".join(m["aliases"]) or "-", m["family"], ",".join(m["aovs"]) or "-",
@@ -541,7 +605,8 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
                             description="Submit a render job to the service; prints the job id "
                                         "(alone) on stdout.")
     submit.add_argument("scene", help="a built-in scene name, an uploaded scene's id, or a path "
-                                      "to a scene JSON file (uploaded with its mesh files)")
+                                      "to a scene file (JSON, Mitsuba XML, glTF), folder or "
+                                      "archive (uploaded with its files, as `rayfarm upload`)")
     submit.add_argument("--method", default="path", help="rendering method (default: path; "
                                                          "the service lists them at /methods)")
     submit.add_argument("--spp", type=int, default=16, help="samples per pixel (default: 16)")
@@ -617,11 +682,27 @@ def add_client_commands(sub: argparse._SubParsersAction) -> None:
     priority.add_argument("priority", type=int, help="-100..100, higher runs first")
     priority.set_defaults(run=_run("priority", _priority))
 
-    for command, body, text in (("scenes", _scenes, "list the scenes jobs may name"),
+    for command, body, text in (("scenes", _scenes, "list the scenes jobs may name, or show "
+                                                    "one with its import report"),
                                 ("methods", _methods, "list the rendering methods")):
         listing = sub.add_parser(command, parents=server, help=text)
+        if command == "scenes":
+            listing.add_argument("id", nargs="?", metavar="ID",
+                                 help="show this scene (and its import report)")
         listing.add_argument("--json", action="store_true", help="JSON instead of a table")
         listing.set_defaults(run=_run(command, body))
+
+    upload = sub.add_parser("upload", parents=server, help="upload a scene; prints its id",
+                            description="Upload a scene: a JSON file with the files it names, "
+                                        "a Mitsuba .xml or glTF file with its folder, a folder, "
+                                        "or an archive (.zip, .tar, .tar.gz). Prints the scene's "
+                                        "id (alone) on stdout and its import report (what is "
+                                        "not rendered as written) on stderr.")
+    upload.add_argument("path", metavar="PATH", help="a scene file, a folder or an archive")
+    upload.add_argument("--main", metavar="FILE",
+                        help="the scene file's path inside a folder or archive that holds "
+                             "several at its top level")
+    upload.set_defaults(run=_run("upload", _upload_command))
 
     logs = sub.add_parser("logs", parents=server, help="print what a job's units logged",
                           description="Print the log lines and tracebacks a job's units left, "

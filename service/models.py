@@ -237,6 +237,11 @@ class SceneRecord(Base):
     width: Mapped[int] = mapped_column(Integer)
     height: Mapped[int] = mapped_column(Integer)
     bytes: Mapped[int] = mapped_column(BigInteger, doc="length of the resolved canonical text")
+    # The upload's main file (its path in the upload's folder) and its import
+    # report: a JSON list of {element, file, line, action}, what the importer
+    # did not take as written. Records from before importers: "" and "[]".
+    source: Mapped[str] = mapped_column(String(1024), default="", server_default=text("''"))
+    report: Mapped[str] = mapped_column(Text, default="[]", server_default=text("'[]'"))
 
 
 class SceneClaim(Base):

@@ -3,21 +3,28 @@ hash): upload, list, look up, delete, find a thumbnail. Plain Python, no HTTP.
 
     with store.upload_dir() as directory:
         ...  # the HTTP layer writes the request's files into `directory`
-        info, created = add_upload(sessions, store, scene_file, mesh_files, directory, now)
+        info, created = add_upload(sessions, store, actor, scene_file, files, directory, now,
+                                   main=None, limits=UploadLimits.from_settings(settings))
 
-An upload is a scene JSON file and the Wavefront `.obj` files its mesh shapes
-name by `"file"` (base names only). It is resolved like any scene, with mesh
-files read only from the upload's private directory; the resolved document is
-self-contained, so it is stored by its hash and nothing else is kept.
+An upload is a folder: a scene file (rayfarm JSON, Mitsuba XML, glTF) with
+the files it names at their relative paths (`models/Mesh000.obj`), or one
+archive (zip, tar) of the folder, or files alone (a browser's folder
+picker); `service.upload_tree` lays it out in the upload's private
+directory, with every hostile path and archive refused, and finds the main
+scene file. The importer (`renderer.importers`) reads it, with every path
+resolved inside that folder only, into a canonical document that names its
+meshes and textures by digest, the assets themselves, and an import report
+(what was not taken as written). The document is stored by its hash, the
+assets by theirs, the report with the scene's record; the folder is deleted.
 
-Resolving and storing run in a child process (`check_upload`): parsing a
-large `.obj` and writing its canonical JSON is pure Python, tens of seconds
-of one core for a 59 MiB mesh, and in the service's own process it held the
-GIL from the event loop and every request thread (GET /jobs went from 7 ms
-to seconds with three such uploads: docs/operations.md). The child is forked
-from the forkserver that has this module imported, so it starts in
-milliseconds, and the memory of the parsed mesh goes with it. `UploadSlots`
-bounds the uploads received and checked at once (429 with Retry-After above).
+Importing and storing run in a child process (`check_upload`): unpacking an
+archive and parsing a large mesh are tens of seconds of one core, and in
+the service's own process they held the GIL from the event loop and every
+request thread (GET /jobs went from 7 ms to seconds with three such uploads:
+docs/operations.md). The child is forked from the forkserver that has this
+module imported, so it starts in milliseconds, and the memory of the parsed
+mesh goes with it. `UploadSlots` bounds the uploads received and checked at
+once (429 with Retry-After above).
 
 Uploads are shared by content hash but owned by claim: each user who uploaded
 a scene holds a claim on it (`SceneClaim`) and sees it; nobody else does
@@ -30,7 +37,6 @@ from __future__ import annotations
 import json
 import multiprocessing
 import os
-import posixpath
 import signal
 import threading
 from contextlib import contextmanager
@@ -45,6 +51,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from renderer import SceneError, builtin_scene_names, resolve_document, scene_text
+from renderer.importers import import_scene
 from renderer.scene import triangle_count
 from renderer.scene_format import ResolvedDocument
 
@@ -54,13 +61,13 @@ from .errors import (Conflict, Forbidden, InvalidRequest, NotFound, RateLimited,
 from .models import SceneClaim, SceneRecord
 from .store import Store
 from .text import lone_surrogate
+from .upload_tree import (ARCHIVE_SUFFIXES, SCENE_SUFFIXES, UploadLimits, UploadTree,
+                          archive_kind, scene_suffix)
 
-__all__ = ["SceneInfo", "UploadedFile", "UploadSlots", "MESH_SUFFIX", "add_upload",
-           "check_upload", "resolve_upload", "list_scenes", "get_scene", "delete_scene",
+__all__ = ["SceneInfo", "UploadedFile", "UploadSlots", "ImportedUpload", "add_upload",
+           "check_upload", "import_upload", "list_scenes", "get_scene", "delete_scene",
            "uploaded_document", "thumbnail_file", "scene_hashes", "unknown_scene_hint"]
 
-MESH_SUFFIX = ".obj"
-MAX_NAME = 255  # bytes of a file name on common filesystems
 # Retry-After of an upload refused while `UploadSlots` are full: a hint (a
 # large upload takes tens of seconds, a small one milliseconds).
 UPLOADS_BUSY_RETRY_AFTER = 5.0
@@ -100,13 +107,24 @@ class SceneInfo:
     scene_hash: str
     bytes: int
     created: datetime | None
+    source: str = ""  # an upload's main file, its path in the upload
+    report: tuple[dict, ...] = ()  # the import report: {element, file, line, action}
 
     @classmethod
     def from_record(cls, record: SceneRecord) -> "SceneInfo":
         return cls(id=record.id, kind="uploaded", name=record.name,
                    description=record.description, width=record.width, height=record.height,
                    triangles=record.triangles, scene_hash=record.id, bytes=record.bytes,
-                   created=record.created)
+                   created=record.created, source=record.source or "",
+                   report=tuple(_stored_report(record.report)))
+
+
+def _stored_report(text: str | None) -> list[dict]:
+    try:
+        entries = json.loads(text or "[]")
+    except ValueError:
+        return []
+    return [e for e in entries if isinstance(e, dict)] if isinstance(entries, list) else []
 
 
 @cache
@@ -245,28 +263,31 @@ class UploadSlots:
             self._free.release()
 
 
-def _store_upload(store: Store, scene: UploadedFile, files: list[UploadedFile],
-                  directory: Path) -> dict:
-    """Resolve an upload and store its canonical text: the record's fields."""
-    doc, stem = resolve_upload(scene, files, directory)
-    key, text = scene_text(doc)
-    store.put_assets(doc.assets)  # before the text: a stored scene finds its assets
+def _store_upload(store: Store, scene: UploadedFile | None, files: list[UploadedFile],
+                  directory: Path, main: str | None, limits: UploadLimits) -> dict:
+    """Import an upload and store its canonical text and assets: the record's fields."""
+    imported = import_upload(scene, files, directory, main, limits)
+    key, text = scene_text(imported.doc)
+    store.put_assets(imported.assets)  # before the text: a stored scene finds its assets
     store.put_scene(key, text)
+    doc = imported.doc
     camera = doc["camera"]
-    return dict(id=key, name=(doc["name"] or stem)[:200], description=doc["description"],
-                triangles=triangle_count(doc), width=camera["width"], height=camera["height"],
-                bytes=len(text.encode()))
+    return dict(id=key, name=(doc["name"] or imported.stem)[:200], description=doc["description"],
+                triangles=_triangles(imported), width=camera["width"], height=camera["height"],
+                bytes=len(text.encode()), source=imported.source[:1024],
+                report=json.dumps(imported.report))
 
 
-def _check_in_child(sending, store: Store, scene: UploadedFile, files: list[UploadedFile],
-                    directory: Path) -> None:
+def _check_in_child(sending, store: Store, scene: UploadedFile | None,
+                    files: list[UploadedFile], directory: Path, main: str | None,
+                    limits: UploadLimits) -> None:
     """The child process of `check_upload`: send ("ok", fields) or the refusal."""
     try:  # the service's requests and scheduler come first
         os.nice(CHECK_NICENESS)
     except OSError:
         pass
     try:
-        sending.send(("ok", _store_upload(store, scene, files, directory)))
+        sending.send(("ok", _store_upload(store, scene, files, directory, main, limits)))
     except InvalidRequest as exc:
         sending.send(("invalid", (exc.field, exc.message, exc.source)))
     except SceneError as exc:
@@ -278,26 +299,31 @@ def _check_in_child(sending, store: Store, scene: UploadedFile, files: list[Uplo
     sending.close()
 
 
-def check_upload(store: Store, scene: UploadedFile, files: list[UploadedFile],
-                 directory: Path) -> dict:
-    """Resolve an upload and store its canonical text by hash, in a child
-    process (see the module doc); returns the `SceneRecord` fields but
-    `created`. Raises what `resolve_upload` raises. Blocks the calling thread
+def check_upload(store: Store, scene: UploadedFile | None, files: list[UploadedFile],
+                 directory: Path, main: str | None = None,
+                 limits: UploadLimits = UploadLimits()) -> dict:
+    """Import an upload and store its canonical text and assets by hash, in a
+    child process (see the module doc); returns the `SceneRecord` fields but
+    `created`. Raises what `import_upload` raises. Blocks the calling thread
     (not the GIL) until the child is done."""
     context = multiprocessing.get_context("forkserver")
     receiving, sending = context.Pipe(duplex=False)
     child = context.Process(target=_check_in_child, name="rayfarm-upload-check", daemon=True,
-                            args=(sending, store, scene, files, directory))
+                            args=(sending, store, scene, files, directory, main, limits))
     child.start()
     sending.close()  # the child holds the only sending end: EOF if it dies
+    kind, payload = "slow", None
     try:
         try:
-            kind, payload = receiving.recv()
+            if receiving.poll(limits.max_seconds):
+                kind, payload = receiving.recv()
+            else:  # a file that makes an importer spin: its process is killed below
+                kind, payload = "slow", None
         except EOFError:
             kind, payload = "died", None
     finally:
         receiving.close()
-        child.join(30)
+        child.join(30 if kind != "slow" else 0)
         if child.is_alive():
             child.kill()
             child.join()
@@ -309,6 +335,9 @@ def check_upload(store: Store, scene: UploadedFile, files: list[UploadedFile],
         raise SceneError(*payload)
     if kind == "large":
         raise TooLarge(*payload)
+    if kind == "slow":
+        raise TooLarge(f"the upload took more than {limits.max_seconds:g} s to check "
+                       "(RAYFARM_UPLOAD_CHECK_SECONDS)")
     code = child.exitcode
     how = (f"signal {signal.Signals(-code).name}" if code is not None and code < 0
            else f"exit code {code}")
@@ -318,18 +347,20 @@ def check_upload(store: Store, scene: UploadedFile, files: list[UploadedFile],
 
 
 def add_upload(sessions: sessionmaker[Session], store: Store, actor: Principal,
-               scene: UploadedFile, files: list[UploadedFile], directory: Path, now: datetime
-               ) -> tuple[SceneInfo, bool]:
-    """Resolve an upload (in a child process: `check_upload`), store it by
+               scene: UploadedFile | None, files: list[UploadedFile], directory: Path,
+               now: datetime, main: str | None = None,
+               limits: UploadLimits = UploadLimits()) -> tuple[SceneInfo, bool]:
+    """Import an upload (in a child process: `check_upload`), store it by
     hash, record it and the caller's claim. Returns (info, created): content
     this caller uploaded before answers its existing record, not created
     (someone else's identical upload is shared, and is new to this caller).
 
-    Raises `InvalidRequest` (naming the field: ``files[1]``) or `SceneError`
-    (naming the location in the scene: ``shapes[0].file``).
+    Raises `InvalidRequest` (naming the field: ``files[1]``, ``main``, or
+    ``scene`` with the archive member), `TooLarge` (a limit of `limits`) or
+    `SceneError` (naming the place in the scene: ``models/a.ply:12``).
     """
     require_submit(actor)
-    fields = check_upload(store, scene, files, directory)
+    fields = check_upload(store, scene, files, directory, main, limits)
     key = fields["id"]
     record = SceneRecord(created=now, **fields)
     for _ in range(3):  # the same content uploaded at the same moment: one record
@@ -350,63 +381,119 @@ def add_upload(sessions: sessionmaker[Session], store: Store, actor: Principal,
     raise Conflict(f"scene {key} is being uploaded by someone else right now; try again")
 
 
-def resolve_upload(scene: UploadedFile, files: list[UploadedFile],
-                   directory: Path) -> tuple[dict, str]:
-    """The resolved document of an upload and the scene file's stem (the name
-    when the document has none). Mesh files are moved, under their checked
-    names, into a new directory inside `directory`, the only place the scene
-    may read them from."""
-    by_name = _check_file_names(files)
-    doc = _parse_scene_file(scene)
-    used = _check_references(doc, by_name)
-    for upload in files:
-        if upload.filename not in used:
-            raise InvalidRequest(upload.where, f"'{upload.filename}' is not named by any mesh "
-                                 f"shape's \"file\" (named: {', '.join(sorted(used)) or 'none'}); "
-                                 "send only the mesh files the scene uses")
-    mesh_dir = directory / "meshes"
-    mesh_dir.mkdir(mode=0o700)
-    for name, upload in by_name.items():
-        os.replace(upload.path, mesh_dir / name)
+@dataclass(frozen=True)
+class ImportedUpload:
+    """An upload imported: the resolved document, the assets it names (by
+    digest), the import report (a list of {element, file, line, action}), the
+    main file's path in the upload and its stem (the name when the document
+    has none)."""
+
+    doc: dict
+    assets: dict[str, bytes]
+    report: list[dict]
+    source: str
+    stem: str
+
+
+def import_upload(scene: UploadedFile | None, files: list[UploadedFile], directory: Path,
+                  main: str | None = None, limits: UploadLimits = UploadLimits()
+                  ) -> ImportedUpload:
+    """Lay the upload out as a folder inside `directory` (`service.upload_tree`:
+    the scene file and the files at their relative paths, or an archive
+    unpacked), find its main scene file and import it with every path
+    resolved inside that folder only."""
+    tree = UploadTree(directory / "tree", limits)
+    if scene is not None and (kind := archive_kind(scene.filename, scene.path)):
+        if files:
+            raise InvalidRequest("files[0]", "send an archive alone (its folder holds the "
+                                             "scene's files), or a scene file with its files")
+        tree.unpack("scene", scene.filename or "the archive", scene.path, kind,
+                    directory / "archive.tar")
+        source = tree.main_file(main)
+    elif scene is not None:
+        if main is not None:
+            raise InvalidRequest("main", "names the scene file inside an archive or among "
+                                         "files sent without a scene part; with a scene part, "
+                                         "that is the scene file")
+        source = tree.add_part("scene", _scene_name(scene), scene.path)
+        for upload in files:
+            tree.add_part(upload.where, upload.filename, upload.path)
+    elif files:
+        for upload in files:
+            tree.add_part(upload.where, upload.filename, upload.path)
+        source = tree.main_file(main)
+    else:
+        raise InvalidRequest("scene", "field required: the scene file or an archive of its "
+                                      "folder (curl -F scene=@room.json, -F scene=@room.zip)")
+    doc, assets, report = _import(tree.root, source)
+    stem = PurePosixPath(source).name
+    stem = stem[:-len(scene_suffix(stem) or "")] if scene_suffix(stem) else stem
+    return ImportedUpload(doc, assets, report, source, stem or "uploaded")
+
+
+def _scene_name(scene: UploadedFile) -> str:
+    """The scene part's path in the upload: its file name, with the suffix its
+    content implies when the name has none of a scene file (a JSON scene sent
+    as "room" or without a name, as older clients may)."""
+    name = scene.filename
+    if name and scene_suffix(name):
+        return name
+    with open(scene.path, "rb") as fh:
+        head = fh.read(4096).lstrip(b"\xef\xbb\xbf \t\r\n")
+    suffix = (".glb" if head.startswith(b"glTF") else ".xml" if head.startswith(b"<") else
+              ".json" if head.startswith((b"{", b"[")) or not head else None)
+    if suffix is None:
+        raise InvalidRequest("scene", f"{name or 'the scene part'!r} is neither a scene file "
+                                      f"({', '.join(SCENE_SUFFIXES)}) nor an archive "
+                                      f"({', '.join(ARCHIVE_SUFFIXES)})")
+    base = name.rstrip("/").rsplit("/", 1)[-1] if name else ""
+    return (base or "scene") + suffix
+
+
+MAX_REPORT = 500  # entries kept of an import report (then one saying how many more)
+
+
+def _report(entries) -> list[dict]:
+    """An importer's report entries as JSON objects, bounded: a hostile file
+    can ask for a hundred thousand ignored elements."""
+    out = []
+    for entry in entries[:MAX_REPORT]:
+        line = getattr(entry, "line", None)
+        out.append({"element": str(getattr(entry, "element", ""))[:300],
+                    "file": str(getattr(entry, "file", ""))[:1024],
+                    "line": line if isinstance(line, int) else None,
+                    "action": str(getattr(entry, "action", ""))[:1000]})
+    if len(entries) > MAX_REPORT:
+        out.append({"element": "", "file": "", "line": None,
+                    "action": f"{len(entries) - MAX_REPORT} more entries not kept"})
+    return out
+
+
+def _import(root: Path, source: str) -> tuple[dict, dict[str, bytes], list[dict]]:
+    """(resolved document, assets, report) of the scene file `source` of the
+    folder `root`; SceneError for what is wrong in it."""
+    path = root / source
     try:
-        resolved = resolve_document(doc, base_dir=mesh_dir)
+        if scene_suffix(source) == ".json":
+            _parse_scene_file(path, source)  # its messages name line and column
+        imported = import_scene(path, root=root)
+        resolved = resolve_document(imported.doc, assets=imported.assets)
+        return resolved, dict(resolved.assets), _report(list(imported.report))
     except SceneError:
         raise
-    except (TypeError, ValueError, KeyError, IndexError, AttributeError, RecursionError) as exc:
-        # What the validator did not anticipate is still the client's error.
-        raise SceneError(f"malformed scene document ({type(exc).__name__}: {exc})") from None
-    stem = PurePosixPath(scene.filename.replace("\\", "/")).stem if scene.filename else ""
-    return resolved, stem or "uploaded"
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError, RecursionError,
+            OverflowError, UnicodeError) as exc:
+        # What the importer or validator did not anticipate is still the client's error.
+        raise SceneError(f"malformed scene ({type(exc).__name__}: {exc})") from None
 
 
-def _check_file_names(files: list[UploadedFile]) -> dict[str, UploadedFile]:
-    """Mesh files by name; each name a plain base name ending in .obj, once."""
-    by_name: dict[str, UploadedFile] = {}
-    for upload in files:
-        name = upload.filename
-        if not name:
-            raise InvalidRequest(upload.where, "a mesh file needs a file name "
-                                 "(the base name its scene's \"file\" uses)")
-        if ("/" in name or "\\" in name or name in (".", "..")
-                or any(ord(c) < 32 or c == "\x7f" for c in name)):
-            raise InvalidRequest(upload.where, f"file name {name!r} must be a plain base name "
-                                 "(no path separators, no '..', no control characters)")
-        if len(name.encode()) > MAX_NAME:
-            raise InvalidRequest(upload.where, f"file name longer than {MAX_NAME} bytes")
-        if PurePosixPath(name).suffix.lower() != MESH_SUFFIX:
-            raise InvalidRequest(upload.where, f"'{name}' is not a Wavefront {MESH_SUFFIX} file "
-                                 f"(mesh files must end in {MESH_SUFFIX})")
-        if name in by_name:
-            raise InvalidRequest(upload.where, f"'{name}' is uploaded twice "
-                                 f"(also as {by_name[name].where})")
-        by_name[name] = upload
-    return by_name
+def _triangles(imported: ImportedUpload) -> int:
+    return triangle_count(imported.doc)
 
 
-def _parse_scene_file(scene: UploadedFile) -> dict:
+def _parse_scene_file(path: Path, name: str) -> dict:
     """The scene file's JSON object; errors name the line and column."""
-    name = scene.filename or "the scene file"
-    data = scene.path.read_bytes()
+    data = path.read_bytes()
     if not data.strip():
         raise SceneError(f"{name} is empty")
     try:
@@ -431,30 +518,3 @@ def _parse_scene_file(scene: UploadedFile) -> dict:
         raise SceneError(f'not valid Unicode text in {name}: "{found[1][:60]}" holds a lone '
                          "surrogate (half of a UTF-16 pair)", found[0])
     return doc
-
-
-def _check_references(doc: dict, by_name: dict[str, UploadedFile]) -> set[str]:
-    """Names of the uploaded files the mesh shapes use; a `"file"` that names
-    none of them is a SceneError at ``shapes[i].file``."""
-    used: set[str] = set()
-    shapes = doc.get("shapes")
-    if not isinstance(shapes, list):
-        return used  # the resolver reports it
-    for i, shape in enumerate(shapes):
-        if not (isinstance(shape, dict) and shape.get("type") == "mesh" and "file" in shape):
-            continue
-        loc = f"shapes[{i}].file"
-        ref = shape["file"]
-        if not isinstance(ref, str):
-            raise SceneError("expected a file name (a string)", loc)
-        name = posixpath.normpath(ref) if ref else ref
-        if name not in by_name:
-            uploaded = ", ".join(by_name) or "none"
-            hint = ("; an upload names mesh files by their base name: "
-                    f"\"file\": \"{posixpath.basename(ref)}\""
-                    if posixpath.basename(ref) in by_name else
-                    "; send it as a files part (-F files=@mesh.obj)")
-            raise SceneError(f"mesh file '{ref}' was not uploaded (uploaded: {uploaded}){hint}",
-                             loc)
-        used.add(name)
-    return used

@@ -31,7 +31,7 @@ from .executors import WorkerInfo
 from .models import ApiToken, Job, User, WorkUnit
 from .figures import job_figures
 
-__all__ = ["RequestModel", "UnitLogPublic", "UnitAttemptLog", "JobCreate", "TargetRequest", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS",
+__all__ = ["ReportEntryPublic", "RequestModel", "UnitLogPublic", "UnitAttemptLog", "JobCreate", "TargetRequest", "JobUpdate", "JobPublic", "JobStats", "PRIORITY_BOUNDS",
            "Progress", "ScenePublic", "UnitPublic", "WorkerPublic", "LoginRequest", "Me", "UserCreate",
            "UserUpdate", "UserPublic", "TokenCreate", "TokenPublic", "TokenCreated"]
 
@@ -293,6 +293,15 @@ class JobPublic(BaseModel):
             events_url=f"/jobs/{job.id}/events")
 
 
+class ReportEntryPublic(BaseModel):
+    """One line of an import report: what rayfarm did not take as written."""
+
+    element: str = Field(description='the element, e.g. bsdf type="roughplastic" id="Floor"')
+    file: str = Field(description="the file holding it, its path in the upload")
+    line: int | None = Field(description="its line in that file (null where it has none)")
+    action: str = Field(description="what was done instead: approximated as X, ignored")
+
+
 class ScenePublic(BaseModel):
     """A scene as the API shows it: built in (id = name) or uploaded (id = hash)."""
 
@@ -307,6 +316,12 @@ class ScenePublic(BaseModel):
     bytes: int = Field(description="size of the resolved scene's canonical text")
     created: datetime | None = Field(description="when it was uploaded (built-ins: null)")
     thumbnail_url: str | None = Field(description="its PNG thumbnail, null until rendered")
+    source: str = Field("", description="an upload's scene file, its path in the upload "
+                                        "(built-ins: empty)")
+    report: list[ReportEntryPublic] = Field(
+        default_factory=list, description="the import report: each element of the uploaded "
+                                          "files rayfarm does not render as written, where it "
+                                          "is and what was done instead (empty: all as written)")
 
     @classmethod
     def from_info(cls, info, thumbnail_ready: bool) -> "ScenePublic":
@@ -314,7 +329,11 @@ class ScenePublic(BaseModel):
         return cls(id=info.id, kind=info.kind, name=info.name, description=info.description,
                    width=info.width, height=info.height, triangles=info.triangles,
                    scene_hash=info.scene_hash, bytes=info.bytes, created=info.created,
-                   thumbnail_url=f"/scenes/{info.id}/thumbnail.png" if thumbnail_ready else None)
+                   thumbnail_url=f"/scenes/{info.id}/thumbnail.png" if thumbnail_ready else None,
+                   source=info.source, report=[ReportEntryPublic(
+                       element=str(e.get("element", "")), file=str(e.get("file", "")),
+                       line=e["line"] if isinstance(e.get("line"), int) else None,
+                       action=str(e.get("action", ""))) for e in info.report])
 
 
 class UnitPublic(BaseModel):

@@ -286,6 +286,29 @@ def test07_upload_a_scene_with_its_mesh_through_the_form_and_render_it(page, tmp
     page.wait_for_url("**/#/jobs/*")
     page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=120_000)
     assert "browser-room" in page.inner_text("#view .page-head")
+    # A folder (the folder picker: each file with its path), the mesh in a
+    # subfolder, two scene files at the top: the form asks which, then uploads.
+    folder = tmp_path / "browser-folder"
+    (folder / "models").mkdir(parents=True)
+    doc = room("browser-folder")
+    doc["shapes"][-1]["file"] = "models/cube.obj"
+    for name in ("room.json", "copy.json"):
+        (folder / name).write_text(__import__("json").dumps(doc))
+    (folder / "models" / "cube.obj").write_text(CUBE_OBJ)
+    page.goto(f"{page.base}/#/submit")
+    page.wait_for_selector("#f-scene option", state="attached")
+    page.set_input_files("#f-upload-folder", str(folder))
+    page.click("#upload-button")
+    error = page.wait_for_selector("[data-error-for='main']:not(:empty)")
+    assert "copy.json" in error.inner_text() and "room.json" in error.inner_text()
+    page.fill("#f-main", "room.json")
+    page.click("#upload-button")
+    page.wait_for_function("() => document.querySelector('#f-scene').selectedOptions[0]"
+                           "?.textContent.includes('browser-folder')")
+    info = page.inner_text("#scene-info") + page.inner_text("#scene-report")
+    assert "browser-folder/room.json" in info and "Imported as written" in info, info
+    assert page.is_hidden("[data-field='main']")
+    shot(page, "11b-submit-uploaded-folder")
 
 
 def test08_a_dag_job_shows_its_phases(page):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import socket
 import subprocess
 import sys
@@ -470,6 +471,24 @@ def test17_submit_uploads_a_scene_file_with_its_meshes(server, client, tmp_path,
     assert out.returncode == 0, out.stderr
     assert f"uploaded scene.json as scene {record['id']}" in out.stderr
     job_id = out.stdout.strip()
+    # The same scene with its mesh in a subfolder, sent as a file with its
+    # relative path, as a folder and as a zip (`rayfarm upload`): one scene.
+    folder = tmp_path / "folder"
+    (folder / "models").mkdir(parents=True)
+    doc = json.loads(path.read_text())
+    next(s for s in doc["shapes"] if s.get("file"))["file"] = "models/box.obj"
+    (folder / "scene.json").write_text(json.dumps(doc))
+    (folder / "models" / "box.obj").write_bytes((tmp_path / "box.obj").read_bytes())
+    assert client.upload_scene(folder / "scene.json")["id"] == record["id"]
+    archive = shutil.make_archive(str(tmp_path / "packed"), "zip", folder)
+    for sent in (folder, archive):
+        out = cli("upload", str(sent), server=server)
+        assert out.returncode == 0 and out.stdout.strip() == record["id"], out.stderr
+        assert f"uploaded {Path(sent).name} as scene {record['id']}" in out.stderr
+    shown = cli("scenes", record["id"], server=server).stdout
+    assert "source: scene.json" in shown and "every element as written" in shown, shown
+    assert_clean_failure(cli("upload", str(tmp_path / "nothing"), server=server), 2,
+                         "no such file or folder")
     assert client.wait(job_id)["status"] == "done"
     client.download_result(job_id, tmp_path / "mesh.exr")
     assert_bit_identical(channels_of(tmp_path / "mesh.exr"),
@@ -481,7 +500,7 @@ def test18_a_scene_file_with_a_missing_mesh_is_refused_before_sending(server, tm
     (tmp_path / "box.obj").unlink()
     args = [a if a != "cornell-box" else str(path) for a in TINY_ARGS]
     assert_clean_failure(cli("submit", *args, server=server), 2,
-                         "scene.shapes[6].file: mesh file not found")
+                         "scene.shapes[6].file: file not found")
 
 
 def test19_client_commands_load_neither_the_renderer_nor_the_server(server):
@@ -560,8 +579,10 @@ def test22_the_job_actions_priority_scenes_and_methods_from_the_cli(server, clie
     assert_clean_failure(cli("delete", job_id, server=server), 1, f"no job '{job_id}'")
     assert_clean_failure(cli("priority", job_id, "500", server=server), 2, "priority")
     scenes = ok("scenes")
-    assert scenes.splitlines()[0].split() == ["ID", "KIND", "NAME", "SIZE", "TRIANGLES"]
+    assert scenes.splitlines()[0].split() == ["ID", "KIND", "NAME", "SIZE", "TRIANGLES", "REPORT"]
     assert any(line.split()[:2] == ["cornell-box", "builtin"] for line in scenes.splitlines())
+    assert ok("scenes", "cornell-box").splitlines()[:3] == [
+        "id: cornell-box", "kind: builtin", "name: cornell-box"]
     methods = {line.split()[0]: line.split() for line in ok("methods").splitlines()[1:]}
     assert methods["path-mis"][1] == "path" and methods["path-mis"][4] == "yes"
     assert methods["photon"][4] == "no"

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import re
 import secrets
 import time
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -58,13 +60,15 @@ def _requests_only(app):
 def fuzz_app(tmp_path_factory):
     """A service of its own (the fuzzer creates users, tokens and jobs) whose
     accepted jobs are small: at most 2^18 samples (POST /jobs' example is
-    128 x 128 x 16), 64 tiles, one render process."""
+    128 x 128 x 16), 64 tiles, one render process; uploads of at most 64
+    files and 10 MiB unpacked."""
     from service.main import create_app
     from service.settings import Settings
 
     settings = Settings(data_dir=tmp_path_factory.mktemp("fuzz-farm"), broker_url="",
                         database_url="", local_workers=1, poll_interval=0.05,
-                        admin_token=TEST_ADMIN_TOKEN, max_work=1 << 18, max_units=64)
+                        admin_token=TEST_ADMIN_TOKEN, max_work=1 << 18, max_units=64,
+                        max_upload_files=FUZZ_UPLOAD_FILES, max_upload_unpacked_bytes=10 << 20)
     app = create_app(settings)
     with TestClient(app) as client:
         yield app, client
@@ -415,3 +419,190 @@ def test06_a_lone_surrogate_in_any_string_field_is_a_422_naming_it(fuzz_app):
     assert upload.status_code == 422 and "camera" in upload.json()["detail"][0]["msg"], upload.text
     assert client.get("/jobs/%ED%A0%80", headers=ADMIN_HEADERS).status_code == 404
     assert client.get("/jobs?scene=%ED%A0%80", headers=ADMIN_HEADERS).status_code == 200
+
+
+# -- hostile uploads -------------------------------------------------------------------------
+
+ROOM_JSON = json.dumps({
+    "camera": {"origin": [0, 0, 4], "target": [0, 0, 0], "fov": 40, "width": 16, "height": 16},
+    "materials": {"white": {"type": "diffuse", "albedo": 0.7}},
+    "shapes": [{"type": "mesh", "file": "models/tri.obj", "material": "white",
+                "emitter": {"type": "area", "radiance": [1, 1, 1]}}]}).encode()
+TRI_OBJ = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"
+
+
+def _zip(*members) -> bytes:
+    """A zip of (name or ZipInfo, bytes) members, written as given (names unchecked)."""
+    import io
+    import warnings
+    import zipfile
+
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as archive, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "Duplicate name": meant
+        for name, data in members:
+            archive.writestr(name, data, compress_type=zipfile.ZIP_DEFLATED)
+    return out.getvalue()
+
+
+def _tar(*members, mode: str = "w:gz", pax: dict | None = None) -> bytes:
+    """A tar of (name, bytes or a tarfile type with a link name) members."""
+    import io
+    import tarfile
+
+    out = io.BytesIO()
+    with tarfile.open(fileobj=out, mode=mode, format=tarfile.PAX_FORMAT) as archive:
+        for name, data in members:
+            info = tarfile.TarInfo(name)
+            if isinstance(data, bytes):
+                info.size = len(data)
+            else:
+                info.type, info.linkname = data
+            info.pax_headers = dict(pax or {})
+            archive.addfile(info, io.BytesIO(data) if isinstance(data, bytes) else None)
+    return out.getvalue()
+
+
+def _encrypted(archive: bytes) -> bytes:
+    """The zip with its last member flagged encrypted (Python's zipfile writes
+    no encrypted members): bit 0 of the flags in its local and central headers."""
+    data = bytearray(archive)
+    for signature, at in ((b"PK\x03\x04", 6), (b"PK\x01\x02", 8)):
+        data[data.rindex(signature) + at] |= 0x1
+    return bytes(data)
+
+
+def _hostile_uploads():
+    """(label, multipart parts, form data, status, words in the refusal): each
+    names the member, the field or the limit."""
+    import os
+    import stat
+    import tarfile
+    import zipfile
+
+    ok = [("room.json", ROOM_JSON), ("models/tri.obj", TRI_OBJ)]
+    link = zipfile.ZipInfo("models/tri.obj")
+    link.external_attr = (stat.S_IFLNK | 0o777) << 16
+    noise = os.urandom(1 << 16) * 64  # 4 MiB that deflate cannot shrink (its window is 32 KiB)
+    cases = [
+        ("zip slip", _zip(*ok, ("../../evil.json", b"{}")), 422, ["'../../evil.json'", "'..'"]),
+        ("absolute", _zip(*ok, ("/tmp/evil.json", b"{}")), 422, ["'/tmp/evil.json'", "absolute"]),
+        ("drive letter", _zip(*ok, ("C:/evil.json", b"{}")), 422, ["C:/evil.json", "drive"]),
+        ("backslash", _zip(*ok, ("models\\evil.obj", b"")), 422, ["evil.obj", "backslash"]),
+        ("zip symlink", _zip(ok[0], (link, b"/etc/passwd")), 422,
+         ["'models/tri.obj'", "symbolic link"]),
+        ("encrypted", _encrypted(_zip(*ok)), 422, ["'models/tri.obj'", "encrypted"]),
+        ("duplicate", _zip(*ok, ok[1]), 422, ["'models/tri.obj' is uploaded twice"]),
+        ("file and folder", _zip(*ok, ("room.json/x.obj", b"")), 422,
+         ["'room.json/x.obj'", "'room.json' is a file"]),
+        ("tar symlink", _tar(ok[0], ("models/tri.obj", (tarfile.SYMTYPE, "/etc/passwd"))), 422,
+         ["'models/tri.obj'", "symbolic link to '/etc/passwd'"]),
+        ("tar hard link", _tar(ok[0], ("models/tri.obj", (tarfile.LNKTYPE, "/etc/shadow"))), 422,
+         ["'models/tri.obj'", "hard link"]),
+        ("tar device", _tar(*ok, ("null", (tarfile.CHRTYPE, ""))), 422, ["'null'", "device"]),
+        ("tar slip", _tar(*ok, ("../evil.json", b"{}")), 422, ["'../evil.json'", "'..'"]),
+        ("pax header", _tar(*ok, pax={"comment": "x" * (1 << 17)}), 422,
+         ["extended tar header", "before its first member"]),
+        ("zip bomb", _zip(*ok, ("models/big.obj", bytes(8 << 20))), 413,
+         ["'models/big.obj'", "times its compressed size", "RAYFARM_MAX_UPLOAD_RATIO"]),
+        ("tar bomb", _tar(*ok, ("models/big.obj", bytes(8 << 20))), 413,
+         ["'hostile.tar.gz'", "times its compressed size"]),
+        ("too many", _zip(*ok, *((f"m/{i}.obj", b"") for i in range(FUZZ_UPLOAD_FILES))), 413,
+         ["more than 64 files", "RAYFARM_MAX_UPLOAD_FILES"]),
+        ("too big", _zip(*ok, ("a.bin", noise), ("b.bin", noise), ("c.bin", noise)), 413,
+         ["'c.bin'", "RAYFARM_MAX_UPLOAD_UNPACKED_BYTES"]),
+        ("too deep", _zip(*ok, ("a/" * 17 + "x.obj", b"")), 422,
+         ["17 folders deep", "RAYFARM_MAX_UPLOAD_DEPTH"]),
+        ("long name", _zip(*ok, ("x" * 300, b"")), 422, ["longer than 255 bytes"]),
+        ("no scene file", _zip(ok[1]), 422, ["holds no scene file"]),
+        ("two scene files", _zip(*ok, ("b.json", ROOM_JSON)), 422,
+         ["main", "b.json, room.json"]),
+        ("not a zip", b"PK\x03\x04" + bytes(100), 422, ["'hostile.zip'", "not a readable zip"]),
+        ("cut short", _zip(*ok)[:-30], 422, ["'hostile.zip'"]),
+        ("not gzip", b"\x1f\x8b" + bytes(100), 422, ["'hostile.tar.gz'", "corrupt"]),
+    ]
+    for label, data, status, words in cases:
+        name = "hostile.tar.gz" if data[:2] == b"\x1f\x8b" else "hostile.zip"
+        yield label, [("scene", (name, data))], {}, status, words
+    archive = _zip(*ok, ("b.json", ROOM_JSON))
+    for main, words in (("../room.json", ["'..'"]), ("/room.json", ["absolute"]),
+                        ("nope.json", ["no file 'nope.json'"]),
+                        ("models/tri.obj", ["not a scene file"])):
+        yield f"main {main}", [("scene", ("hostile.zip", archive))], {"main": main}, 422, words
+    # Files at relative paths are checked alike, naming the part.
+    for name, words in (("../evil.obj", ["files[0]", "'..'"]), ("/evil.obj", ["absolute"])):
+        yield f"file {name}", [("scene", ("room.json", ROOM_JSON)), ("files", (name, TRI_OBJ))], \
+            {}, 422, words
+
+
+FUZZ_UPLOAD_FILES = 64  # the fuzz farm's RAYFARM_MAX_UPLOAD_FILES
+
+
+def _refusal(status: int, detail) -> str:
+    return " ".join(d["msg"] for d in detail) if isinstance(detail, list) else str(detail)
+
+
+# Sent over HTTP: one of each kind (the rest are checked in-process, alike and faster).
+OVER_HTTP = {"zip slip", "tar symlink", "zip bomb", "tar bomb", "too many", "too big",
+             "two scene files", "main ../room.json", "file ../evil.obj"}
+
+
+def test07_hostile_uploads_are_a_4xx_naming_the_member_and_leave_nothing(fuzz_app, tmp_path):
+    """Archives and paths meant to escape the upload's folder, exhaust memory
+    or disk, or confuse the importer are each refused with a 4xx naming the
+    member (or the field, or the limit): never a 5xx; no file outside the data
+    dir, no upload left behind, no scene stored (so none ever reaches a
+    render process). An archive inside the archive stays a file."""
+    import tempfile
+
+    from service.api.errors import error_response
+    from service.scenes import UploadedFile, import_upload
+    from service.upload_tree import UploadLimits
+
+    app, _ = fuzz_app
+    client = _admin_of_its_own(app, "fuzz-uploads")
+    settings = app.state.farm.settings
+    data_dir = settings.data_dir.resolve()
+    scenes_dir = data_dir / "store" / "scenes"
+    stored = set(os.listdir(scenes_dir))
+    watched = [data_dir.parent, Path(tempfile.gettempdir())]
+    before = {d: set(os.listdir(d)) for d in watched}
+    failures = []
+    for i, (label, parts, form, status, words) in enumerate(_hostile_uploads()):
+        if label in OVER_HTTP:
+            response = client.post("/scenes", files=parts, data=form)
+        else:  # the upload's own code, as the route's child process runs it
+            directory = tmp_path / f"upload-{i}"
+            directory.mkdir()
+            uploads = []
+            for n, (field, (name, data)) in enumerate(parts):
+                (directory / f"part-{n}").write_bytes(data)
+                uploads.append(UploadedFile(field, n - 1 if field == "files" else 0, name,
+                                            directory / f"part-{n}"))
+            try:
+                import_upload(uploads[0], uploads[1:], directory, form.get("main"),
+                              UploadLimits.from_settings(settings))
+                response = None
+            except Exception as exc:  # noqa: BLE001 - what the route would answer
+                response = error_response(exc)
+        if response is None:
+            failures.append(f"{label}: accepted")
+            continue
+        detail = json.loads(response.body if hasattr(response, "body") else response.content)
+        text = _refusal(response.status_code, detail["detail"])
+        if response.status_code != status or not all(w in text for w in words):
+            failures.append(f"{label}: {response.status_code} {text[:300]}")
+    assert not failures, "\n".join(failures)
+    assert set(os.listdir(scenes_dir)) == stored  # nothing imported, nothing to render
+    for folder, names in before.items():
+        assert not any("evil" in n for n in set(os.listdir(folder)) - names), folder
+    assert not [p for p in data_dir.rglob("*evil*")]
+    assert not [p for p in tmp_path.rglob("*evil*")]
+    assert list((data_dir / "uploads").iterdir()) == []
+    # A nested archive is a file like any other: never unpacked.
+    nested = _zip(("room.json", ROOM_JSON), ("models/tri.obj", TRI_OBJ),
+                  ("inner.zip", _zip(("../../evil.json", b"{}"))))
+    response = client.post("/scenes", files=[("scene", ("nested.zip", nested))])
+    assert response.status_code == 201, response.text
+    assert not [p for p in data_dir.rglob("*evil*")]
+    assert client.get("/healthz").json()["status"] == "ok"

@@ -8,7 +8,9 @@ import io
 import json
 import os
 import socket
+import tarfile
 import tempfile
+import zipfile
 from pathlib import Path
 
 import httpx
@@ -18,7 +20,7 @@ from PIL import Image
 
 from renderer import builtin_scene_names, resolve_document, scene_text
 
-from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, embedded_env,
+from conftest import (ADMIN_HEADERS, ROOT, TINY, assert_bit_identical, channels_of, embedded_env,
                       get_json, poll_job, start_serve, submit, wait_for)
 
 WALL = {"type": "rectangle", "material": "white"}
@@ -257,32 +259,40 @@ def _cases():
     yield pytest.param(_with_shape(1, material="gold"), ok_files,
                        ["body", "scene", "shapes[1].material"], ("gold",), id="material")
     yield pytest.param(scene_bytes(room("bad")), (), ["body", "scene", f"shapes[{MESH}].file"],
-                       ("'cube.obj' was not uploaded", "uploaded: none"), id="mesh-missing")
+                       ("cube.obj",), id="mesh-missing")
     yield pytest.param(_with_shape(MESH, file="meshes/cube.obj"), ok_files,
-                       ["body", "scene", f"shapes[{MESH}].file"],
-                       ("was not uploaded", "base name", '"file": "cube.obj"'), id="mesh-subdir")
+                       ["body", "scene", f"shapes[{MESH}].file"], ("not found",),
+                       id="mesh-elsewhere")
     yield pytest.param(_with_shape(MESH, file="../cube.obj"), ok_files,
-                       ["body", "scene", f"shapes[{MESH}].file"], ("was not uploaded",),
+                       ["body", "scene", f"shapes[{MESH}].file"], ("inside",),
                        id="mesh-parent")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", bad_obj),),
                        ["body", "scene", f"shapes[{MESH}].file"],
-                       ("cube.obj:3: cannot parse", "v 1 x -1"), id="mesh-unparsable")
+                       ("cube.obj:3", "cannot parse", "v 1 x -1"), id="mesh-unparsable")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 9\n"),),
                        ["body", "scene", f"shapes[{MESH}].file"],
-                       ("cube.obj:3", "face vertex index 9 is out of range",
-                        "2 vertices"), id="mesh-index")
-    yield pytest.param(scene_bytes(room("bad")), ok_files + (("spare.obj", b"v 0 0 0\n"),),
-                       ["body", "files", 1], ("'spare.obj' is not named by any mesh shape",),
-                       id="unused-file")
-    for i, name in enumerate(["../evil.obj", "sub/cube.obj", "..\\evil.obj", "..", "/tmp/x.obj"]):
+                       ("cube.obj:3", "face vertex index 9 is out of range", "2 vertices"),
+                       id="mesh-index")
+    # A file's name is its path in the scene's folder: relative, inside it.
+    for i, (name, words) in enumerate([
+            ("../evil.obj", ("leaves the upload's folder",)),
+            ("a/../../evil.obj", ("leaves the upload's folder",)),
+            ("..\\evil.obj", ("backslash",)), ("..", ("leaves the upload's folder",)),
+            ("/tmp/x.obj", ("absolute path",)), ("C:/x.obj", ("drive letter",)),
+            ("a/" * 17 + "x.obj", ("17 folders deep", "RAYFARM_MAX_UPLOAD_DEPTH")),
+            ("x" * 256 + ".obj", ("longer than 255 bytes",))]):
         yield pytest.param(scene_bytes(room("bad")), (("cube.obj", CUBE_OBJ.encode()),
                                                       (name, CUBE_OBJ.encode())),
-                           ["body", "files", 1], ("plain base name",), id=f"file-name-{i}")
+                           ["body", "files", 1], words, id=f"file-name-{i}")
     yield pytest.param(scene_bytes(room("bad")), ok_files + ok_files, ["body", "files", 1],
                        ("'cube.obj' is uploaded twice", "files[0]"), id="duplicate")
-    yield pytest.param(scene_bytes(room("bad")), (("cube.ply", b"ply\n"),), ["body", "files", 0],
-                       ("not a Wavefront .obj",), id="not-obj")
-    yield pytest.param(None, ok_files, ["body", "scene"], ("required",), id="no-scene")
+    yield pytest.param(scene_bytes(room("bad")), (("room.json", b"{}"),), ["body", "files", 0],
+                       ("'room.json' is uploaded twice", "also as scene"), id="duplicate-scene")
+    yield pytest.param(scene_bytes(room("bad")), (("room.json/cube.obj", b"{}"),),
+                       ["body", "files", 0], ("'room.json' is a file of the upload",),
+                       id="file-and-folder")
+    yield pytest.param(None, ok_files, ["body", "scene"], ("holds no scene file",),
+                       id="no-scene")
 
 
 @pytest.mark.parametrize("scene,files,loc,words", list(_cases()))
@@ -309,7 +319,7 @@ def test06_form_shape_errors_are_422(local_client):
            b'filename="cu\tbe.obj"\r\n\r\n' + CUBE_OBJ.encode() + b"\r\n--xx--\r\n")
     assert_422(local_client.post("/scenes", content=tab,
                                  headers={"content-type": "multipart/form-data; boundary=xx"}),
-               ["body", "files", 0], "plain base name", "control characters")
+               ["body", "files", 0], "control character")
     truncated = (b'--xx\r\nContent-Disposition: form-data; name="scene"; filename="a.json"\r\n'
                  b"\r\n{}")
     assert_422(local_client.post("/scenes", content=truncated,
@@ -331,6 +341,130 @@ def test07_file_names_never_write_outside_the_data_dir(local_client, local_setti
         assert not any("evil" in n for n in set(os.listdir(folder)) - names), folder
     assert not [p for p in data_dir.rglob("*evil*")]
     assert list((data_dir / "uploads").iterdir()) == []  # each upload's directory is deleted
+
+
+# -- folders: relative paths, archives, a folder's files, the main file -----------------------
+
+def _folder(name: str) -> dict[str, bytes]:
+    """A scene's folder (path -> bytes): the room naming its mesh in a subfolder."""
+    doc = room(name, shapes=ROOM["shapes"][:MESH] + [dict(ROOM["shapes"][MESH],
+                                                           file="models/cube.obj")])
+    return {"room.json": scene_bytes(doc), "models/cube.obj": CUBE_OBJ.encode(),
+            "LICENSE.txt": b"CC0\n"}
+
+
+def zipped(files: dict[str, bytes], top: str = "") -> bytes:
+    out = io.BytesIO()
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as archive:
+        for name, data in files.items():
+            archive.writestr(top + name, data)
+    return out.getvalue()
+
+
+def tarred(files: dict[str, bytes], mode: str = "w:gz") -> bytes:
+    out = io.BytesIO()
+    with tarfile.open(fileobj=out, mode=mode) as archive:
+        for name, data in files.items():
+            info = tarfile.TarInfo("./" + name)
+            info.size = len(data)
+            archive.addfile(info, io.BytesIO(data))
+    return out.getvalue()
+
+
+def test13_a_scene_folder_comes_as_relative_paths_an_archive_or_a_folder(local_client, tmp_path):
+    """One folder sent four ways is one scene: the scene file with its files
+    at relative paths, a zip of the folder (its top folder kept), a .tar.gz,
+    and the folder's files alone (a browser's folder picker). Files the scene
+    does not name ride along; the record names its main file."""
+    folder = _folder("test13-room")
+    mesh = ("files", ("models/cube.obj", folder["models/cube.obj"], "text/plain"))
+    first = local_client.post("/scenes", files=[
+        ("scene", ("room.json", folder["room.json"], "application/json")), mesh,
+        ("files", ("LICENSE.txt", folder["LICENSE.txt"], "text/plain"))])
+    assert first.status_code == 201, first.text
+    record = first.json()
+    assert record["source"] == "room.json" and record["report"] == []
+    assert record["triangles"] == TRIANGLES
+    local = tmp_path / "local"
+    for name, data in folder.items():
+        (local / name).parent.mkdir(parents=True, exist_ok=True)
+        (local / name).write_bytes(data)
+    assert record["id"] == scene_text(resolve_document(local / "room.json"))[0]
+    ways = {"zip": [("scene", ("room.zip", zipped(folder, "test13/"), "application/zip"))],
+            "tar.gz": [("scene", ("room.tar.gz", tarred(folder), "application/gzip"))],
+            "folder": [("files", (f"test13/{name}", data, "application/octet-stream"))
+                       for name, data in folder.items()]}
+    for way, parts in ways.items():
+        again = local_client.post("/scenes", files=parts)
+        assert again.status_code == 200, (way, again.text)
+        assert again.json()["id"] == record["id"], way
+    # Several scene files at the top level: 422 asking for `main`, which picks one.
+    two = dict(folder, **{"other.json": folder["room.json"]})
+    ambiguous = local_client.post("/scenes", files=[("scene", ("two.zip", zipped(two)))])
+    assert_422(ambiguous, ["body", "main"], "several scene files", "other.json, room.json")
+    chosen = local_client.post("/scenes", files=[("scene", ("two.zip", zipped(two)))],
+                               data={"main": "room.json"})
+    assert chosen.status_code == 200 and chosen.json()["id"] == record["id"], chosen.text
+    assert_422(local_client.post("/scenes", files=[("scene", ("two.zip", zipped(two)))],
+                                 data={"main": "nope.json"}),
+               ["body", "main"], "no file 'nope.json'", "other.json, room.json")
+    assert_422(local_client.post("/scenes", files=[("scene", ("two.zip", zipped(two)))],
+                                 data={"main": "LICENSE.txt"}),
+               ["body", "main"], "not a scene file")
+    assert_422(local_client.post("/scenes", files=[("scene", ("room.json", folder["room.json"])),
+                                                   mesh], data={"main": "room.json"}),
+               ["body", "main"], "with a scene part")
+    assert_422(local_client.post("/scenes", files=[("scene", ("a.zip", zipped(folder))), mesh]),
+               ["body", "files", 0], "an archive alone")
+    assert_422(local_client.post("/scenes", files=[("scene", ("a.zip", b"not a zip"))]),
+               ["body", "scene"], "named like a zip archive but is none")
+
+
+def test13b_a_check_that_takes_too_long_is_stopped(local_app):
+    """An upload whose check outlasts RAYFARM_UPLOAD_CHECK_SECONDS is a 413
+    (a file that makes an importer spin must not hold a slot forever)."""
+    from service import scenes
+    from service.errors import TooLarge
+    from service.upload_tree import UploadLimits
+
+    store = local_app.state.farm.store
+    with store.upload_dir() as directory:
+        (directory / "part-0").write_bytes(scene_bytes(room("test13b")))
+        (directory / "part-1").write_text(CUBE_OBJ)
+        with pytest.raises(TooLarge, match="RAYFARM_UPLOAD_CHECK_SECONDS"):
+            scenes.check_upload(store, scenes.UploadedFile("scene", 0, "room.json",
+                                                           directory / "part-0"),
+                                [scenes.UploadedFile("files", 0, "cube.obj", directory / "part-1")],
+                                directory, None, UploadLimits(max_seconds=1e-3))
+
+
+REAL = ROOT.parent / "shared" / "scenes" / "real"
+
+
+def test14_a_mitsuba_scene_uploads_with_its_import_report(local_client):
+    """The shared cornell-box, its folder zipped: the import report (the
+    integrator parameters no Mitsuba release knows, the <mode> element...)
+    comes back from the upload, is stored with the scene and shown by
+    GET /scenes/{id} and GET /scenes; each entry names file and line."""
+    scene = REAL / "cornell-box" / "scene.xml"
+    if not scene.is_file():
+        pytest.skip(f"the shared real scenes are not at {REAL}")
+    pytest.importorskip("renderer.importers.mitsuba",
+                        reason="the Mitsuba importer is not in this checkout")
+    archive = zipped({"cornell-box/scene.xml": scene.read_bytes(),
+                      "cornell-box/LICENSE.txt": (scene.parent / "LICENSE.txt").read_bytes()})
+    response = local_client.post("/scenes", files=[("scene", ("cornell-box.zip", archive))])
+    assert response.status_code in (200, 201), response.text
+    record = response.json()
+    assert record["source"] == "cornell-box/scene.xml"
+    report = record["report"]
+    assert report and all(set(e) == {"element", "file", "line", "action"} for e in report)
+    assert all(e["file"] == "scene.xml" or e["file"].endswith("/scene.xml") for e in report)
+    assert any(isinstance(e["line"], int) and e["line"] > 1 for e in report)
+    assert any("integrator" in e["element"] or "mode" in e["element"] for e in report), report
+    assert local_client.get(f"/scenes/{record['id']}").json()["report"] == report
+    listed = {s["id"]: s for s in local_client.get("/scenes").json()}
+    assert listed[record["id"]]["report"] == report
 
 
 # -- jobs, lookups and deletion --------------------------------------------------------------
@@ -425,7 +559,7 @@ def test11b_an_uploads_mesh_files_are_parsed_outside_the_serving_process(local_c
     # What the child refuses still names where, as test05 shows for every refusal.
     bad = CUBE_OBJ.replace("v 1 -1 -1", "v 1 x -1").encode()
     assert_422(upload(local_client, scene_bytes(room("test11b-bad")), (("cube.obj", bad),)),
-               ["body", "scene", f"shapes[{MESH}].file"], "cube.obj:3: cannot parse")
+               ["body", "scene", f"shapes[{MESH}].file"], "cube.obj:3", "cannot parse")
 
 
 def test11c_a_job_on_an_upload_is_submitted_without_parsing_the_stored_scene(local_client,
@@ -532,10 +666,10 @@ def test12_bodies_above_the_limits_are_413_before_they_are_read(spawn_serve):
         assert_413(client.post("/jobs", content=chunks(b'{"scene": "', 1 << 20),
                                headers={"content-type": "application/json"}),
                    "2048", "RAYFARM_MAX_JOB_BYTES")
-        # The number of mesh files is bounded too.
+        # The number of files is bounded too.
         files = [("scene", ("room.json", json.dumps(room("test12")).encode()))] + [
             ("files", (f"m{i}.obj", b"v 0 0 0\n")) for i in range(3)]
-        assert_413(client.post("/scenes", files=files), "at most 2 mesh files",
+        assert_413(client.post("/scenes", files=files), "at most 2 files",
                    "RAYFARM_MAX_UPLOAD_FILES")
         # Below the limits all is well.
         small = client.post("/scenes", files=[

@@ -129,7 +129,23 @@ class Settings(BaseSettings):
                                 "was rendering are enqueued again at once")
     max_upload_bytes: int = Field(64 * 1024 * 1024, gt=0,
                                   description="largest request body of POST /scenes (413 above)")
-    max_upload_files: int = Field(64, ge=0, description="most mesh files in one POST /scenes")
+    max_upload_files: int = Field(
+        4096, ge=0, description="most files in one POST /scenes: the files sent beside the "
+                                "scene file, or the members of an archive (folders included)")
+    max_upload_unpacked_bytes: int = Field(
+        1 << 30, gt=0, description="bytes an upload's files may hold once an archive is "
+                                   "unpacked (counted while unpacking, 413 above)")
+    max_upload_ratio: float = Field(
+        200.0, gt=1, description="most an archive member (a compressed tar: the whole tar) may "
+                                 "unpack to, in times its compressed size, past its first MiB "
+                                 "(413 above: a decompression bomb)")
+    max_upload_depth: int = Field(16, ge=1, description="most folders deep a path in an upload "
+                                                        "may be")
+    max_upload_path_bytes: int = Field(1024, ge=16, description="longest path in an upload, in "
+                                                                "UTF-8 bytes")
+    upload_check_seconds: float = Field(
+        600.0, gt=0, description="longest an upload's check (unpacking, importing, storing) "
+                                 "may take; its process is then stopped (413)")
     max_concurrent_uploads: int = Field(
         4, ge=1, description="POST /scenes received and checked at once by one service (each "
                              "checks its files in a child process); 429 with Retry-After above")

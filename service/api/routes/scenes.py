@@ -11,6 +11,7 @@ from ... import admission, scenes
 from ...errors import InvalidRequest
 from ...models import utcnow
 from ...schemas import ScenePublic
+from ...upload_tree import UploadLimits
 from ..auth import ActorDep
 from ..deps import FarmDep, SessionDep
 from ..errors import responses
@@ -18,12 +19,21 @@ from ..multipart import receive_parts
 
 router = APIRouter(prefix="/scenes", tags=["scenes"])
 
+MAX_MAIN = 1024  # bytes of the main field: a path in the upload
+
 _UPLOAD_BODY = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
-    "type": "object", "required": ["scene"], "properties": {
+    "type": "object", "properties": {
         "scene": {"type": "string", "format": "binary",
-                  "description": "the scene JSON file (docs/scene-format.md)"},
+                  "description": "the scene file (.json: docs/scene-format.md, Mitsuba .xml, "
+                                 ".gltf, .glb), its file name its path in the scene's folder; "
+                                 "or one archive of the folder (.zip, .tar, .tar.gz)"},
         "files": {"type": "array", "items": {"type": "string", "format": "binary"},
-                  "description": "the .obj files its mesh shapes name by \"file\" (base names)"},
+                  "description": "the files the scene names (meshes, textures, included "
+                                 "files), each file name its path relative to the folder "
+                                 "(models/Mesh000.obj); without a scene part: a whole folder"},
+        "main": {"type": "string", "maxLength": MAX_MAIN,
+                 "description": "the scene file's path in an archive or folder holding "
+                                "several at its top level"},
     }}}}}}
 
 
@@ -37,36 +47,56 @@ def _public(farm, info: scenes.SceneInfo) -> ScenePublic:
                         **responses(403, 409, 413, 422, 429, 507)})
 async def upload_scene(request: Request, farm: FarmDep, actor: ActorDep,
                        response: Response) -> ScenePublic:
-    """Upload a scene file (multipart field `scene`) with the mesh files it
-    names (field `files`, repeated). It is validated (422 naming the field, or
-    the location in the scene and the line in a file) in a child process,
-    stored by content hash and its thumbnail rendered in the background. 201
-    with a Location; 200 with the existing record for content uploaded before;
-    429 with Retry-After while RAYFARM_MAX_CONCURRENT_UPLOADS uploads are under
-    way; 507 with Retry-After while the disk is full (the upload is not read)."""
+    """Upload a scene: a scene file (multipart field `scene`) with the files
+    it names (field `files`, repeated, each named by its relative path), or
+    one archive of its folder (field `scene`: .zip, .tar, .tar.gz), or a
+    folder's files alone (`files`); `main` picks the scene file where the
+    folder's top level holds several. Hostile paths and archives are refused
+    (422 or 413 naming the file or member). It is imported (Mitsuba XML,
+    glTF or rayfarm JSON) in a child process (422 naming the field, or the
+    place in the scene: file and line), stored by content hash with its
+    assets and its import report, and its thumbnail rendered in the
+    background. 201 with a Location; 200 with the existing record for
+    content uploaded before; 429 with Retry-After while
+    RAYFARM_MAX_CONCURRENT_UPLOADS uploads are under way; 507 with
+    Retry-After while the disk is full (the upload is not read)."""
     settings = farm.settings
     farm.disk.check_room()
     admission.check_upload_rate(farm.limiter, settings, actor)  # 429 past uploads per hour
     with farm.uploads.hold(), farm.store.upload_dir() as directory:  # 429 if too many at once
         parts = await receive_parts(
-            request, directory, fields={"scene": 1, "files": settings.max_upload_files},
-            too_many={"files": f"at most {settings.max_upload_files} mesh files per upload "
+            request, directory, fields={"scene": 1, "files": settings.max_upload_files,
+                                        "main": 1},
+            too_many={"files": f"at most {settings.max_upload_files} files per upload "
                                "(RAYFARM_MAX_UPLOAD_FILES)"})
         scene_parts = [p for p in parts if p.field == "scene"]
-        if not scene_parts:
-            raise InvalidRequest("scene", "field required: the scene JSON file "
-                                          "(curl -F scene=@room.json)")
-        scene = scenes.UploadedFile("scene", 0, scene_parts[0].filename or "", scene_parts[0].path)
+        scene = (scenes.UploadedFile("scene", 0, scene_parts[0].filename or "",
+                                     scene_parts[0].path) if scene_parts else None)
         files = [scenes.UploadedFile("files", i, p.filename or "", p.path)
                  for i, p in enumerate(p for p in parts if p.field == "files")]
-        info, created = await run_in_threadpool(scenes.add_upload, farm.sessions, farm.store,
-                                                actor, scene, files, directory, utcnow())
+        main = next((_main_field(p) for p in parts if p.field == "main"), None)
+        if scene is None and not files:
+            raise InvalidRequest("scene", "field required: the scene file or an archive of its "
+                                          "folder (curl -F scene=@room.json, -F scene=@room.zip)")
+        info, created = await run_in_threadpool(
+            scenes.add_upload, farm.sessions, farm.store, actor, scene, files, directory,
+            utcnow(), main, UploadLimits.from_settings(settings))
     farm.thumbnails.request(info.scene_hash)  # a no-op if it exists
     if created:
         response.headers["Location"] = f"/scenes/{info.id}"
     else:
         response.status_code = status.HTTP_200_OK
     return _public(farm, info)
+
+
+def _main_field(part) -> str:
+    """The text of the `main` form field: a path in the upload."""
+    if part.size > MAX_MAIN:
+        raise InvalidRequest("main", f"longer than {MAX_MAIN} bytes (a path in the upload)")
+    try:
+        return part.path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise InvalidRequest("main", "not UTF-8 text (a path in the upload)") from None
 
 
 @router.get("", response_model=list[ScenePublic])

@@ -38,9 +38,20 @@ export function submitView(root) {
   const sceneSelect = h("select#f-scene", { name: "scene" });
   const thumb = h("div.scene-thumb#scene-thumb", {}, "no preview");
   const sceneInfo = h("div.muted#scene-info", { style: { fontSize: "12.5px" } });
-  const upload = h("input#f-upload", { type: "file", multiple: true, accept: ".json,.obj",
-    "aria-label": "scene file and its mesh files" });
+  // Three ways in: a scene file with the files it names (their base names),
+  // one archive of its folder, or a folder (each file sent with its path).
+  const upload = h("input#f-upload", { type: "file", multiple: true,
+    "aria-label": "a scene file with its files, or an archive of its folder" });
+  const uploadFolder = h("input#f-upload-folder", { type: "file", webkitdirectory: true,
+    multiple: true, "aria-label": "a scene's folder" });
+  const mainName = h("input#f-main", { type: "text", name: "main",
+    placeholder: "e.g. scene.xml or living-room/scene.xml" });
+  const mainField = h("div.field", { "data-field": "main", hidden: true },
+    h("label", { for: "f-main" }, "Main scene file"), mainName,
+    h("span.hint", {}, "the folder or archive holds several scene files: name the one to render"),
+    h("span.error", { "data-error-for": "main", role: "alert" }));
   const uploadButton = h("button#upload-button", { type: "button" }, "Upload");
+  const sceneReport = h("div#scene-report");
   const methodSelect = h("select#f-method", { name: "method" });
   const methodDoc = h("div.method-doc#method-doc");
   const optionsBox = h("div.form-grid#method-options");
@@ -57,10 +68,13 @@ export function submitView(root) {
 
   replace(form, h("div.submit-layout", {},
     h("div.panel", {}, h("h2", {}, "Scene"), h("div.panel-body.scene-card", {},
-      field("scene", "Scene", sceneSelect), thumb, sceneInfo,
+      field("scene", "Scene", sceneSelect), thumb, sceneInfo, sceneReport,
       h("div.field", { "data-field": "upload" }, h("label", { for: "f-upload" },
-        "Upload a scene (.json with its .obj meshes)"), h("div.actions", {}, upload, uploadButton),
-      h("span.error", { "data-error-for": "upload", role: "alert" })))),
+        "Upload a scene: a file (.json, Mitsuba .xml, .gltf, .glb) with the files it names, "
+        + "or an archive of its folder (.zip, .tar.gz)"), upload,
+      h("label", { for: "f-upload-folder" }, "… or its folder"), uploadFolder,
+      h("div.actions", {}, uploadButton),
+      h("span.error", { "data-error-for": "upload", role: "alert" })), mainField)),
     h("div", {},
       h("div.panel.form-section", {}, h("h2", {}, "Method"), h("div.panel-body", {},
         h("div.form-grid", {}, field("method", "Method", methodSelect), field("sampler", "Pixel sampler", samplerSelect)),
@@ -77,7 +91,7 @@ export function submitView(root) {
           + "then the most per pixel (tile methods only)"))),
       h("div.actions", {}, submit, h("span.muted", {}, "The service checks every field.")))));
   if (!may.submit()) {
-    for (const control of [submit, uploadButton, upload]) {
+    for (const control of [submit, uploadButton, upload, uploadFolder]) {
       control.disabled = true;
       control.title = readOnlyReason();
     }
@@ -97,7 +111,9 @@ export function submitView(root) {
     numbers.height.placeholder = scene.height;
     replace(sceneInfo, `${scene.width} × ${scene.height}`,
       scene.triangles ? ` · ${scene.triangles.toLocaleString()} triangles` : "",
+      scene.source ? ` · from ${scene.source}` : "",
       scene.description ? h("div", {}, scene.description) : null);
+    showReport(scene);
     clearTimeout(thumbTimer);
     if (scene.thumbnail_url) {
       const img = h("img", { alt: `${scene.name} thumbnail` });
@@ -114,6 +130,24 @@ export function submitView(root) {
       if (i >= 0) scenes[i] = fresh;
       if (sceneSelect.value === id) showScene();
     }).catch(() => replace(thumb, "no thumbnail")), THUMB_POLL_MS);
+  }
+
+  // An upload's import report: what its files ask for that is not rendered as written.
+  function showReport(scene) {
+    const report = scene.report || [];
+    if (scene.kind !== "uploaded") return replace(sceneReport);
+    if (!report.length) {
+      return replace(sceneReport, h("div.muted.report-ok", { style: { fontSize: "12.5px" } },
+        "Imported as written: the import report is empty."));
+    }
+    const where = (e) => (e.file || "") + (e.line !== null && e.line !== undefined ? `:${e.line}` : "");
+    replace(sceneReport, h("details.import-report", { open: report.length <= 8 },
+      h("summary", {}, `Import report: ${report.length} element${report.length === 1 ? "" : "s"} `
+        + "not rendered as written"),
+      h("table.report-table", {}, h("thead", {}, h("tr", {}, h("th", {}, "where"),
+        h("th", {}, "element"), h("th", {}, "what was done"))),
+      h("tbody", {}, report.map((e) => h("tr", {}, h("td", {}, where(e)), h("td", {}, e.element),
+        h("td", {}, e.action)))))));
   }
 
   function renderMethods() {
@@ -187,29 +221,66 @@ export function submitView(root) {
   }
 
   // -- upload ------------------------------------------------------------------
+  const SCENE = /\.(json|xml|gltf|glb)$/i;
+  const ARCHIVE = /\.(zip|tar|tgz|tar\.gz|tbz2|tar\.bz2|txz|tar\.xz)$/i;
+  // One input at a time: choosing files forgets the folder, and back.
+  upload.addEventListener("change", () => { uploadFolder.value = ""; });
+  uploadFolder.addEventListener("change", () => { upload.value = ""; });
+
+  function uploadForm(slot) {
+    const data = new FormData();
+    const folder = [...uploadFolder.files];
+    if (folder.length) {
+      // A folder: every file with its path; the service finds the scene file.
+      for (const f of folder) data.append("files", f, f.webkitRelativePath || f.name);
+    } else {
+      const files = [...upload.files];
+      const archive = files.length === 1 && ARCHIVE.test(files[0].name) ? files[0] : null;
+      const scenesChosen = files.filter((f) => SCENE.test(f.name));
+      if (!archive && scenesChosen.length !== 1) {
+        slot.textContent = scenesChosen.length
+          ? `choose one scene file (chosen: ${scenesChosen.map((f) => f.name).join(", ")}), `
+            + "or its folder"
+          : "choose a scene file (.json, .xml, .gltf, .glb) and the files it names, an archive "
+            + "of its folder, or the folder";
+        slot.closest(".field").classList.add("invalid");
+        return null;
+      }
+      data.append("scene", archive || scenesChosen[0]);
+      for (const f of files) if (f !== archive && f !== scenesChosen[0]) data.append("files", f);
+    }
+    if (!mainField.hidden && mainName.value.trim()) data.append("main", mainName.value.trim());
+    return data;
+  }
+
   uploadButton.addEventListener("click", async () => {
     clearErrors();
-    const files = [...upload.files];
-    const sceneFile = files.find((f) => f.name.toLowerCase().endsWith(".json"));
     const slot = form.querySelector('[data-error-for="upload"]');
-    if (!sceneFile) {
-      slot.textContent = "choose a scene .json file (and the .obj files it references)";
-      slot.closest(".field").classList.add("invalid");
-      return;
-    }
-    const data = new FormData();
-    data.append("scene", sceneFile);
-    for (const f of files) if (f !== sceneFile) data.append("files", f);
+    const data = uploadForm(slot);
+    if (!data) return;
     uploadButton.disabled = true;
     try {
       const record = await api.upload("/scenes", data);
       scenes = await api.get("/scenes");
       renderScenes(record.id);
-      toast(`Scene ${record.name} uploaded`);
+      const notes = (record.report || []).length;
+      toast(`Scene ${record.name} uploaded` + (notes ? ` (import report: ${notes})` : ""));
       upload.value = "";
+      uploadFolder.value = "";
+      mainName.value = "";
+      mainField.hidden = true;
     } catch (err) {
-      const messages = err instanceof ApiError && Object.keys(err.fields).length
-        ? Object.values(err.fields).join("\n") : err.message;
+      const fields = err instanceof ApiError ? err.fields : {};
+      if (fields.main) {
+        // Several scene files at the top of the folder or archive: ask which.
+        mainField.hidden = false;
+        const mainSlot = form.querySelector('[data-error-for="main"]');
+        mainSlot.textContent = fields.main;
+        mainField.classList.add("invalid");
+        mainName.focus();
+        return;
+      }
+      const messages = Object.keys(fields).length ? Object.values(fields).join("\n") : err.message;
       slot.textContent = err.status === 413 ? `too large: ${messages}` : messages;
       slot.closest(".field").classList.add("invalid");
     } finally {
