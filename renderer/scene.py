@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bvh import build_bvh, collapse_wide, wide_bounds
+from .kernels.camera import filter_params
 from .kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR
 from .kernels.lights import LIGHT_MESH, LIGHT_POINT, LIGHT_SPHERE
 from .primitives import DISK_SEGMENTS, FIXED, world_mesh  # noqa: F401 (DISK_SEGMENTS: re-exported)
@@ -242,19 +243,34 @@ def load_scene(source) -> Scene:
 
 
 def camera_array(camera: dict, width: int, height: int) -> np.ndarray:
-    """The pinhole camera for the kernels: origin, right, up, forward (unit
-    vectors), then tan of the half field of view along x and y.
+    """The camera for the kernels (layout: kernels/camera.py, CAM_*): origin,
+    right, up, forward (unit vectors), tan of the half field of view along x
+    and y, the lens (radius, focus distance) and the filter.
 
     A film position (px, py) maps to the direction
     normalize(((2 px / W - 1) tx) right + ((1 - 2 py / H) ty) up + forward),
     row 0 at the top, exactly as in shared/scenes/cornell-box.md.
+
+    With `to_world` (Mitsuba's sensor convention) forward is the matrix's
+    local +z, up its +y and right its -x (Mitsuba's local +x points to the
+    image's left); a mirroring matrix keeps its mirror, as in Mitsuba.
     """
-    origin = np.asarray(camera["origin"], dtype=np.float64)
-    forward = np.asarray(camera["target"], dtype=np.float64) - origin
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, np.asarray(camera["up"], dtype=np.float64))
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
+    if "to_world" in camera:
+        m = np.asarray(camera["to_world"], dtype=np.float64)
+        origin = m[:3, 3].copy()
+        # orthonormalised (the document allows 1e-3 of slack, as Mitsuba does)
+        forward = m[:3, 2] / np.linalg.norm(m[:3, 2])
+        up = m[:3, 1] - forward * (m[:3, 1] @ forward)
+        up /= np.linalg.norm(up)
+        left = m[:3, 0] - forward * (m[:3, 0] @ forward) - up * (m[:3, 0] @ up)
+        right = -left / np.linalg.norm(left)
+    else:
+        origin = np.asarray(camera["origin"], dtype=np.float64)
+        forward = np.asarray(camera["target"], dtype=np.float64) - origin
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, np.asarray(camera["up"], dtype=np.float64))
+        right /= np.linalg.norm(right)
+        up = np.cross(right, forward)
     t = math.tan(math.radians(camera["fov"]) / 2)
     axis = camera["fov_axis"]
     if axis == "smaller":
@@ -263,6 +279,11 @@ def camera_array(camera: dict, width: int, height: int) -> np.ndarray:
         axis = "x" if width >= height else "y"
     if axis == "x":
         tx, ty = t, t * height / width
-    else:
+    elif axis == "y":
         tx, ty = t * width / height, t
-    return np.concatenate([origin, right, up, forward, [tx, ty]])
+    else:  # diagonal: t is the half diagonal's tangent (Mitsuba's parse_fov)
+        d = math.hypot(width, height)
+        tx, ty = t * width / d, t * height / d
+    lens = [camera.get("aperture_radius", 0.0), camera.get("focus_distance", 1.0)]
+    return np.concatenate([origin, right, up, forward, [tx, ty], lens,
+                           filter_params(camera.get("filter", {"type": "box"}))])

@@ -74,7 +74,7 @@ __all__ = [
 MATERIAL_TYPES = ("diffuse", "mirror", "dielectric", "glossy")
 SHAPE_TYPES = ("rectangle", "disk", "cube", "sphere", "mesh")
 EMITTER_TYPES = ("point",)
-FOV_AXES = ("x", "y", "smaller", "larger")
+FOV_AXES = ("x", "y", "smaller", "larger", "diagonal")
 
 MAX_IMAGE_SIDE = 8192
 MAX_TRIANGLES = 5_000_000
@@ -99,7 +99,11 @@ MAX_NESTING = 16  # levels of lists and objects (shapes[i].to_world[j].rotate.ax
 FIELDS: dict[str, set[str]] = {
     "document": {"format", "camera", "materials", "shapes", "emitters", "name", "description",
                  "defaults"},
-    "camera": {"type", "origin", "target", "up", "fov", "fov_axis", "width", "height"},
+    "camera": {"type", "origin", "target", "up", "to_world", "fov", "fov_axis", "width",
+               "height", "aperture_radius", "focus_distance", "filter"},
+    "filter.box": {"type"},
+    "filter.tent": {"type", "radius"},
+    "filter.gaussian": {"type", "stddev"},
     "material": {"type"},
     "material.diffuse": {"albedo"},
     "material.mirror": {"tint"},
@@ -287,37 +291,108 @@ def _name_list(allowed) -> str:
 
 # ----------------------------------------------------------------------------
 
+CAMERA_TYPES = ("perspective", "thinlens")
+FILTER_TYPES = ("box", "tent", "gaussian")
+MAX_FILTER_RADIUS = 8.0  # pixels: a light-tracing splat touches (2 r + 1)^2 pixels at most
+ORTHONORMAL_TOLERANCE = 1e-3  # Mitsuba's has_scale() tolerance on a sensor's to_world
+
+
+def _camera_to_world(value: Any, loc: str) -> list[list[float]]:
+    """A sensor's to_world: a rotation (or a mirror: a rotation times a
+    reflection) and a translation, as Mitsuba requires of sensors (it refuses
+    scale factors); the rows of its 3x3 part orthonormal to 1e-3."""
+    m = np.asarray(_transform(value, loc))
+    r = m[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), rtol=0.0, atol=ORTHONORMAL_TOLERANCE):
+        raise SceneError("a camera's to_world must be a rotation (or a mirror) and a "
+                         "translation: no scale or shear (Mitsuba refuses scale factors in a "
+                         "sensor's transform)", loc)
+    return m.tolist()
+
+
+def _resolve_filter(value: Any, loc: str) -> dict:
+    if isinstance(value, str):
+        value = {"type": value}
+    if not isinstance(value, dict):
+        raise SceneError("expected {'type': 'box'}, {'type': 'tent', 'radius': r} or "
+                         "{'type': 'gaussian', 'stddev': s}", loc)
+    ftype = value.get("type")
+    if ftype not in FILTER_TYPES:
+        raise SceneError(f"unknown filter type {json.dumps(ftype)[:60]} (allowed: "
+                         f"{_name_list(FILTER_TYPES)})", f"{loc}.type")
+    _check_fields(value, loc, f"filter.{ftype}")
+    out = {"type": ftype}
+    # Mitsuba 3's defaults: a tent of radius 1 pixel, a Gaussian of standard
+    # deviation 0.5 pixel (cut off at 4 standard deviations: kernels/camera.py)
+    if ftype == "tent":
+        out["radius"] = _number(value.get("radius", 1.0), f"{loc}.radius", lo=0.01,
+                                hi=MAX_FILTER_RADIUS)
+    elif ftype == "gaussian":
+        out["stddev"] = _number(value.get("stddev", 0.5), f"{loc}.stddev", lo=0.01,
+                                hi=MAX_FILTER_RADIUS / 4)
+    return out
+
+
 def _resolve_camera(cam: Any) -> dict:
+    """The camera: either origin/target/up (a look-at) or `to_world`
+    (Mitsuba's sensor convention: it looks along local +z, +y is up and +x
+    points to the left of the image), and a `thinlens` type with
+    `aperture_radius`, `focus_distance`. Fields left at their defaults are
+    left out, so a pinhole scene keeps its document (and hash)."""
     loc = "camera"
     if not isinstance(cam, dict):
         raise SceneError("expected an object", loc)
-    ctype = cam.get("type", "perspective")
     _check_fields(cam, loc, "camera")
-    if ctype != "perspective":
-        raise SceneError(f"unknown camera type '{ctype}' (allowed: perspective)", f"{loc}.type")
-    out = {
-        "type": "perspective",
-        "origin": _vec3(_require(cam, "origin", loc), f"{loc}.origin"),
-        "target": _vec3(_require(cam, "target", loc), f"{loc}.target"),
-        "up": _vec3(cam.get("up", [0, 1, 0]), f"{loc}.up"),
+    ctype = cam.get("type", "perspective")
+    if ctype not in CAMERA_TYPES:
+        raise SceneError(f"unknown camera type {json.dumps(ctype)[:60]} (allowed: "
+                         f"{_name_list(CAMERA_TYPES)})", f"{loc}.type")
+    out: dict[str, Any] = {"type": ctype}
+    if "to_world" in cam:
+        given = sorted(k for k in ("origin", "target", "up") if k in cam)
+        if given:
+            raise SceneError(f"give either to_world or origin/target/up, not both (also "
+                             f"given: {', '.join(given)})", f"{loc}.to_world")
+        out["to_world"] = _camera_to_world(cam["to_world"], f"{loc}.to_world")
+    else:
+        out["origin"] = _vec3(_require(cam, "origin", loc), f"{loc}.origin")
+        out["target"] = _vec3(_require(cam, "target", loc), f"{loc}.target")
+        out["up"] = _vec3(cam.get("up", [0, 1, 0]), f"{loc}.up")
+    out.update({
         "fov": _number(_require(cam, "fov", loc), f"{loc}.fov", lo=MIN_FOV, hi=179.0),
         "fov_axis": cam.get("fov_axis", "x"),
         "width": cam.get("width", 256),
         "height": cam.get("height", 256),
-    }
+    })
     if out["fov_axis"] not in FOV_AXES:
-        raise SceneError(f"unknown fov_axis '{out['fov_axis']}' (allowed: {_name_list(FOV_AXES)})",
-                         f"{loc}.fov_axis")
+        raise SceneError(f"unknown fov_axis {json.dumps(out['fov_axis'])[:60]} (allowed: "
+                         f"{_name_list(FOV_AXES)})", f"{loc}.fov_axis")
     for key in ("width", "height"):
         v = out[key]
         if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_IMAGE_SIDE:
             raise SceneError(f"must be an integer in [1, {MAX_IMAGE_SIDE}]", f"{loc}.{key}")
-    forward = np.subtract(out["target"], out["origin"])
-    if not np.linalg.norm(forward) >= MIN_LENGTH:
-        raise SceneError(f"target must lie at least {MIN_LENGTH:g} from origin",
-                         f"{loc}.target")
-    if np.linalg.norm(np.cross(forward, out["up"])) < 1e-9 * np.linalg.norm(forward):
-        raise SceneError("up is parallel to the viewing direction", f"{loc}.up")
+    if "origin" in out:
+        forward = np.subtract(out["target"], out["origin"])
+        if not np.linalg.norm(forward) >= MIN_LENGTH:
+            raise SceneError(f"target must lie at least {MIN_LENGTH:g} from origin",
+                             f"{loc}.target")
+        if np.linalg.norm(np.cross(forward, out["up"])) < 1e-9 * np.linalg.norm(forward):
+            raise SceneError("up is parallel to the viewing direction", f"{loc}.up")
+    lens_fields = [k for k in ("aperture_radius", "focus_distance") if k in cam]
+    if ctype == "thinlens":
+        # Mitsuba's thinlens requires both (its defaults are no usable lens)
+        out["aperture_radius"] = _number(_require(cam, "aperture_radius", loc),
+                                         f"{loc}.aperture_radius", lo=0.0, hi=MAX_COORDINATE)
+        out["focus_distance"] = _number(_require(cam, "focus_distance", loc),
+                                        f"{loc}.focus_distance", lo=MIN_LENGTH,
+                                        hi=MAX_COORDINATE)
+    elif lens_fields:
+        raise SceneError(f"{lens_fields[0]} needs \"type\": \"thinlens\" (a perspective "
+                         "camera is a pinhole)", f"{loc}.{lens_fields[0]}")
+    if "filter" in cam:
+        filt = _resolve_filter(cam["filter"], f"{loc}.filter")
+        if filt["type"] != "box":
+            out["filter"] = filt
     return out
 
 

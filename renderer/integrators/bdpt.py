@@ -7,8 +7,9 @@ camera first) and a light subpath (up to depth + 1 vertices, a light point
 first), then connects every prefix pair: strategy (s, t) uses s light and t
 camera vertices, a path of s + t - 2 bounces; strategies up to `depth`
 bounces run (the lecture's convention, the same paths as `path-mis`). t = 1
-connects a light vertex straight to the pinhole and splats anywhere on the
-film; the others add to the sample's pixel. (1, 1) is skipped as in pbrt:
+connects a light vertex straight to the camera (the pinhole, or a point it
+draws on the thin lens) and splats anywhere on the film (through the
+camera's filter, kernels/camera.py); the others add to the sample's pixel. (1, 1) is skipped as in pbrt:
 a light seen directly is the (0, 2) strategy.
 
 | option | default | meaning |
@@ -26,6 +27,7 @@ import numpy as np
 
 from ..film import PartialFilm
 from ..kernels import kernel
+from ..kernels.camera import film_position, splat_add
 from ..kernels.rng import sample_key, uniform
 from ..kernels.sampling import BALANCE, POWER
 from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY
@@ -94,8 +96,11 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                         u[d], u[d + 1] = u2d(smp, key, seed, pixel, si, spp, d, memo)
                     for d in range(l0, nd):
                         u[d] = uniform(key, d)
-                    nc, nr = camera_subpath(sc, cam, width, height, stack, V, x + u[0], y + u[1],
+                    fx, fy = film_position(cam, x, y, u[0], u[1])
+                    nc, nr = camera_subpath(sc, cam, width, height, stack, V, fx, fy,
                                             depth + 2, u, 4)
+                    # the camera ray's origin: a t = 1 strategy puts its own lens point there
+                    c0x, c0y, c0z = V[0, 0], V[0, 1], V[0, 2]
                     rays += nr
                     alr, alg, alb, anx, any_, anz, dist = _camera_aovs(sc, V, nc)
                     add_aov_sample(scr, alr, alg, alb, anx, any_, anz, dist)
@@ -115,13 +120,12 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                                                           srow, s, t, u, c0 + 4 * t, heuristic,
                                                           only_s < 0)
                             rays += nr
+                            if t == 1:
+                                V[0, 0], V[0, 1], V[0, 2] = c0x, c0y, c0z
                             if r == 0.0 and g == 0.0 and b == 0.0:
                                 continue
                             if t == 1:
-                                ix, iy = int(fx), int(fy)
-                                splat[iy, ix, 0] += r
-                                splat[iy, ix, 1] += g
-                                splat[iy, ix, 2] += b
+                                splat_add(splat, cam, fx, fy, r, g, b)
                             else:
                                 lr += r
                                 lg += g

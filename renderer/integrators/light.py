@@ -6,7 +6,8 @@ Each light path starts on a light (`sample_emission`: area lights from a
 point and a cosine direction, point lights in a uniform direction) and
 scatters through the scene with the adjoint BSDFs (importance transport: no
 1/eta^2 on refraction). Every vertex, the light point itself included,
-connects to the pinhole with a shadow ray and splats
+connects to the camera (the pinhole, or a point drawn on the thin lens) with
+a shadow ray and splats (with the camera's filter: kernels/camera.py)
 beta f |cos| We cos_cam / dist^2 onto the full frame (kernels/camera.py:
 We is per pixel, so splats estimate the pixel's mean radiance, as a camera
 sample of `path-mis` does). A path of depth d has at most d + 1 segments from
@@ -33,6 +34,7 @@ import numpy as np
 
 from ..film import PartialFilm
 from ..kernels import kernel
+from ..kernels.camera import CAM_LENS, splat_add
 from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import STREAM_LIGHT_PATHS, stream_key, uniform
 from ..kernels.sampling import BALANCE
@@ -92,14 +94,14 @@ def _trace_light_paths(sc, cam, width, height, seed, depth, p0, p1, splat, u, V,
         nl, nr = light_subpath(sc, stack, V, lrow, depth + 1, u, l0)
         rays += nr
         for s in range(1, nl + 1):
+            if cam[CAM_LENS] > 0.0:  # the lens point of this connection: u[1], u[2]
+                u[1] = uniform(key, c0 - l0 + 2 * s)
+                u[2] = uniform(key, c0 - l0 + 2 * s + 1)
             r, g, b, fx, fy, nr = connect(sc, cam, width, height, stack, V, lrow, srow, s, 1, u,
                                           0, BALANCE, False)
             rays += nr
             if r != 0.0 or g != 0.0 or b != 0.0:
-                ix, iy = int(fx), int(fy)
-                splat[iy, ix, 0] += r
-                splat[iy, ix, 1] += g
-                splat[iy, ix, 2] += b
+                splat_add(splat, cam, fx, fy, r, g, b)
     return rays
 
 
@@ -123,7 +125,7 @@ METHODS = (Method(
     aov_note="its image is splatted from light paths: no camera sample of "
              "a pixel has a first hit to take albedo, normal or depth from",
     description="Light tracing: paths start on lights and every vertex connects to the "
-                "pinhole camera, splatting anywhere on the image.",
+                "camera (pinhole or thin lens), splatting anywhere on the image.",
     run=render_light,
     family="splat",
     plan=plan_light,

@@ -103,6 +103,7 @@ from numba import prange
 from ..errors import SpecError
 from ..film import PartialFilm
 from ..kernels import kernel, kernel_parallel
+from ..kernels.camera import CAM_LENS, splat_add
 from ..kernels.geometry import STACK_SIZE
 from ..kernels.rng import STREAM_BOOTSTRAP, STREAM_CHAINS, stream_key, uniform
 from ..kernels.sampling import BALANCE, ONE_MINUS_EPS, POWER
@@ -219,12 +220,13 @@ def _mutate(x, last_mod, x_backup, mod_backup, lo, hi, iteration, last_large, la
 
 @kernel
 def _ready_strategy(x, last_mod, x_backup, mod_backup, depth, iteration, last_large, large,
-                    sigma, perturbation, key, ctr):
+                    sigma, perturbation, key, ctr, lens=False):
     """Bring up to date the dimensions mlt_L will read (the lazy part of
     pbrt-v3's MLTSampler): film and strategy first, then, for the strategy
     (s, t) u[2] now selects (mlt_L's rule), the t camera vertices' bounces,
     the light subpath when s >= 2 and the connection (kernels/subpaths.py's layout; test09
-    checks mlt_L reads nothing else). Returns ctr."""
+    checks mlt_L reads nothing else; with a thin `lens`, also its point's numbers).
+    Returns ctr."""
     ctr = _mutate(x, last_mod, x_backup, mod_backup, 0, 4, iteration, last_large, large,
                   sigma, perturbation, key, ctr)
     if depth == 0:
@@ -240,21 +242,19 @@ def _ready_strategy(x, last_mod, x_backup, mod_backup, depth, iteration, last_la
         l0 = light0(depth)
         ctr = _mutate(x, last_mod, x_backup, mod_backup, l0, l0 + 6 + 4 * (s - 2), iteration,
                       last_large, large, sigma, perturbation, key, ctr)
-    if s == 1:  # the light point the connection samples
+    if s == 1 or (lens and t == 1):  # the light point (or lens point) the connection samples
         c0 = conn0(depth) + 4 * t
         ctr = _mutate(x, last_mod, x_backup, mod_backup, c0, c0 + 3, iteration, last_large,
                       large, sigma, perturbation, key, ctr)
+    if lens and t == 2:  # the lens point's second number (the first is u[3])
+        ctr = _mutate(x, last_mod, x_backup, mod_backup, 7, 8, iteration, last_large, large,
+                      sigma, perturbation, key, ctr)
     return ctr
 
 
 @kernel
-def _splat(splat, fx, fy, r, g, b, scale):
-    width, height = splat.shape[1], splat.shape[0]
-    px, py = int(fx), int(fy)
-    if 0 <= px < width and 0 <= py < height:
-        splat[py, px, 0] += r * scale
-        splat[py, px, 1] += g * scale
-        splat[py, px, 2] += b * scale
+def _splat(splat, cam, fx, fy, r, g, b, scale):
+    splat_add(splat, cam, fx, fy, r * scale, g * scale, b * scale)
 
 
 @kernel
@@ -296,16 +296,16 @@ def run_chain(sc, cam, width, height, max_depth, heuristic, seed, chain, start, 
         iteration += 1
         large = uniform(key, ctr) < large_step
         ctr = _ready_strategy(x, last_mod, x_backup, mod_backup, depth, iteration, last_large,
-                              large, sigma, perturbation, key, ctr + 1)
+                              large, sigma, perturbation, key, ctr + 1, cam[CAM_LENS] > 0.0)
         pr, pg, pb, px, py, nr = mlt_L(sc, cam, width, height, depth, heuristic, x, V, stack)
         rays += nr
         py_l = luminance(pr, pg, pb)
         a = _acceptance(py_l, cy_l)
         # expected-value splatting: both states, weighted by the acceptance
         if a > 0.0 and py_l > 0.0:
-            _splat(splat, px, py, pr, pg, pb, scale * a / py_l)
+            _splat(splat, cam, px, py, pr, pg, pb, scale * a / py_l)
         if a < 1.0 and cy_l > 0.0:
-            _splat(splat, cx, cy, cr, cg, cb, scale * (1.0 - a) / cy_l)
+            _splat(splat, cam, cx, cy, cr, cg, cb, scale * (1.0 - a) / cy_l)
         if uniform(key, ctr) < a:
             cr, cg, cb, cx, cy, cy_l = pr, pg, pb, px, py, py_l
             if large:

@@ -50,7 +50,7 @@ from ..kernels.bsdf import (
     diffuse_sample,
     specular_step,
 )
-from ..kernels.camera import camera_ray
+from ..kernels.camera import CAM_LENS, camera_ray_at, film_position
 from ..kernels.geometry import (
     intersect_arrays,
     offset_origin,
@@ -72,7 +72,8 @@ from ..kernels.sampling import (
 from ..kernels.tile import (add_aov_block, add_aov_sample, add_block, add_sample, n_samples,
                             store_aov, store_pixel)
 from ..registry import SAMPLERS, Method, Option
-from ..samplers import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_RR, DIM_STRATEGY, DIMS_PER_BOUNCE,
+from ..samplers import (DIM_BSDF, DIM_GLASS, DIM_LENS, DIM_LIGHT, DIM_RR, DIM_STRATEGY,
+                        DIMS_PER_BOUNCE,
                         u1d, u2d)
 from .tile import start_tile, tile_plan
 
@@ -400,7 +401,6 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
       out-of-order core; the rows written and read back and the extra pass
       cost more than the vector arithmetic saves. The light sample's loop
       above (+3.1 %) had said the same."""
-    ox, oy, oz = cam[0], cam[1], cam[2]
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     n = n_samples(blocks)
     s_lo = blocks[0, 0]
@@ -451,7 +451,11 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     key = sample_key(seed, pixel, s)
                     keys[r] = key
                     fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
-                    dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+                    fx, fy = film_position(cam, x, y, fu, fv)
+                    lu, lv = 0.0, 0.0
+                    if cam[CAM_LENS] > 0.0:
+                        lu, lv = u2d(smp, key, seed, pixel, s, spp, DIM_LENS, memo)
+                    ox, oy, oz, dx, dy, dz = camera_ray_at(cam, width, height, fx, fy, lu, lv)
                     _start_lane(fl, il, r, k_next, ox, oy, oz, dx, dy, dz)
                     il[PIXEL, r] = pixel
                     il[INDEX, r] = s

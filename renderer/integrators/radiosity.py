@@ -124,7 +124,7 @@ from ..kernels.bsdf import (
     diffuse_sample,
     specular_step,
 )
-from ..kernels.camera import camera_ray
+from ..kernels.camera import CAM_LENS, camera_ray_at, film_position
 from ..kernels.geometry import (
     intersect_arrays,
     offset_origin,
@@ -156,7 +156,7 @@ from ..radiosity_solve import (
     welded_vertices,
 )
 from ..registry import SAMPLERS, Method, Option
-from ..samplers import DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
+from ..samplers import DIM_BSDF, DIM_GLASS, DIM_LENS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
 from ..scene_format import MAX_COORDINATE
 from .tile import start_tile
 
@@ -386,7 +386,6 @@ def _display_row(sc, pt, hist, vert_b, patch_vert, jk_hist, jk_vert, cam, x0, y0
     """Row `row` of `_display_tile`, its rays traced; a kernel of its own
     (integrators/tile.py, "Compile time"). `jk`: [0] the block's sums of the
     jackknife changes, [1] the pixel's (module doc of film.py)."""
-    ox, oy, oz = cam[0], cam[1], cam[2]
     n = n_samples(blocks)
     y = y0 + row
     rays = 0
@@ -398,7 +397,11 @@ def _display_row(sc, pt, hist, vert_b, patch_vert, jk_hist, jk_vert, cam, x0, y0
             for s in range(blocks[bi, 0], blocks[bi, 1]):
                 key = sample_key(seed, pixel, s)
                 fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
-                dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+                fx, fy = film_position(cam, x, y, fu, fv)
+                lu, lv = 0.0, 0.0
+                if cam[CAM_LENS] > 0.0:
+                    lu, lv = u2d(smp, key, seed, pixel, s, spp, DIM_LENS, memo)
+                ox, oy, oz, dx, dy, dz = camera_ray_at(cam, width, height, fx, fy, lu, lv)
                 (r, g, b, nr, alr, alg, alb, anx, any_, anz, dist, lk, lp, lsm, wa, wb,
                  wc, thr, thg, thb) = li_radiosity(
                     sc, pt, hist, vert_b, patch_vert, stack, ox, oy, oz, dx, dy, dz, key,

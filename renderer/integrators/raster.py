@@ -15,7 +15,9 @@ and glass surfaces have no local shading model here and show black.
 
 `spp` supersamples: each pixel's sample positions come from the job's pixel
 sampler like the path tracers' (dims 0-1; the light sample uses the pair
-2-3 and dim 4), so the film converges to the box-filtered rasterized image. Neither consistent nor unbiased with
+2-3 and dim 4), placed by the camera's filter (kernels/camera.py), so the
+film converges to the filtered rasterized image. A thin-lens camera is
+refused at submission (`check_scene`): a rasterizer has no lens. Neither consistent nor unbiased with
 respect to the rendering equation (no shadows, no interreflection), as the
 lecture's chart says; and fast: the cost is triangles x samples, with no
 ray tracing at all. (Every triangle is tested against every tile; a real
@@ -32,11 +34,12 @@ from numba import prange
 from ..film import AOV_CHANNELS, PartialFilm
 from ..kernels import kernel, kernel_parallel
 from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY
-from ..kernels.camera import camera_ray
+from ..kernels.camera import CAM_FILTER, CAM_FRADIUS, FILTER_BOX, camera_ray, film_position
 from ..kernels.ggx import glossy_eval
 from ..kernels.lights import sample_light
 from ..kernels.rng import sample_key
 from ..kernels.sampling import INV_PI
+from ..errors import SpecError
 from ..registry import SAMPLERS, Method
 from ..samplers import NO_MEMO, u2d
 from ..scene import camera_array
@@ -101,10 +104,12 @@ def _rasterize_triangle(cam, width, height, c, x0, y0, x1, y1, tri, sample_x, sa
     area = (sx1 - sx0) * (sy2 - sy0) - (sx2 - sx0) * (sy1 - sy0)
     if area == 0.0:
         return
-    lo_x = max(x0, int(math.floor(min(sx0, min(sx1, sx2)))))
-    hi_x = min(x1 - 1, int(math.floor(max(sx0, max(sx1, sx2)))))
-    lo_y = max(y0, int(math.floor(min(sy0, min(sy1, sy2)))))
-    hi_y = min(y1 - 1, int(math.floor(max(sy0, max(sy1, sy2)))))
+    # a filter's sample may lie up to its radius outside its own pixel
+    reach = 0 if cam[CAM_FILTER] == FILTER_BOX else int(math.ceil(cam[CAM_FRADIUS]))
+    lo_x = max(x0, int(math.floor(min(sx0, min(sx1, sx2)))) - reach)
+    hi_x = min(x1 - 1, int(math.floor(max(sx0, max(sx1, sx2)))) + reach)
+    lo_y = max(y0, int(math.floor(min(sy0, min(sy1, sy2)))) - reach)
+    hi_y = min(y1 - 1, int(math.floor(max(sy0, max(sy1, sy2)))) + reach)
     iz0, iz1, iz2 = 1.0 / c[0, 2], 1.0 / c[1, 2], 1.0 / c[2, 2]
     inv_area = 1.0 / area
     for y in range(lo_y, hi_y + 1):
@@ -217,8 +222,8 @@ def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, widt
                     else:
                         fu, fv = u2d(smp, key, seed, (y0 + row) * width + x0 + c, s, spp, 0,
                                      no_memo)
-                        sample_x[row, c] = x0 + c + fu
-                        sample_y[row, c] = y0 + row + fv
+                        sample_x[row, c], sample_y[row, c] = film_position(
+                            cam, x0 + c, y0 + row, fu, fv)
             _raster_pass(verts, cam, width, height, x0, y0, x1, y1, sample_x, sample_y, zbuf,
                          idbuf, clip)
             for row in prange(h):
@@ -270,6 +275,15 @@ def _run(scene, spec, unit, centres=False):
     return film, buffers[2]
 
 
+def check_scene(spec, doc: dict, options: dict) -> None:
+    """A rasterizer projects through a pinhole: it has no lens to blur with,
+    and a sharp image of a thin-lens scene would misstate it."""
+    if doc["camera"].get("type") == "thinlens":
+        raise SpecError("method", "raster cannot render a thinlens camera (depth of field): a "
+                        "rasterizer projects through a pinhole; use a ray-tracing method "
+                        "(path, bdpt, ...) or a perspective camera")
+
+
 def render_tile(scene, spec, unit, inputs=None, options=None) -> PartialFilm:
     return _run(scene, spec, unit)[0]
 
@@ -296,4 +310,5 @@ METHODS = (Method(
     run=render_tile,
     plan=tile_plan,
     aovs=("albedo", "normal", "depth"),
+    check_scene=check_scene,
 ),)

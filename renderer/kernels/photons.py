@@ -11,7 +11,7 @@ import math
 import numpy as np
 from numba import get_thread_id, prange
 
-from ..samplers import DIM_GLASS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
+from ..samplers import DIM_GLASS, DIM_LENS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
 from . import kernel, kernel_inline, kernel_parallel
 from .bsdf import (
     MAT_DIFFUSE,
@@ -23,7 +23,7 @@ from .bsdf import (
     reflect,
     specular_step,
 )
-from .camera import camera_ray
+from .camera import CAM_LENS, camera_ray_at, film_position
 from .geometry import (
     intersect_arrays,
     offset_origin,
@@ -246,7 +246,6 @@ def _camera_row(sc, cam, x0, y0, x1, width, height, seed, index, spp, smp, depth
                 vp_n, vp_wo, vp_beta, vp_mat, ld, vp_aov, row, stack, no_memo):
     """Row `row` of `camera_pass`, its rays traced; a kernel of its own
     (integrators/tile.py, "Compile time")."""
-    ox, oy, oz = cam[0], cam[1], cam[2]
     y = y0 + row
     rays = 0
     for x in range(x0, x1):
@@ -254,7 +253,11 @@ def _camera_row(sc, cam, x0, y0, x1, width, height, seed, index, spp, smp, depth
         pixel = y * width + x
         key = sample_key(seed, pixel, index)
         fu, fv = u2d(smp, key, seed, pixel, index, spp, 0, no_memo)
-        dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+        fx, fy = film_position(cam, x, y, fu, fv)
+        lu, lv = 0.0, 0.0
+        if cam[CAM_LENS] > 0.0:
+            lu, lv = u2d(smp, key, seed, pixel, index, spp, DIM_LENS, no_memo)
+        ox, oy, oz, dx, dy, dz = camera_ray_at(cam, width, height, fx, fy, lu, lv)
         (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
          nr, alr, alg, alb, anx, any_, anz, dist) = visible_point(
             sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, index, spp,
@@ -426,7 +429,6 @@ def _knn_row(sc, cam, x0, y0, x1, width, height, seed, spp, blocks, smp, depth, 
              out_w, out_aov, row, stack, memo, scr, bd, bi):
     """Row `row` of `knn_render`, its rays traced; a kernel of its own
     (integrators/tile.py, "Compile time")."""
-    ox, oy, oz = cam[0], cam[1], cam[2]
     mat_type, mat_rgb, mat_param = sc.mat_type, sc.mat_rgb, sc.mat_param
     mask = start.shape[0] - 2
     big_r = math.sqrt(big_r2)
@@ -442,7 +444,11 @@ def _knn_row(sc, cam, x0, y0, x1, width, height, seed, spp, blocks, smp, depth, 
             for s in range(blocks[blk, 0], blocks[blk, 1]):
                 key = sample_key(seed, pixel, s)
                 fu, fv = u2d(smp, key, seed, pixel, s, spp, 0, memo)
-                dx, dy, dz = camera_ray(cam, width, height, x + fu, y + fv)
+                fx, fy = film_position(cam, x, y, fu, fv)
+                lu, lv = 0.0, 0.0
+                if cam[CAM_LENS] > 0.0:
+                    lu, lv = u2d(smp, key, seed, pixel, s, spp, DIM_LENS, memo)
+                ox, oy, oz, dx, dy, dz = camera_ray_at(cam, width, height, fx, fy, lu, lv)
                 (kmax, px, py, pz, nx, ny, nz, wx, wy, wz, br, bg, bb, mat, lr, lg, lb,
                  nr, alr, alg, alb, anx, any_, anz, dist) = visible_point(
                     sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixel, s, spp,

@@ -10,7 +10,8 @@ density of being sampled from its neighbour in the subpath's own direction
 along the path (squared for the power heuristic). Specular (mirror, glass)
 vertices are `delta`: their pdfs are 0, remapped to 1 in the ratios, and no
 strategy connects at them or next to them; point lights are delta positions
-(no s = 0 strategy). The camera is a pinhole, connectible (t = 1).
+(no s = 0 strategy). The camera (a pinhole, or a thin lens whose point t = 1
+samples anew) is connectible (t = 1).
 BSDFs: geometric normals only; the light subpath transports importance, so
 refraction takes no 1/eta^2 (the adjoint BSDF, pbrt's TransportMode::Importance).
 No Russian roulette (as pbrt-v3's BDPT): paths end at the depth limit.
@@ -23,15 +24,17 @@ sampled for s = 1 strategies.
 Random numbers, one array `u` per path (`dims(depth)` entries), the layout
 shared with `mlt_L` (pbrt-v3's MLTSampler streams, here flat):
 - u[0], u[1]: film position as fractions of width and height;
-- u[2]: the strategy choice (MLT only); u[3] unused;
+- u[2]: the strategy choice (MLT only); u[3] and u[7]: the point on a thin
+  lens (unread for a pinhole);
 - camera bounce k (k = 0..depth): u[4 + 4k], u[5 + 4k] the BSDF direction,
-  u[6 + 4k] glass reflect/refract, u[7 + 4k] unused;
+  u[6 + 4k] glass reflect/refract, u[7 + 4k] unused (but u[7]);
 - LIGHT0 = 8 + 4 depth: u[LIGHT0] the light pick, u[LIGHT0 + 1..2] the point
   on it, u[LIGHT0 + 3..4] the emitted direction, u[LIGHT0 + 5] unused; light
   bounce k: u[LIGHT0 + 6 + 4k ...] as for the camera;
 - CONN0 = LIGHT0 + 10 + 4 depth: the s = 1 connection of the strategy with t
   camera vertices: u[CONN0 + 4t] the light pick, u[CONN0 + 4t + 1..2] the
-  point on the light, u[CONN0 + 4t + 3] unused;
+  point on the light, u[CONN0 + 4t + 3] unused; for t = 1 (which samples no
+  light point), u[CONN0 + 5..6] the point on a thin lens;
 - total dims(depth) = CONN0 + 4 (depth + 3).
 In a `bdpt` render, u[0:LIGHT0] come from the job's pixel sampler for the
 camera sample (`u1d`/`u2d`, renderer/samplers/, at those dimensions) and u[LIGHT0:]
@@ -55,7 +58,7 @@ from .bsdf import (
     diffuse_sample,
     reflect,
 )
-from .camera import camera_connect, camera_pdf_dir, camera_ray
+from .camera import CAM_MARGIN, camera_connect, camera_pdf_dir, camera_ray_at
 from .geometry import intersect_arrays, offset_origin, surface_at_arrays
 from .ggx import glossy_eval, glossy_sample
 from .lights import LIGHT_POINT, sample_emission
@@ -203,7 +206,7 @@ def vertex_pdf(mat_type, mat_rgb, mat_param, light_type, light_area, cam, width,
     if d2 == 0.0:
         return 0.0
     if V[i, V_TYPE] == T_CAMERA:
-        pdf = camera_pdf_dir(cam, width, height, wx, wy, wz)
+        pdf = camera_pdf_dir(cam, width, height, V[i, 0], V[i, 1], V[i, 2], wx, wy, wz)
     else:
         px, py, pz, e2 = _dir(V, i, prev)
         if e2 == 0.0:
@@ -301,10 +304,11 @@ def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf
 @kernel_inline
 def camera_subpath(sc, cam, width, height, stack, V, fx, fy, n_max, u, ubase):
     """The camera subpath through film position (fx, fy): rows 0 .. n - 1 of
-    V, at most n_max vertices (camera included). Returns (n, rays)."""
+    V, at most n_max vertices (camera included; a thin lens's point from
+    u[3], u[7]). Returns (n, rays)."""
     if n_max <= 0:
         return 0, 0
-    ox, oy, oz = cam[0], cam[1], cam[2]
+    ox, oy, oz, dx, dy, dz = camera_ray_at(cam, width, height, fx, fy, u[3], u[7])
     for c in range(NV):
         V[0, c] = 0.0
     V[0, 0], V[0, 1], V[0, 2] = ox, oy, oz
@@ -312,8 +316,7 @@ def camera_subpath(sc, cam, width, height, stack, V, fx, fy, n_max, u, ubase):
     V[0, V_TYPE] = T_CAMERA
     V[0, V_MAT] = -1.0
     V[0, V_LIGHT] = -1.0
-    dx, dy, dz = camera_ray(cam, width, height, fx, fy)
-    pdf_dir = camera_pdf_dir(cam, width, height, dx, dy, dz)
+    pdf_dir = camera_pdf_dir(cam, width, height, ox, oy, oz, dx, dy, dz)
     return random_walk(sc, stack, V, 1, n_max, ox, oy, oz, dx, dy, dz, 1.0, 1.0, 1.0, pdf_dir,
                        False, u, ubase)
 
@@ -470,9 +473,13 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
         if not _connectible(sc.mat_type, V, qs):
             return 0.0, 0.0, 0.0, fx, fy, 0
         px, py, pz = V[qs, 0], V[qs, 1], V[qs, 2]
-        fx, fy, we, cos_cam, dist, wx, wy, wz = camera_connect(cam, width, height, px, py, pz)
+        (fx, fy, we, cos_cam, dist, wx, wy, wz, lx, ly, lz) = camera_connect(
+            cam, width, height, px, py, pz, u[ubase + 1], u[ubase + 2])
         if we <= 0.0:
             return 0.0, 0.0, 0.0, fx, fy, 0
+        # the camera vertex of this strategy is the sampled lens point (row 0's
+        # position is read after the camera subpath's walk only here)
+        V[0, 0], V[0, 1], V[0, 2] = lx, ly, lz
         if V[qs, V_TYPE] == T_LIGHT:  # s = 1: the light point seen by the camera
             if V[qs, V_DLIGHT] != 0.0:
                 return 0.0, 0.0, 0.0, fx, fy, 0  # point lights: not visible (as path-mis)
@@ -481,7 +488,7 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
                 return 0.0, 0.0, 0.0, fx, fy, 0
             fr, fg, fb = cos_l, cos_l, cos_l
         else:
-            # one camera row of V holds the pinhole (row 0): connect to it
+            # one camera row of V holds the camera's point (row 0): connect to it
             fr, fg, fb = vertex_f(sc.mat_type, sc.mat_rgb, sc.mat_param, V, qs, 0)
             c = abs(V[qs, 3] * wx + V[qs, 4] * wy + V[qs, 5] * wz)
             fr, fg, fb = fr * c, fg * c, fb * c
@@ -575,7 +582,11 @@ def mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack):
     j's radiance is width * height * E_u[f(u) 1(film position in j)]: splat
     f * width * height / N for N uniform u (t = 1 strategies, whose
     importance We is per pixel, are divided by width * height here to share
-    these units). Zero when a subpath ends early.
+    these units). With a tent or Gaussian filter the film position is
+    uniform over the frame and the filter's margin around it (m pixels,
+    kernels/camera.py), f carries (W + 2m)(H + 2m) / (W H) for it, and the
+    splat spreads f over the pixels by their filter weights in place of
+    1(film position in j). Zero when a subpath ends early.
 
     Arguments: sc = scene.arrays, cam = camera_array(...), u = float64 array
     of dims(depth) numbers in [0, 1) laid out as in the module doc (film,
@@ -590,7 +601,16 @@ def mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack):
         n_strategies = depth + 2
         s = min(int(u[2] * n_strategies), n_strategies - 1)
         t = n_strategies - s
-    fx, fy = u[0] * width, u[1] * height
+    k = n_strategies
+    m = cam[CAM_MARGIN]
+    if m > 0.0:
+        # a filter reaches m pixels beyond the frame: the film position is
+        # uniform over the frame and that margin, a larger film
+        fx = -m + u[0] * (width + 2.0 * m)
+        fy = -m + u[1] * (height + 2.0 * m)
+        k *= (width + 2.0 * m) * (height + 2.0 * m) / (width * height)
+    else:
+        fx, fy = u[0] * width, u[1] * height
     nc, rays = camera_subpath(sc, cam, width, height, stack, V, fx, fy, t, u, 4)
     if nc != t:
         return 0.0, 0.0, 0.0, fx, fy, rays
@@ -604,10 +624,9 @@ def mlt_L(sc, cam, width, height, depth, heuristic, u, V, stack):
     r, g, b, sx, sy, connect_rays = connect(sc, cam, width, height, stack, V, lrow, srow, s, t,
                                             u, conn0(depth) + 4 * t, heuristic, True)
     rays += connect_rays
-    k = n_strategies
     if t == 1:
         fx, fy = sx, sy
-        k /= width * height  # per-pixel We (kernels/camera.py) -> per film, as pbrt's
+        k = n_strategies / (width * height)  # per-pixel We (kernels/camera.py) -> per film, as pbrt's
     return r * k, g * k, b * k, fx, fy, rays
 
 

@@ -52,13 +52,13 @@ import numpy as np
 
 # Numba's stale-cache guard for these modules lives with the others in
 # renderer/kernels/__init__.py (imported by every sampler module first).
-from .dispatch import (DIM_BSDF, DIM_GLASS, DIM_LIGHT, DIM_RR, DIM_STRATEGY,
+from .dispatch import (DIM_BSDF, DIM_GLASS, DIM_LENS, DIM_LIGHT, DIM_RR, DIM_STRATEGY,
                        DIMS_PER_BOUNCE, SAMPLER_BLUENOISE, SAMPLER_HALTON, SAMPLER_HAMMERSLEY,
                        SAMPLER_JITTERED, SAMPLER_MULTIJITTER, SAMPLER_NROOKS, SAMPLER_RANDOM,
                        SAMPLER_SOBOL, SAMPLER_UNIFORM, NO_MEMO, fill_2d, memo_rows, sample_1d,
                        sample_2d, u1d, u2d)
 
-__all__ = ["DIM_BSDF", "DIM_GLASS", "DIM_LIGHT", "DIM_RR", "DIM_STRATEGY",
+__all__ = ["DIM_BSDF", "DIM_GLASS", "DIM_LENS", "DIM_LIGHT", "DIM_RR", "DIM_STRATEGY",
            "DIMS_PER_BOUNCE", "SAMPLER_BLUENOISE", "SAMPLER_HALTON", "SAMPLER_HAMMERSLEY", "SAMPLER_JITTERED",
            "SAMPLER_MULTIJITTER", "SAMPLER_NROOKS", "SAMPLER_RANDOM", "SAMPLER_SOBOL",
            "SAMPLER_UNIFORM", "NO_MEMO", "fill_2d", "memo_rows", "points", "sample_1d", "sample_2d", "u1d", "u2d"]

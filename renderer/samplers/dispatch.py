@@ -100,6 +100,9 @@ DIM_BSDF = 2  # 2D: the BSDF-sampled direction
 DIM_RR = 5  # 1D: Russian roulette
 DIM_GLASS = 6  # 1D: reflect or refract at glass
 DIM_STRATEGY = 7  # 1D: one-sample MIS's choice of strategy
+# 2D: the point on a thin lens, past every bounce's dimensions (depth <= 64):
+# drawn only for a lens, so a pinhole's samples keep their dimensions.
+DIM_LENS = 2 + DIMS_PER_BOUNCE * 65
 
 
 # The memo argument of kernels that keep none (sample-major loops, where a
