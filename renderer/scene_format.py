@@ -272,33 +272,119 @@ def _resolve_camera(cam: Any) -> dict:
     return out
 
 
-def _resolve_material(name: str, mat: Any) -> dict:
+# Fields a material may hold beyond its type, by type (anything else is refused).
+MATERIAL_FIELDS = {"diffuse": ("albedo",), "mirror": ("tint",), "dielectric": ("ior",),
+                   "glossy": ("specular", "roughness")}
+COMMON_MATERIAL_FIELDS = ("type", "twosided", "opacity")
+TEXTURE_TYPES = ("bitmap", "checkerboard")
+TEXTURE_FILTERS = ("bilinear", "nearest")
+
+
+def _colour_input(value: Any, loc: str, what: str, textures: dict) -> Any:
+    """An RGB in [0, 1] (a scalar means grey) or ``{"texture": name}``."""
+    if isinstance(value, dict):
+        return _texture_ref(value, loc, textures)
+    rgb = _vec3(value, loc, nonneg=True)
+    if max(rgb) > 1.0:
+        raise SceneError(f"{what} components must be <= 1 (energy conservation)", loc)
+    return rgb
+
+
+def _texture_ref(value: dict, loc: str, textures: dict) -> dict:
+    if set(value) != {"texture"} or not isinstance(value["texture"], str):
+        raise SceneError('a texture input is {"texture": "<name>"} and nothing else', loc)
+    if value["texture"] not in textures:
+        raise SceneError(f"unknown texture '{value['texture']}' (defined: "
+                         f"{_name_list(textures) or 'none'})", f"{loc}.texture")
+    return {"texture": value["texture"]}
+
+
+def _resolve_material(name: str, mat: Any, textures: dict | None = None) -> dict:
     loc = f"materials.{name}"
+    textures = textures or {}
     if not isinstance(mat, dict):
         raise SceneError("expected an object", loc)
     mtype = _require(mat, "type", loc)
+    if mtype not in MATERIAL_FIELDS:
+        raise SceneError(f"unknown material type '{mtype}' (allowed: {_name_list(MATERIAL_TYPES)})",
+                         f"{loc}.type")
+    allowed = COMMON_MATERIAL_FIELDS + MATERIAL_FIELDS[mtype]
+    unknown = sorted(set(mat) - set(allowed))
+    if unknown:
+        raise SceneError(f"unknown field(s) of a {mtype} material: {', '.join(unknown)} "
+                         f"(allowed: {', '.join(allowed)})", f"{loc}.{unknown[0]}")
+    out: dict[str, Any] = {"type": mtype}
     if mtype == "diffuse":
-        albedo = _vec3(mat.get("albedo", [0.5, 0.5, 0.5]), f"{loc}.albedo", nonneg=True)
-        if max(albedo) > 1.0:
-            raise SceneError("albedo components must be <= 1 (energy conservation)", f"{loc}.albedo")
-        return {"type": "diffuse", "albedo": albedo}
-    if mtype == "mirror":
-        tint = _vec3(mat.get("tint", [1.0, 1.0, 1.0]), f"{loc}.tint", nonneg=True)
-        if max(tint) > 1.0:
-            raise SceneError("tint components must be <= 1", f"{loc}.tint")
-        return {"type": "mirror", "tint": tint}
-    if mtype == "dielectric":
-        ior = _number(mat.get("ior", 1.5), f"{loc}.ior", lo=1.0, hi=4.0)
-        return {"type": "dielectric", "ior": ior}
-    if mtype == "glossy":
-        specular = _vec3(mat.get("specular", [1.0, 1.0, 1.0]), f"{loc}.specular", nonneg=True)
-        if max(specular) > 1.0:
-            raise SceneError("specular components must be <= 1", f"{loc}.specular")
-        roughness = _number(mat.get("roughness", 0.1), f"{loc}.roughness", lo=MIN_ROUGHNESS,
-                            hi=1.0)
-        return {"type": "glossy", "specular": specular, "roughness": roughness}
-    raise SceneError(f"unknown material type '{mtype}' (allowed: {_name_list(MATERIAL_TYPES)})",
-                     f"{loc}.type")
+        out["albedo"] = _colour_input(mat.get("albedo", [0.5, 0.5, 0.5]), f"{loc}.albedo",
+                                      "albedo", textures)
+    elif mtype == "mirror":
+        out["tint"] = _colour_input(mat.get("tint", [1.0, 1.0, 1.0]), f"{loc}.tint", "tint",
+                                    textures)
+    elif mtype == "dielectric":
+        out["ior"] = _number(mat.get("ior", 1.5), f"{loc}.ior", lo=1.0, hi=4.0)
+    else:
+        out["specular"] = _colour_input(mat.get("specular", [1.0, 1.0, 1.0]), f"{loc}.specular",
+                                        "specular", textures)
+        rough = mat.get("roughness", 0.1)
+        if isinstance(rough, dict):
+            out["roughness"] = _texture_ref(rough, f"{loc}.roughness", textures)
+        else:
+            out["roughness"] = _number(rough, f"{loc}.roughness", lo=MIN_ROUGHNESS, hi=1.0)
+    # The default (false) is left out of the resolved document, so the scenes
+    # written before the field existed keep their hash.
+    if _bool(mat.get("twosided", False), f"{loc}.twosided"):
+        out["twosided"] = True
+    if "opacity" in mat:
+        # The renderer has no any-hit masks yet: a cut-out would be drawn solid.
+        op = mat["opacity"]
+        if isinstance(op, dict) or _number(op, f"{loc}.opacity", lo=0.0, hi=1.0) != 1.0:
+            raise SceneError("opacity masks are not rendered yet (only opacity 1 is accepted)",
+                             f"{loc}.opacity")
+    return out
+
+
+def _uv_pair(value: Any, loc: str, default: list[float]) -> list[float]:
+    if value is None:
+        return list(default)
+    if not isinstance(value, list) or len(value) != 2:
+        raise SceneError("expected a list of 2 numbers", loc)
+    return [_coordinate(v, f"{loc}[{i}]") for i, v in enumerate(value)]
+
+
+def _resolve_texture(name: str, tex: Any) -> dict:
+    """A bitmap (an image asset named by its digest) or a procedural checkerboard."""
+    loc = f"textures.{name}"
+    if not isinstance(tex, dict):
+        raise SceneError("expected an object", loc)
+    ttype = _require(tex, "type", loc)
+    fields = {"bitmap": ("type", "image", "filter", "uv_scale", "uv_offset"),
+              "checkerboard": ("type", "color0", "color1", "uv_scale", "uv_offset")}
+    if ttype not in fields:
+        raise SceneError(f"unknown texture type '{ttype}' (allowed: {_name_list(TEXTURE_TYPES)})",
+                         f"{loc}.type")
+    unknown = sorted(set(tex) - set(fields[ttype]))
+    if unknown:
+        raise SceneError(f"unknown field(s) of a {ttype} texture: {', '.join(unknown)} "
+                         f"(allowed: {', '.join(fields[ttype])})", f"{loc}.{unknown[0]}")
+    out: dict[str, Any] = {"type": ttype,
+                           "uv_scale": _uv_pair(tex.get("uv_scale"), f"{loc}.uv_scale", [1, 1]),
+                           "uv_offset": _uv_pair(tex.get("uv_offset"), f"{loc}.uv_offset", [0, 0])}
+    if ttype == "bitmap":
+        digest = _require(tex, "image", loc)
+        if (not isinstance(digest, str) or len(digest) != 64
+                or any(c not in "0123456789abcdef" for c in digest)):
+            raise SceneError("expected the image asset's SHA-256 digest (64 lower-case hex "
+                             "digits)", f"{loc}.image")
+        out["image"] = digest
+        out["filter"] = tex.get("filter", "bilinear")
+        if out["filter"] not in TEXTURE_FILTERS:
+            raise SceneError(f"unknown filter {json.dumps(out['filter'])[:40]} (allowed: "
+                             f"{_name_list(TEXTURE_FILTERS)})", f"{loc}.filter")
+    else:
+        # Mitsuba 3's checkerboard defaults
+        out["color0"] = _vec3(tex.get("color0", 0.4), f"{loc}.color0", nonneg=True, limit=1.0)
+        out["color1"] = _vec3(tex.get("color1", 0.2), f"{loc}.color1", nonneg=True, limit=1.0)
+    return out
 
 
 def _read_mesh_file(path: Path, loc: str) -> tuple[list, list]:
@@ -404,6 +490,26 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
             raise SceneError(f"too many triangles (limit {MAX_TRIANGLES})", f"{loc}.faces")
         out["vertices"] = v.tolist()
         out["faces"] = f.tolist()
+        face_normals = _bool(shape.get("face_normals", False), f"{loc}.face_normals")
+        for key, width in (("normals", 3), ("uvs", 2)):
+            if key not in shape or (key == "normals" and face_normals):
+                continue  # Mitsuba's face_normals: the vertex normals are ignored
+            try:
+                a = np.asarray(shape[key], dtype=np.float64)
+            except (ValueError, TypeError):
+                raise SceneError(f"{key} must be a list of {width} numbers per vertex",
+                                 f"{loc}.{key}") from None
+            if a.shape != (len(v), width) or not np.all(np.isfinite(a)):
+                raise SceneError(f"{key} must hold {width} finite numbers for each of the "
+                                 f"{len(v)} vertices", f"{loc}.{key}")
+            if key == "uvs" and not np.all(np.abs(a) <= MAX_COORDINATE):
+                raise SceneError(f"uvs must lie within +-{MAX_COORDINATE:g}", f"{loc}.uvs")
+            if key == "normals" and not np.all(np.linalg.norm(a, axis=1) > 1e-12):
+                j = int(np.argmax(~(np.linalg.norm(a, axis=1) > 1e-12)))
+                raise SceneError(f"normal {j} has no length", f"{loc}.normals")
+            out[key] = a.tolist()
+    elif "face_normals" in shape:
+        _bool(shape["face_normals"], f"{loc}.face_normals")  # flat shapes: nothing to ignore
     em = shape.get("emitter")
     if em is not None:
         eloc = f"{loc}.emitter"
@@ -506,7 +612,8 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
                          f"{_name_list(builtin_scene_names())}; or give a path to a scene file)")
     if not isinstance(doc, dict):
         raise SceneError("a scene document must be a JSON object")
-    known = {"format", "camera", "materials", "shapes", "emitters", "name", "description"}
+    known = {"format", "camera", "materials", "shapes", "emitters", "name", "description",
+             "textures"}
     unknown = sorted(set(doc) - known)
     if unknown:
         raise SceneError(f"unknown top-level field(s): {', '.join(unknown)} "
@@ -518,7 +625,11 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
     mats_in = doc.get("materials", {})
     if not isinstance(mats_in, dict):
         raise SceneError("expected an object mapping names to materials", "materials")
-    materials = {str(k): _resolve_material(str(k), v) for k, v in mats_in.items()}
+    tex_in = doc.get("textures", {})
+    if not isinstance(tex_in, dict):
+        raise SceneError("expected an object mapping names to textures", "textures")
+    textures = {str(k): _resolve_texture(str(k), v) for k, v in tex_in.items()}
+    materials = {str(k): _resolve_material(str(k), v, textures) for k, v in mats_in.items()}
     shapes_in = _require(doc, "shapes", "")
     if not isinstance(shapes_in, list):
         raise SceneError("expected a list of shapes", "shapes")
@@ -536,6 +647,8 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
     }
     if not resolved["shapes"]:
         raise SceneError("a scene needs at least one shape", "shapes")
+    if textures:  # absent when empty: older scenes keep their hash
+        resolved["textures"] = textures
     return resolved
 
 
