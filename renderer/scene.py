@@ -99,19 +99,19 @@ MAX_SCENE_TEXELS = 256 * 1024 * 1024
 
 
 def _texels(digest: str, assets, loc: str) -> np.ndarray:
-    """The (H, W, C) float32 texels of the image asset `digest`."""
-    if assets is None or digest not in assets:
-        raise SceneError(f"the image asset {digest[:12]}... is not among the scene's assets", loc)
-    blob = assets[digest]
-    if isinstance(blob, np.ndarray):
-        a = blob
+    """The (H, W, C) float32 texels of the image asset `digest`; `assets` is
+    an asset source (renderer/assets.py: a mapping or a callable, digests
+    checked) or, in tests, a mapping straight to texel arrays."""
+    held = assets.get(digest) if isinstance(assets, dict) else None
+    if isinstance(held, np.ndarray):
+        a = held
     else:
-        from .assets import decode_asset  # the assets' own encoding (renderer/assets.py)
+        from .assets import decode_asset, load_asset
 
-        asset = decode_asset(blob)
-        a = getattr(asset, "texels", None)
-        if a is None:
-            raise SceneError(f"the asset {digest[:12]}... is not a texture", loc)
+        asset = decode_asset(load_asset(assets, digest, loc))
+        if asset.kind != "texture":
+            raise SceneError(f"the asset {digest[:12]} is a {asset.kind}, not a texture", loc)
+        a = asset.texels
     a = np.asarray(a, dtype=np.float32)
     if a.ndim == 2:
         a = a[:, :, None]

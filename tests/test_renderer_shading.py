@@ -98,7 +98,7 @@ def test01_the_scene_format_checks_what_shading_adds():
     assert doc["materials"]["grey"] == grey and "textures" not in doc
     # a bitmap whose image is not among the assets is refused when built
     textured = furnace({"texture": "t"}, {"t": {"type": "bitmap", "image": DIGEST_A}})
-    with pytest.raises(SceneError, match="not among the scene's assets"):
+    with pytest.raises(SceneError, match="is not available"):
         build_scene(textured, {})
 
 
