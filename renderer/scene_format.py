@@ -51,7 +51,19 @@ from typing import Any
 import numpy as np
 
 from .errors import SceneError
+from .material_format import MATERIAL_TYPES, MIN_ROUGHNESS  # noqa: F401 (re-exported)
+from .material_format import resolve_material as _resolve_material
+from .material_format import resolve_texture as _resolve_texture
 from .primitives import world_mesh
+from .validators import (  # noqa: F401 (MAX_COORDINATE: re-exported)
+    MAX_COORDINATE,
+    _bool,
+    _coordinate,
+    _name_list,
+    _number,
+    _require,
+    _vec3,
+)
 
 __all__ = [
     "builtin_scene_names",
@@ -62,7 +74,6 @@ __all__ = [
     "SHAPE_TYPES",
 ]
 
-MATERIAL_TYPES = ("diffuse", "mirror", "dielectric", "glossy")
 SHAPE_TYPES = ("rectangle", "disk", "cube", "sphere", "mesh")
 EMITTER_TYPES = ("point",)
 FOV_AXES = ("x", "y", "smaller", "larger")
@@ -71,12 +82,8 @@ MAX_IMAGE_SIDE = 8192
 MAX_TRIANGLES = 5_000_000
 MAX_FILE_BYTES = 256 * 1024 * 1024
 SCENE_FORMAT = "rayfarm-scene/1"  # the one version this renderer reads
-MAX_COORDINATE = 1e6  # |x|, |y|, |z| of any point (local and world), transform entry, radius
 MAX_RADIANCE = 1e6  # area-light radiance and point-light intensity, per component
 MIN_LENGTH = 1.0 / MAX_COORDINATE  # a sphere's radius, camera to target, a rotation axis
-# pbrt-v4 renders a GGX lobe of alpha below 1e-3 as a perfect mirror ("effectively
-# smooth"); here the `mirror` material is that, and alpha^2 underflows far below.
-MIN_ROUGHNESS = 1e-3
 MIN_FOV = 1e-3  # degrees: a film of tan(fov/2)^2 far from underflow
 MIN_EMITTER_AREA = 1e-12  # world-space area of an emitting triangle (or sphere)
 COLLINEAR = 1e-9  # an emitting triangle's height / its longest edge, at least
@@ -102,7 +109,7 @@ def _load_builtin(name: str) -> dict:
 
 
 # ----------------------------------------------------------------------------
-# Small validators; each raises SceneError naming the location.
+# Checks of the document's structure (the small validators: validators.py).
 
 def _nesting(value: Any) -> int:
     """How many lists and objects deep `value` goes (iteratively: it may be deep)."""
@@ -114,46 +121,6 @@ def _nesting(value: Any) -> int:
             children = item.values() if isinstance(item, dict) else item
             stack.extend((child, depth + 1) for child in children)
     return deepest
-
-
-def _require(obj: dict, key: str, loc: str) -> Any:
-    if key not in obj:
-        raise SceneError(f"missing required field '{key}'", loc)
-    return obj[key]
-
-
-def _number(value: Any, loc: str, *, lo: float | None = None, hi: float | None = None,
-            lo_open: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise SceneError(f"expected a finite number, got {json.dumps(value)[:60]}", loc)
-    v = float(value)
-    if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise SceneError(f"must be {'>' if lo_open else '>='} {lo}, got {v}", loc)
-    if hi is not None and v > hi:
-        raise SceneError(f"must be <= {hi}, got {v}", loc)
-    return v
-
-
-def _vec3(value: Any, loc: str, *, nonneg: bool = False,
-          limit: float = MAX_COORDINATE) -> list[float]:
-    """Three finite numbers within +-`limit` (0..limit if `nonneg`)."""
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        value = [value, value, value]  # a scalar means grey
-    if not isinstance(value, list) or len(value) != 3:
-        raise SceneError("expected a list of 3 numbers", loc)
-    return [_number(v, f"{loc}[{i}]", lo=0.0 if nonneg else -limit, hi=limit)
-            for i, v in enumerate(value)]
-
-
-def _coordinate(value: Any, loc: str, **bounds) -> float:
-    """A finite number within +-MAX_COORDINATE (and `bounds`, if tighter)."""
-    return _number(value, loc, **{"lo": -MAX_COORDINATE, "hi": MAX_COORDINATE, **bounds})
-
-
-def _bool(value: Any, loc: str) -> bool:
-    if not isinstance(value, bool):
-        raise SceneError(f"expected true or false, got {json.dumps(value)[:60]}", loc)
-    return value
 
 
 def _check_world_points(points: np.ndarray, loc: str, what: str) -> None:
@@ -233,10 +200,6 @@ def _transform(value: Any, loc: str) -> list[list[float]]:
     return m.tolist()
 
 
-def _name_list(allowed) -> str:
-    return ", ".join(allowed)
-
-
 # ----------------------------------------------------------------------------
 
 def _resolve_camera(cam: Any) -> dict:
@@ -269,121 +232,6 @@ def _resolve_camera(cam: Any) -> dict:
                          f"{loc}.target")
     if np.linalg.norm(np.cross(forward, out["up"])) < 1e-9 * np.linalg.norm(forward):
         raise SceneError("up is parallel to the viewing direction", f"{loc}.up")
-    return out
-
-
-# Fields a material may hold beyond its type, by type (anything else is refused).
-MATERIAL_FIELDS = {"diffuse": ("albedo",), "mirror": ("tint",), "dielectric": ("ior",),
-                   "glossy": ("specular", "roughness")}
-COMMON_MATERIAL_FIELDS = ("type", "twosided", "opacity")
-TEXTURE_TYPES = ("bitmap", "checkerboard")
-TEXTURE_FILTERS = ("bilinear", "nearest")
-
-
-def _colour_input(value: Any, loc: str, what: str, textures: dict) -> Any:
-    """An RGB in [0, 1] (a scalar means grey) or ``{"texture": name}``."""
-    if isinstance(value, dict):
-        return _texture_ref(value, loc, textures)
-    rgb = _vec3(value, loc, nonneg=True)
-    if max(rgb) > 1.0:
-        raise SceneError(f"{what} components must be <= 1 (energy conservation)", loc)
-    return rgb
-
-
-def _texture_ref(value: dict, loc: str, textures: dict) -> dict:
-    if set(value) != {"texture"} or not isinstance(value["texture"], str):
-        raise SceneError('a texture input is {"texture": "<name>"} and nothing else', loc)
-    if value["texture"] not in textures:
-        raise SceneError(f"unknown texture '{value['texture']}' (defined: "
-                         f"{_name_list(textures) or 'none'})", f"{loc}.texture")
-    return {"texture": value["texture"]}
-
-
-def _resolve_material(name: str, mat: Any, textures: dict | None = None) -> dict:
-    loc = f"materials.{name}"
-    textures = textures or {}
-    if not isinstance(mat, dict):
-        raise SceneError("expected an object", loc)
-    mtype = _require(mat, "type", loc)
-    if mtype not in MATERIAL_FIELDS:
-        raise SceneError(f"unknown material type '{mtype}' (allowed: {_name_list(MATERIAL_TYPES)})",
-                         f"{loc}.type")
-    allowed = COMMON_MATERIAL_FIELDS + MATERIAL_FIELDS[mtype]
-    unknown = sorted(set(mat) - set(allowed))
-    if unknown:
-        raise SceneError(f"unknown field(s) of a {mtype} material: {', '.join(unknown)} "
-                         f"(allowed: {', '.join(allowed)})", f"{loc}.{unknown[0]}")
-    out: dict[str, Any] = {"type": mtype}
-    if mtype == "diffuse":
-        out["albedo"] = _colour_input(mat.get("albedo", [0.5, 0.5, 0.5]), f"{loc}.albedo",
-                                      "albedo", textures)
-    elif mtype == "mirror":
-        out["tint"] = _colour_input(mat.get("tint", [1.0, 1.0, 1.0]), f"{loc}.tint", "tint",
-                                    textures)
-    elif mtype == "dielectric":
-        out["ior"] = _number(mat.get("ior", 1.5), f"{loc}.ior", lo=1.0, hi=4.0)
-    else:
-        out["specular"] = _colour_input(mat.get("specular", [1.0, 1.0, 1.0]), f"{loc}.specular",
-                                        "specular", textures)
-        rough = mat.get("roughness", 0.1)
-        if isinstance(rough, dict):
-            out["roughness"] = _texture_ref(rough, f"{loc}.roughness", textures)
-        else:
-            out["roughness"] = _number(rough, f"{loc}.roughness", lo=MIN_ROUGHNESS, hi=1.0)
-    # The default (false) is left out of the resolved document, so the scenes
-    # written before the field existed keep their hash.
-    if _bool(mat.get("twosided", False), f"{loc}.twosided"):
-        out["twosided"] = True
-    if "opacity" in mat:
-        # The renderer has no any-hit masks yet: a cut-out would be drawn solid.
-        op = mat["opacity"]
-        if isinstance(op, dict) or _number(op, f"{loc}.opacity", lo=0.0, hi=1.0) != 1.0:
-            raise SceneError("opacity masks are not rendered yet (only opacity 1 is accepted)",
-                             f"{loc}.opacity")
-    return out
-
-
-def _uv_pair(value: Any, loc: str, default: list[float]) -> list[float]:
-    if value is None:
-        return list(default)
-    if not isinstance(value, list) or len(value) != 2:
-        raise SceneError("expected a list of 2 numbers", loc)
-    return [_coordinate(v, f"{loc}[{i}]") for i, v in enumerate(value)]
-
-
-def _resolve_texture(name: str, tex: Any) -> dict:
-    """A bitmap (an image asset named by its digest) or a procedural checkerboard."""
-    loc = f"textures.{name}"
-    if not isinstance(tex, dict):
-        raise SceneError("expected an object", loc)
-    ttype = _require(tex, "type", loc)
-    fields = {"bitmap": ("type", "image", "filter", "uv_scale", "uv_offset"),
-              "checkerboard": ("type", "color0", "color1", "uv_scale", "uv_offset")}
-    if ttype not in fields:
-        raise SceneError(f"unknown texture type '{ttype}' (allowed: {_name_list(TEXTURE_TYPES)})",
-                         f"{loc}.type")
-    unknown = sorted(set(tex) - set(fields[ttype]))
-    if unknown:
-        raise SceneError(f"unknown field(s) of a {ttype} texture: {', '.join(unknown)} "
-                         f"(allowed: {', '.join(fields[ttype])})", f"{loc}.{unknown[0]}")
-    out: dict[str, Any] = {"type": ttype,
-                           "uv_scale": _uv_pair(tex.get("uv_scale"), f"{loc}.uv_scale", [1, 1]),
-                           "uv_offset": _uv_pair(tex.get("uv_offset"), f"{loc}.uv_offset", [0, 0])}
-    if ttype == "bitmap":
-        digest = _require(tex, "image", loc)
-        if (not isinstance(digest, str) or len(digest) != 64
-                or any(c not in "0123456789abcdef" for c in digest)):
-            raise SceneError("expected the image asset's SHA-256 digest (64 lower-case hex "
-                             "digits)", f"{loc}.image")
-        out["image"] = digest
-        out["filter"] = tex.get("filter", "bilinear")
-        if out["filter"] not in TEXTURE_FILTERS:
-            raise SceneError(f"unknown filter {json.dumps(out['filter'])[:40]} (allowed: "
-                             f"{_name_list(TEXTURE_FILTERS)})", f"{loc}.filter")
-    else:
-        # Mitsuba 3's checkerboard defaults
-        out["color0"] = _vec3(tex.get("color0", 0.4), f"{loc}.color0", nonneg=True, limit=1.0)
-        out["color1"] = _vec3(tex.get("color1", 0.2), f"{loc}.color1", nonneg=True, limit=1.0)
     return out
 
 

@@ -35,7 +35,7 @@ TEX_BITMAP, TEX_CHECKER = 0, 1
 # tex_info's columns: kind, texel offset, width, height, channels, filter
 # (1 bilinear, 0 nearest), uv scale u v, uv offset u v, color0 rgb, color1 rgb
 TEX_COLUMNS = 16
-MIN_ROUGHNESS = 1e-3  # scene_format.MIN_ROUGHNESS: a textured roughness is clamped to it
+MIN_ROUGHNESS = 1e-3  # material_format.MIN_ROUGHNESS: a textured roughness is clamped to it
 
 
 @kernel_inline
