@@ -62,7 +62,7 @@ from .images import AOV_CHANNELS
 from .registry import METHODS
 from .spec import RenderSpec
 
-__all__ = ["JobMemory", "job_memory", "UNIT_BASE"]
+__all__ = ["JobMemory", "job_memory", "scene_memory", "UNIT_BASE", "SCENE_TRIANGLE"]
 
 F64, F32 = 8, 4
 CAMERA = 7 * F64  # sum, sum_sq (RGB) and weight
@@ -82,6 +82,10 @@ IMAGES = 2 * 3  # the preview's and the noise map's 8-bit RGB
 PNG_ENCODE = 4  # PIL's RGBX copy of an image it encodes
 DENOISE = 3 * F32 * 6  # colour, albedo, normal, output, its channels, OIDN's own
 BAND = 1024  # a band's float64 sums, read rows and temporaries, per band pixel, at most
+# A render process building a scene, per triangle: the decoded asset, world
+# positions, the kernel arrays (210 bytes kept) and the BVH build's
+# temporaries; 640 measured at 180k triangles (tracemalloc's peak of build_scene).
+SCENE_TRIANGLE = 640
 
 
 @dataclass(frozen=True)
@@ -101,6 +105,7 @@ class JobMemory:
     frames: int
     merge: int
     stored: int = 0
+    scene: int = 0  # the built scene in each render process (`scene_memory`)
 
     def service(self, processes: int, waiting: int | None = None) -> int:
         """The service's peak for the job with `processes` render processes
@@ -110,8 +115,9 @@ class JobMemory:
         return max(self.frames + (waiting + processes) * self.unit_film, self.merge)
 
     def total(self, processes: int, waiting: int | None = None) -> int:
-        """The service's peak plus a unit in each of `processes` render processes."""
-        return self.service(processes, waiting) + processes * self.unit
+        """The service's peak plus a unit and the scene in each of `processes`
+        render processes."""
+        return self.service(processes, waiting) + processes * (self.unit + self.scene)
 
 
 def _photon_records(spec: RenderSpec) -> int:
@@ -120,10 +126,30 @@ def _photon_records(spec: RenderSpec) -> int:
     return max(1, min(spec.depth - 1, 4))
 
 
+def scene_memory(doc: dict, asset_bytes: dict[str, int] | None = None) -> int:
+    """Bytes a render process holds for a resolved scene beyond its baseline,
+    from the document alone (no asset decoded): its triangles (`triangles`
+    of a mesh shape) times SCENE_TRIANGLE, plus the bytes of the texture
+    assets it names where `asset_bytes` (digest -> size) knows them. A
+    document reduced to its camera may give `triangles` at the top level."""
+    from .scene import triangle_count
+
+    if "shapes" in doc:
+        triangles = triangle_count(doc)
+    else:
+        triangles = int(doc.get("triangles", 0))
+    textures = 0
+    for tex in (doc.get("textures") or {}).values():
+        if isinstance(tex, dict) and asset_bytes and tex.get("image") in asset_bytes:
+            textures += asset_bytes[tex["image"]]
+    return triangles * SCENE_TRIANGLE + textures
+
+
 def job_memory(spec: RenderSpec, *, progressive: bool = False, target: bool = False,
-               denoise: bool = False) -> JobMemory:
+               denoise: bool = False, scene: int = 0) -> JobMemory:
     """The bytes a job of `spec` holds (module doc). `target`: a noise-target
-    job (tiles x canonical-block passes up to spec.spp, its max_spp)."""
+    job (tiles x canonical-block passes up to spec.spp, its max_spp);
+    `scene`: what each render process holds for the scene (`scene_memory`)."""
     from .plan import largest_unit
 
     method = METHODS[spec.method]
@@ -191,7 +217,7 @@ def job_memory(spec: RenderSpec, *, progressive: bool = False, target: bool = Fa
     merge = (pixels * (F32 * channels + IMAGES + ERROR + PNG_ENCODE + (DENOISE if denoise else 0))
              + band)
     return JobMemory(unit_film=unit_film, unit=unit, unit_frame=UNIT_BASE + frame_part,
-                     frames=frames, merge=merge, stored=stored)
+                     frames=frames, merge=merge, stored=stored, scene=scene)
 
 
 def _stored(spec: RenderSpec, progressive: bool, target: bool, method, options: dict,

@@ -20,8 +20,8 @@ from .kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR
 from .kernels.lights import LIGHT_MESH, LIGHT_POINT, LIGHT_SPHERE
 from .kernels.shading import TEX_BITMAP, TEX_CHECKER, TEX_COLUMNS
 from .errors import SceneError
-from .primitives import DISK_SEGMENTS, FIXED, world_mesh  # noqa: F401 (DISK_SEGMENTS: re-exported)
-from .scene_format import resolve_document, scene_hash
+from .primitives import DISK_SEGMENTS, FIXED, world_mesh, world_mesh_data  # noqa: F401
+from .scene_format import document_assets, resolve_document, scene_hash
 
 __all__ = ["Scene", "SceneArrays", "build_scene", "load_scene", "camera_array", "triangle_count",
            "MAT_DIFFUSE", "MAT_MIRROR", "MAT_DIELECTRIC", "MAT_GLOSSY", "LIGHT_MESH", "LIGHT_SPHERE",
@@ -148,38 +148,54 @@ def _texture_arrays(doc: dict, assets) -> tuple[dict, np.ndarray, np.ndarray]:
     return index, info, np.ascontiguousarray(data, dtype=np.float32)
 
 
-def _world_attributes(shape: dict, faces: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Per-face vertex normals (F, 9) in world space and uvs (F, 6) of a shape,
-    or None where it has none. `faces` are world_mesh's (wound as it winds them).
-
-    A rectangle has Mitsuba's uvs ((x + 1) / 2, (y + 1) / 2) of its local
-    corners; the other fixed shapes the barycentric default."""
-    m = np.asarray(shape["to_world"], dtype=np.float64)
-    normals = uvs = None
-    if shape.get("normals") is not None:
-        n = np.asarray(shape["normals"], dtype=np.float64).reshape(-1, 3)
-        wn = n @ np.linalg.inv(m[:3, :3])  # the inverse transpose, row vectors
-        wn /= np.maximum(np.linalg.norm(wn, axis=1), 1e-300)[:, None]
-        normals = wn[faces].reshape(-1, 9)
-    if shape.get("uvs") is not None:
-        uv = np.asarray(shape["uvs"], dtype=np.float64).reshape(-1, 2)
-        uvs = uv[faces].reshape(-1, 6)
+def _face_attributes(shape: dict, mesh) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Per-face vertex normals (F, 9) in world space and uvs (F, 6) of a
+    shape's world mesh (primitives.world_mesh_data), or None where it has
+    none. A rectangle has Mitsuba's uvs ((x + 1) / 2, (y + 1) / 2) of its
+    local corners; the other fixed shapes the barycentric default."""
+    f = mesh.faces
+    normals = None if mesh.normals is None else mesh.normals[f].reshape(-1, 9)
+    if mesh.uvs is not None:
+        uvs = np.asarray(mesh.uvs, dtype=np.float64)[f].reshape(-1, 6)
     elif shape["type"] == "rectangle":
         v, _ = FIXED["rectangle"]
-        uvs = (0.5 * (v[:, :2] + 1.0))[faces].reshape(-1, 6)
+        uvs = (0.5 * (v[:, :2] + 1.0))[f].reshape(-1, 6)
+    else:
+        uvs = None
     return normals, uvs
 
 
-def build_scene(doc: dict, assets=None) -> Scene:
-    """Flatten a resolved document into kernel arrays and build the BVH.
+def _mesh_source(doc: dict, load_asset):
+    """An asset lookup for build_scene: each digest fetched (and checked) and
+    decoded once, however many shapes name it."""
+    from .assets import decode_asset
+    from .assets import load_asset as fetch
 
-    `assets` maps the digests of the document's image assets to their blobs
-    (or, in tests, straight to (H, W, C) texel arrays)."""
+    source = load_asset if load_asset is not None else document_assets(doc)
+    decoded: dict = {}
+
+    def get(shape: dict):
+        digest = shape["mesh"]
+        if digest not in decoded:
+            decoded[digest] = decode_asset(fetch(source, digest, "mesh"))
+        return decoded[digest]
+    return get
+
+
+def build_scene(doc: dict, load_asset=None) -> Scene:
+    """Flatten a resolved document into kernel arrays and build the BVH.
+    Meshes named by digest are read through `load_asset` (an asset source:
+    a callable digest -> blob, or a mapping), each checked against its
+    digest; by default from the assets the document carries
+    (scene_format.ResolvedDocument); texture images likewise (in tests, the
+    mapping may hold (H, W, C) texel arrays instead of blobs)."""
+    mesh_asset = _mesh_source(doc, load_asset)
+    source = load_asset if load_asset is not None else document_assets(doc)
     mat_names = list(doc["materials"])
     mat_index = {name: i for i, name in enumerate(mat_names)}
     mats = [doc["materials"][n] for n in mat_names]
     mat_type = np.array([_MAT_IDS[m["type"]] for m in mats], dtype=np.int32)
-    tex_index, tex_info, tex_data = _texture_arrays(doc, assets)
+    tex_index, tex_info, tex_data = _texture_arrays(doc, source)
     rgb_field = {"diffuse": "albedo", "mirror": "tint", "glossy": "specular"}
     mat_rgb = np.ones((len(mats), 3))
     mat_param = np.zeros((len(mats), 4))
@@ -200,8 +216,9 @@ def build_scene(doc: dict, assets=None) -> Scene:
         # the dielectric is two-sided already (its back is its inside)
         mat_twosided[i] = 1 if m.get("twosided") and m["type"] != "dielectric" else 0
 
-    tris, tri_mat, tri_light = [], [], []
-    attr_rows: list[int] = []  # per triangle: its attribute row or -1
+    tris, tri_mat, tri_light = [], [], []  # per shape: (F, 3, 3) corners, (F,) ids
+    n_tris = 0
+    attr_rows: list[np.ndarray] = []  # per shape: each triangle's attribute row or -1
     attr_n: list[np.ndarray] = []
     attr_uv: list[np.ndarray] = []
     n_attr = 0
@@ -229,21 +246,23 @@ def build_scene(doc: dict, assets=None) -> Scene:
             sph_mat.append(material)
             sph_light.append(light)
             continue
-        wv, f = world_mesh(shape)
-        first = len(tris)
-        tris.extend(wv[f])
-        normals, uvs = _world_attributes(shape, f)
+        mesh = world_mesh_data(shape, mesh_asset(shape) if "mesh" in shape else None)
+        wv, f = mesh.positions, mesh.faces
+        first = n_tris
+        tris.append(wv[f])
+        tri_mat.append(np.full(len(f), material, np.int32))
+        tri_light.append(np.full(len(f), light, np.int32))
+        n_tris += len(f)
+        normals, uvs = _face_attributes(shape, mesh)
         if normals is None and uvs is None:
-            attr_rows.extend([-1] * len(f))
+            attr_rows.append(np.full(len(f), -1, np.int32))
         else:
-            attr_rows.extend(range(n_attr, n_attr + len(f)))
+            attr_rows.append(np.arange(n_attr, n_attr + len(f), dtype=np.int32))
             n_attr += len(f)
             attr_n.append(normals if normals is not None else np.zeros((len(f), 9)))
             if uvs is None:  # Mitsuba's default: the barycentrics (b1, b2)
                 uvs = np.tile([0.0, 0.0, 1.0, 0.0, 0.0, 1.0], (len(f), 1))
             attr_uv.append(uvs)
-        tri_mat.extend([material] * len(f))
-        tri_light.extend([light] * len(f))
         if light >= 0:
             light_type.append(LIGHT_MESH)
             light_sphere.append(-1)
@@ -256,7 +275,9 @@ def build_scene(doc: dict, assets=None) -> Scene:
         light_sphere.append(-1)
         light_groups.append([])
 
-    tri_p = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+    tri_p = np.concatenate(tris).astype(np.float64) if tris else np.zeros((0, 3, 3))
+    tri_mat = np.concatenate(tri_mat) if tri_mat else np.zeros(0, np.int32)
+    tri_light = np.concatenate(tri_light) if tri_light else np.zeros(0, np.int32)
     cross = np.cross(tri_p[:, 1] - tri_p[:, 0], tri_p[:, 2] - tri_p[:, 0])
     double_area = np.linalg.norm(cross, axis=1)
     keep = double_area > 0  # degenerate triangles can never be hit or sampled
@@ -316,7 +337,7 @@ def build_scene(doc: dict, assets=None) -> Scene:
         light_sphere=np.asarray(light_sphere, np.int32),
         light_tris=np.asarray(light_tris, np.int32), light_tri_cdf=np.asarray(light_cdf, np.float64),
         bvh_nodes=wide_boxes, bvh_info=wide_kids, bvh_prims=bvh_prims,
-        tri_attr=np.asarray(attr_rows, np.int32),
+        tri_attr=np.concatenate(attr_rows) if attr_rows else np.zeros(0, np.int32),
         attr_n=np.ascontiguousarray(np.concatenate(attr_n) if attr_n else np.zeros((0, 9))),
         attr_uv=np.ascontiguousarray(np.concatenate(attr_uv) if attr_uv else np.zeros((0, 6))),
         mat_tex=mat_tex, mat_twosided=mat_twosided, tex_info=tex_info, tex_data=tex_data,
@@ -328,7 +349,8 @@ def triangle_count(doc: dict) -> int:
     """Triangles a resolved document becomes (analytic spheres count none),
     without building it: ``triangle_count(resolve_document("cornell-box"))``."""
     fixed = {**{name: len(faces) for name, (_, faces) in FIXED.items()}, "sphere": 0}
-    return sum(len(s["faces"]) if s["type"] == "mesh" else fixed[s["type"]] for s in doc["shapes"])
+    return sum((s["triangles"] if "triangles" in s else len(s["faces"])) if s["type"] == "mesh"
+               else fixed[s["type"]] for s in doc["shapes"])
 
 
 def load_scene(source) -> Scene:

@@ -11,11 +11,14 @@ A scene is one JSON object (`docs/scene-format.md` documents every field)::
       "emitters": [{"type": "point", "position": [0, 0, 0], "intensity": [1, 1, 1]}]
     }
 
-`resolve_document` turns any accepted input (a built-in name, a path, a dict)
-into a *resolved document*: validated, defaults filled in, mesh files read and
-inlined, every transform a 4x4 matrix. The resolved document is
-self-contained, so its canonical JSON hash (`scene_hash`) identifies the
-scene wherever it travels: the farm ships scenes to workers by that hash.
+`resolve_scene` turns any accepted input (a built-in name, a path, a dict)
+into a *resolved document* and its assets: validated, defaults filled in,
+every mesh (a file, inline arrays or a digest) an asset named by its digest
+(renderer.assets), every transform a 4x4 matrix; `resolve_document` returns
+the document carrying its assets (`ResolvedDocument`). The document names
+each asset by digest, so its canonical JSON hash (`scene_hash`) identifies
+the scene wherever it travels: the farm ships scenes to workers by that hash
+and their assets by digest. Fields allowed in each object: `FIELDS`.
 
 Errors are `SceneError`s whose `location` names the offending field, e.g.
 ``shapes[2].to_world``.
@@ -64,10 +67,16 @@ from .validators import (  # noqa: F401 (MAX_COORDINATE: re-exported)
     _require,
     _vec3,
 )
+from .scene_meshes import AssetStore, MeshLimits, resolve_mesh
 
 __all__ = [
     "builtin_scene_names",
     "resolve_document",
+    "resolve_scene",
+    "ResolvedDocument",
+    "document_assets",
+    "scene_asset_digests",
+    "FIELDS",
     "scene_hash",
     "canonical_json",
     "MATERIAL_TYPES",
@@ -88,6 +97,45 @@ MIN_FOV = 1e-3  # degrees: a film of tan(fov/2)^2 far from underflow
 MIN_EMITTER_AREA = 1e-12  # world-space area of an emitting triangle (or sphere)
 COLLINEAR = 1e-9  # an emitting triangle's height / its longest edge, at least
 MAX_NESTING = 16  # levels of lists and objects (shapes[i].to_world[j].rotate.axis: 6)
+
+# The fields each object of the format may hold: anything else is refused
+# with its location (a misspelt or unsupported field must not be silently
+# ignored). One table, so that a new field is added in one place: "shape"
+# holds every shape's fields, "shape.<type>" a type's own, likewise for
+# materials and emitters.
+FIELDS: dict[str, set[str]] = {
+    "document": {"format", "camera", "materials", "shapes", "emitters", "name", "description",
+                 "textures"},
+    "camera": {"type", "origin", "target", "up", "fov", "fov_axis", "width", "height"},
+    # (material_format.MATERIAL_FIELDS: the same per type, checked there)
+    "material": {"type", "twosided", "opacity"},
+    "material.diffuse": {"albedo"},
+    "material.mirror": {"tint"},
+    "material.dielectric": {"ior"},
+    "material.glossy": {"specular", "roughness"},
+    "shape": {"type", "material", "to_world", "flip_normals", "name", "emitter"},
+    "shape.rectangle": set(),
+    "shape.disk": set(),
+    "shape.cube": set(),
+    "shape.sphere": {"center", "radius"},
+    # a mesh: one of `mesh` (an asset's digest), `file` (+ `shape_index` for a
+    # .serialized file), inline `vertices` + `faces` [+ `normals`, `uvs`];
+    # `triangles` is what resolving writes beside `mesh` (checked if given)
+    "shape.mesh": {"mesh", "file", "shape_index", "vertices", "faces", "normals", "uvs",
+                   "face_normals", "triangles"},
+    "emitter.area": {"type", "radiance"},
+    "emitter.point": {"type", "position", "intensity"},
+    "transform.rotate": {"axis", "angle"},
+}
+
+
+def _check_fields(obj: dict, loc: str, *kinds: str) -> None:
+    """Refuse a field of `obj` that none of the FIELDS tables `kinds` allows."""
+    allowed = set().union(*(FIELDS.get(k, set()) for k in kinds))
+    for key in obj:
+        if key not in allowed:
+            raise SceneError(f"unknown field '{str(key)[:40]}' (allowed: "
+                             f"{', '.join(sorted(allowed))})", f"{loc}.{key}" if loc else str(key))
 
 
 # ----------------------------------------------------------------------------
@@ -179,6 +227,7 @@ def _transform(value: Any, loc: str) -> list[list[float]]:
             elif kind == "rotate":
                 if not isinstance(arg, dict):
                     raise SceneError("expected {'axis': [x, y, z], 'angle': degrees}", f"{oloc}.rotate")
+                _check_fields(arg, f"{oloc}.rotate", "transform.rotate")
                 axis = _vec3(_require(arg, "axis", f"{oloc}.rotate"), f"{oloc}.rotate.axis")
                 if not np.linalg.norm(axis) >= MIN_LENGTH:
                     raise SceneError(f"a rotation axis needs a length of at least "
@@ -207,6 +256,7 @@ def _resolve_camera(cam: Any) -> dict:
     if not isinstance(cam, dict):
         raise SceneError("expected an object", loc)
     ctype = cam.get("type", "perspective")
+    _check_fields(cam, loc, "camera")
     if ctype != "perspective":
         raise SceneError(f"unknown camera type '{ctype}' (allowed: perspective)", f"{loc}.type")
     out = {
@@ -235,52 +285,16 @@ def _resolve_camera(cam: Any) -> dict:
     return out
 
 
-def _read_mesh_file(path: Path, loc: str) -> tuple[list, list]:
-    """Read a Wavefront OBJ (v and f records; polygons are fanned)."""
-    if not path.is_file():
-        raise SceneError(f"mesh file not found: {path.name}", loc)
-    if path.stat().st_size > MAX_FILE_BYTES:
-        raise SceneError("mesh file too large", loc)
-    if path.suffix.lower() != ".obj":
-        raise SceneError(f"unsupported mesh file type '{path.suffix}' (allowed: .obj)", loc)
-    vertices, faces, face_lines = [], [], []
-    with path.open("r", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            parts = line.split()
-            if not parts:
-                continue
-            try:
-                if parts[0] == "v":
-                    vertices.append([float(x) for x in parts[1:4]])
-                elif parts[0] == "f":
-                    idx, raw = [], []
-                    for p in parts[1:]:
-                        raw.append(p.split("/")[0])
-                        i = int(raw[-1])
-                        idx.append(i - 1 if i > 0 else len(vertices) + i)
-                    for k in range(1, len(idx) - 1):
-                        faces.append([idx[0], idx[k], idx[k + 1]])
-                        face_lines.append((lineno, [raw[0], raw[k], raw[k + 1]]))
-            except (ValueError, IndexError):
-                raise SceneError(f"cannot parse line {lineno} of {path.name}: {line.strip()[:60]}",
-                                 loc) from None
-    # Checked here, where the file and line are known (a positive index may
-    # name a vertex defined further down, so only once the file is read).
-    for face, (lineno, raw) in zip(faces, face_lines):
-        bad = [r for i, r in zip(face, raw) if not 0 <= i < len(vertices)]
-        if bad:
-            raise SceneError(f"line {lineno} of {path.name}: face vertex index {bad[0]} is out "
-                             f"of range (the file has {len(vertices)} vertices)", loc)
-    return vertices, faces
-
-
-def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -> dict:
+def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None,
+                   root: Path | None = None, store: AssetStore | None = None) -> dict:
     loc = f"shapes[{i}]"
+    store = store if store is not None else AssetStore(None)
     if not isinstance(shape, dict):
         raise SceneError("expected an object", loc)
     stype = _require(shape, "type", loc)
     if stype not in SHAPE_TYPES:
         raise SceneError(f"unknown shape type '{stype}' (allowed: {_name_list(SHAPE_TYPES)})", f"{loc}.type")
+    _check_fields(shape, loc, "shape", f"shape.{stype}")
     mat = _require(shape, "material", loc)
     if not isinstance(mat, str):
         raise SceneError("expected a material name (a string)", f"{loc}.material")
@@ -304,78 +318,32 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
         if not np.allclose(mtm, np.eye(3) * s2, rtol=1e-6, atol=1e-9 * max(s2, 1e-300)):
             raise SceneError("a sphere's to_world must be a similarity transform "
                              "(rotation, uniform scale, translation)", f"{loc}.to_world")
+    asset = None
+    where = f"{loc}.to_world"
     if stype == "mesh":
-        if "file" in shape:
-            if base_dir is None:
-                raise SceneError("mesh files need a scene file on disk (or inline vertices/faces)",
-                                 f"{loc}.file")
-            fpath = (base_dir / str(shape["file"])).resolve()
-            if base_dir.resolve() not in fpath.parents:
-                raise SceneError("mesh file must lie inside the scene's directory", f"{loc}.file")
-            vertices, faces = _read_mesh_file(fpath, f"{loc}.file")
-        else:
-            vertices = _require(shape, "vertices", loc)
-            faces = _require(shape, "faces", loc)
-        try:
-            v = np.asarray(vertices, dtype=np.float64)
-            f_raw = np.asarray(faces, dtype=np.float64)
-        except (ValueError, TypeError):
-            raise SceneError("vertices must be [[x, y, z], ...] and faces [[i, j, k], ...]", loc) from None
-        if f_raw.size and (not np.all(np.isfinite(f_raw)) or np.any(f_raw != np.round(f_raw))):
-            raise SceneError("face indices must be integers", f"{loc}.faces")
-        f = f_raw.astype(np.int64)
-        if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
-            raise SceneError("vertices must be a list of finite [x, y, z]", f"{loc}.vertices")
-        if not np.all(np.abs(v) <= MAX_COORDINATE):
-            j = int(np.argmax(np.any(np.abs(v) > MAX_COORDINATE, axis=1)))
-            raise SceneError(f"vertex {j} is {v[j].tolist()}; every coordinate must be within "
-                             f"+-{MAX_COORDINATE:g}", f"{loc}.vertices")
-        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-            raise SceneError("faces must be a non-empty list of [i, j, k] triangles", f"{loc}.faces")
-        if f.min() < 0 or f.max() >= len(v):
-            raise SceneError(f"face index out of range (mesh has {len(v)} vertices)", f"{loc}.faces")
-        if len(f) > MAX_TRIANGLES:
-            raise SceneError(f"too many triangles (limit {MAX_TRIANGLES})", f"{loc}.faces")
-        out["vertices"] = v.tolist()
-        out["faces"] = f.tolist()
-        face_normals = _bool(shape.get("face_normals", False), f"{loc}.face_normals")
-        for key, width in (("normals", 3), ("uvs", 2)):
-            if key not in shape or (key == "normals" and face_normals):
-                continue  # Mitsuba's face_normals: the vertex normals are ignored
-            try:
-                a = np.asarray(shape[key], dtype=np.float64)
-            except (ValueError, TypeError):
-                raise SceneError(f"{key} must be a list of {width} numbers per vertex",
-                                 f"{loc}.{key}") from None
-            if a.shape != (len(v), width) or not np.all(np.isfinite(a)):
-                raise SceneError(f"{key} must hold {width} finite numbers for each of the "
-                                 f"{len(v)} vertices", f"{loc}.{key}")
-            if key == "uvs" and not np.all(np.abs(a) <= MAX_COORDINATE):
-                raise SceneError(f"uvs must lie within +-{MAX_COORDINATE:g}", f"{loc}.uvs")
-            if key == "normals" and not np.all(np.linalg.norm(a, axis=1) > 1e-12):
-                j = int(np.argmax(~(np.linalg.norm(a, axis=1) > 1e-12)))
-                raise SceneError(f"normal {j} has no length", f"{loc}.normals")
-            out[key] = a.tolist()
-    elif "face_normals" in shape:
-        _bool(shape["face_normals"], f"{loc}.face_normals")  # flat shapes: nothing to ignore
+        asset = resolve_mesh(shape, out, loc, base_dir, root, store,
+                             MeshLimits(MAX_COORDINATE, MAX_TRIANGLES, MAX_FILE_BYTES))
+        where = f"{loc}.vertices" if "vertices" in shape else \
+            f"{loc}.file" if "file" in shape else f"{loc}.mesh"
     em = shape.get("emitter")
     if em is not None:
         eloc = f"{loc}.emitter"
         if not isinstance(em, dict) or em.get("type") != "area":
             raise SceneError("a shape's emitter must be {'type': 'area', 'radiance': [r, g, b]}", eloc)
+        _check_fields(em, eloc, "emitter.area")
         out["emitter"] = {"type": "area",
                           "radiance": _vec3(_require(em, "radiance", eloc), f"{eloc}.radiance",
                                             nonneg=True, limit=MAX_RADIANCE)}
-    _check_world_geometry(out, loc)
+    _check_world_geometry(out, loc, asset, where)
     return out
 
 
-def _check_world_geometry(shape: dict, loc: str) -> None:
+def _check_world_geometry(shape: dict, loc: str, asset=None, where: str | None = None) -> None:
     """A resolved shape in world space: its points within bounds, and if it
     emits, triangles with an area (see the module doc: a light without one
     crashes the renderer)."""
     m = np.asarray(shape["to_world"])
-    where = f"{loc}.vertices" if "vertices" in shape else f"{loc}.to_world"
+    where = where or f"{loc}.to_world"
     if shape["type"] == "sphere":
         centre = m[:3, :3] @ np.asarray(shape["center"]) + m[:3, 3]
         radius = shape["radius"] * float(np.linalg.norm(m[:3, 0]))  # a similarity
@@ -387,7 +355,7 @@ def _check_world_geometry(shape: dict, loc: str) -> None:
             raise SceneError(f"an emitting sphere needs an area of at least {MIN_EMITTER_AREA:g} "
                              f"(radius {radius:.3g} after to_world)", f"{loc}.radius")
         return
-    vertices, faces = world_mesh(shape)
+    vertices, faces = world_mesh(shape, asset)
     _check_world_points(vertices, where, "vertex {j}")
     if "emitter" not in shape:
         return  # degenerate triangles that emit nothing are merely never hit
@@ -398,14 +366,16 @@ def _check_world_geometry(shape: dict, loc: str) -> None:
     bad = (0.5 * double_area < MIN_EMITTER_AREA) | (double_area < COLLINEAR * longest * longest)
     if np.any(bad):
         j = int(np.argmax(bad))
-        which = f"face {j}" if "faces" in shape else f"its triangle {j}"
+        meshed = shape["type"] == "mesh"
+        which = f"face {j}" if meshed else f"its triangle {j}"
         raise SceneError(f"an area light's triangles need an area: {which} is degenerate "
                          f"after to_world (area {0.5 * double_area[j]:.3g}, height "
                          f"{double_area[j] / max(longest[j], 1e-300):.3g} across a longest edge "
                          f"of {longest[j]:.3g}: collinear or coincident vertices); an emitting "
                          f"triangle needs an area of at least {MIN_EMITTER_AREA:g} and a height "
                          f"of at least {COLLINEAR:g} times its longest edge",
-                         f"{loc}.faces[{j}]" if "faces" in shape else f"{loc}.to_world")
+                         f"{loc}.faces[{j}]" if meshed and where.endswith(".vertices")
+                         else where if meshed else f"{loc}.to_world")
 
 
 def _resolve_emitter(i: int, em: Any) -> dict:
@@ -416,26 +386,79 @@ def _resolve_emitter(i: int, em: Any) -> dict:
     if etype != "point":
         raise SceneError(f"unknown emitter type '{etype}' (allowed: point; area emitters "
                          "are attached to shapes)", f"{loc}.type")
+    _check_fields(em, loc, "emitter.point")
     return {"type": "point",
             "position": _vec3(_require(em, "position", loc), f"{loc}.position"),
             "intensity": _vec3(_require(em, "intensity", loc), f"{loc}.intensity", nonneg=True,
                                limit=MAX_RADIANCE)}
 
 
+class ResolvedDocument(dict):
+    """A resolved document (a plain dict to every reader) that carries the
+    assets it names: `assets` is a mapping digest -> blob, or an asset
+    source (a callable). `build_scene(doc)` reads meshes from it; what goes
+    over a wire is the canonical text plus the assets, never this object."""
+
+    assets: Any = None
+
+    def __init__(self, doc: dict, assets: Any = None):
+        super().__init__(doc)
+        self.assets = assets
+
+
+def document_assets(doc: dict) -> Any:
+    """The assets a resolved document carries (see ResolvedDocument), or None."""
+    return getattr(doc, "assets", None)
+
+
+def scene_asset_digests(doc: dict) -> list[str]:
+    """The digests a resolved document names (meshes, texture images), in
+    order of first mention, without duplicates."""
+    found: dict[str, None] = {}
+    for shape in doc.get("shapes", ()):
+        if isinstance(shape, dict) and isinstance(shape.get("mesh"), str):
+            found.setdefault(shape["mesh"], None)
+    textures = doc.get("textures")
+    if isinstance(textures, dict):
+        for tex in textures.values():
+            if isinstance(tex, dict) and isinstance(tex.get("image"), str):
+                found.setdefault(tex["image"], None)
+    return list(found)
+
+
 def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
-                     base_dir: Path | None = None) -> dict:
-    """Validate a scene and return its resolved, self-contained document.
+                     base_dir: Path | None = None, root: Path | None = None,
+                     assets: Any = None) -> ResolvedDocument:
+    """Validate a scene and return its resolved document, which carries the
+    assets it names (`ResolvedDocument.assets`; `resolve_scene` returns them
+    apart). Arguments as for `resolve_scene`."""
+    doc, produced = resolve_scene(source, allow_files=allow_files, base_dir=base_dir, root=root,
+                                  assets=assets)
+    return ResolvedDocument(doc, produced)
+
+
+def resolve_scene(source: str | Path | dict, *, allow_files: bool = True,
+                  base_dir: Path | None = None, root: Path | None = None,
+                  assets: Any = None) -> tuple[dict, dict[str, bytes]]:
+    """Validate a scene: (its resolved document, the assets it names by digest).
 
     `source` is a built-in scene name (``"cornell-box"``), a path to a JSON
     scene file (only if `allow_files`), or an already-parsed dict. A dict's
-    mesh `file`s are read from `base_dir` (and must lie inside it); without
-    one, a dict must inline its meshes.
+    mesh `file`s are read from `base_dir` (and must lie inside `root`,
+    default `base_dir`); without one, a dict must inline its meshes or name
+    them by digest. `assets` is where a `mesh` digest is fetched from: a
+    mapping digest -> blob or a callable (an asset source); a dict that
+    carries assets (a ResolvedDocument) brings its own. Every mesh becomes
+    an asset, named by digest in the document: the resolved document names
+    exactly the returned assets, and resolving it again gives the same.
     """
     if isinstance(source, dict):
         if _nesting(source) > MAX_NESTING:  # copying (or printing) it would exhaust the stack
             raise SceneError(f"the document nests lists and objects more than {MAX_NESTING} "
                              "levels deep")
-        doc = copy.deepcopy(source)
+        if assets is None:
+            assets = document_assets(source)
+        doc = copy.deepcopy(dict(source))
     elif isinstance(source, (str, Path)) and str(source) in builtin_scene_names():
         doc, base_dir = _load_builtin(str(source)), None
     elif isinstance(source, (str, Path)) and allow_files and Path(source).is_file():
@@ -460,9 +483,8 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
                          f"{_name_list(builtin_scene_names())}; or give a path to a scene file)")
     if not isinstance(doc, dict):
         raise SceneError("a scene document must be a JSON object")
-    known = {"format", "camera", "materials", "shapes", "emitters", "name", "description",
-             "textures"}
-    unknown = sorted(set(doc) - known)
+    known = FIELDS["document"]
+    unknown = sorted(str(k) for k in set(doc) - known)
     if unknown:
         raise SceneError(f"unknown top-level field(s): {', '.join(unknown)} "
                          f"(allowed: {', '.join(sorted(known))})")
@@ -484,20 +506,23 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
     emitters_in = doc.get("emitters", [])
     if not isinstance(emitters_in, list):
         raise SceneError("expected a list of emitters", "emitters")
+    store = AssetStore(assets)
     resolved = {
         "format": SCENE_FORMAT,
         "name": str(doc.get("name", "")),
         "description": str(doc.get("description", "")),
         "camera": _resolve_camera(_require(doc, "camera", "")),
         "materials": materials,
-        "shapes": [_resolve_shape(i, s, materials, base_dir) for i, s in enumerate(shapes_in)],
+        "shapes": [_resolve_shape(i, s, materials, base_dir, root, store)
+                   for i, s in enumerate(shapes_in)],
         "emitters": [_resolve_emitter(i, e) for i, e in enumerate(emitters_in)],
     }
     if not resolved["shapes"]:
         raise SceneError("a scene needs at least one shape", "shapes")
     if textures:  # absent when empty: older scenes keep their hash
         resolved["textures"] = textures
-    return resolved
+    named = scene_asset_digests(resolved)
+    return resolved, {d: store.produced[d] for d in named if d in store.produced}
 
 
 def canonical_json(doc: dict) -> str:

@@ -147,7 +147,7 @@ def _frame_field(spec: RenderSpec) -> str:
 
 def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progressive: bool,
                  target: Target | None = None, denoise: bool = False,
-                 units: int | None = None) -> JobMemory:
+                 units: int | None = None, scene: int = 0) -> JobMemory:
     """Refuse a job too big to hold for the actor's role (`InvalidRequest`):
     more pixels than `max_pixels_per_job` (on `width` or `height`); a work
     unit whose render process would hold more than `max_unit_bytes` (on
@@ -159,7 +159,9 @@ def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progres
     and waiting to be collected as the executor keeps in flight; unit films
     that would take more than `max_job_store_bytes` of the store (on
     `tile_size` for BDPT, whose every tile stores the frame's splats, else on
-    the frame). The bytes are renderer.memory's; returns them."""
+    the frame). `scene`: what each render process holds for the scene
+    (renderer.memory.scene_memory: its triangles and textures), counted in
+    the job's bytes. The bytes are renderer.memory's; returns them."""
     limits = limits_for(settings, actor)
     pixels = spec.width * spec.height
     if pixels > limits.max_pixels_per_job:
@@ -169,7 +171,7 @@ def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progres
 
     def memory(tile: int) -> JobMemory:
         return job_memory(replace(spec, tile_size=tile), progressive=progressive,
-                          target=target is not None, denoise=denoise)
+                          target=target is not None, denoise=denoise, scene=scene)
 
     def largest_tile(fits) -> int | None:
         """The largest tile size below spec.tile_size for which `fits`, if any."""
@@ -198,12 +200,15 @@ def check_memory(settings: Settings, actor: Principal, spec: RenderSpec, progres
     total = mem.total(processes, waiting)
     if total > limits.max_job_bytes:
         setting = _setting(actor, "max_job_bytes")
+        scene_part = f" and the scene's {_mb(mem.scene)}" if mem.scene else ""
         what = (f"this job would hold about {_mb(total)} at once (the service "
                 f"{_mb(mem.service(processes, waiting))}, {processes} render processes "
-                f"{_mb(mem.unit)} each), above the {actor.role} limit of "
+                f"{_mb(mem.unit)} each{scene_part}), above the {actor.role} limit of "
                 f"{_mb(limits.max_job_bytes)} per job ({setting})")
         tile = largest_tile(lambda m: m.total(processes, waiting) <= limits.max_job_bytes)
         if tile is None:
+            if mem.scene and processes * mem.scene >= limits.max_job_bytes:
+                raise InvalidRequest("scene", f"{what}: the scene alone is too large")
             raise InvalidRequest(_frame_field(spec), f"{what}: render fewer pixels")
         raise InvalidRequest("tile_size", f"{what}; use tile_size <= {tile}")
     if mem.stored > limits.max_job_store_bytes:
@@ -233,14 +238,16 @@ def _smallest_tile(spec: RenderSpec, fits) -> int | None:
 
 
 def admit_job(session: Session, settings: Settings, actor: Principal, spec: RenderSpec,
-              progressive: bool, target: Target | None = None, denoise: bool = False) -> int:
+              progressive: bool, target: Target | None = None, denoise: bool = False,
+              scene: int = 0) -> int:
     """Every admission check of a job, cheapest first; returns its planned
-    units. A target job is checked at its budget (spp = max_spp)."""
+    units. A target job is checked at its budget (spp = max_spp); `scene` as
+    for `check_memory`."""
     floor = unit_floor(spec, progressive, target)
-    check_memory(settings, actor, spec, progressive, target, denoise, units=floor)
+    check_memory(settings, actor, spec, progressive, target, denoise, units=floor, scene=scene)
     check_job(settings, actor, spec, units=floor, active_jobs=0)
     units = planned_units(spec, progressive, target)
-    check_memory(settings, actor, spec, progressive, target, denoise, units=units)
+    check_memory(settings, actor, spec, progressive, target, denoise, units=units, scene=scene)
     check_job(settings, actor, spec, units=units,
               active_jobs=count_active_jobs(session, actor.user))
     return units

@@ -23,6 +23,7 @@ from sqlalchemy.orm.exc import StaleDataError
 
 from renderer import (METHODS, SAMPLERS, RenderSpec, SceneError, builtin_scene_names,
                       resolve_document, scene_text)
+from renderer.memory import scene_memory
 from renderer.target import Target, require_target_support
 
 from . import admission, events, scenes, states
@@ -63,7 +64,8 @@ def _resolve_scene(session: Session, store: Store, actor: Principal, scene: str 
                                           "or an inline scene object)")
         return *uploaded, scene
     try:
-        doc = resolve_document(scene, allow_files=False)
+        # an inline scene may name meshes already in the store by digest
+        doc = resolve_document(scene, allow_files=False, assets=store.asset_bytes)
     except SceneError:
         raise
     except (TypeError, ValueError, KeyError, IndexError, AttributeError) as exc:
@@ -101,9 +103,10 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
         raise InvalidRequest("tile_size", f"{tiles} tiles exceed the limit of {settings.max_units} "
                                           f"work units; use tile_size >= {least}")
     admission.admit_job(session, settings, actor, spec, request.progressive, target,
-                        denoise=request.denoise)
+                        denoise=request.denoise, scene=scene_memory(doc))
     if key is None:  # an upload's text is stored under its hash already
         key, text = scene_text(doc)
+        store.put_assets(getattr(doc, "assets", None) or {})
         store.put_scene(key, text)
     job = Job(id=new_job_id(), created=now, status="queued", owner=actor.user,
               scene=scene_name[:200],

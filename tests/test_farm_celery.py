@@ -49,6 +49,26 @@ FAMILIES = [dict(TINY, spp=8, tile_size=16),
             dict(TINY, method="radiosity", spp=2, tile_size=16, progressive=False)]
 
 
+def _mesh_scene() -> dict:
+    """cornell-box with an inline mesh (normals, UVs): it becomes an asset,
+    which the local pool reads from the store and Celery workers from Redis."""
+    import json
+
+    from renderer import resolve_document
+
+    doc = json.loads(json.dumps(resolve_document("cornell-box")))
+    doc["shapes"].append({"type": "mesh", "material": doc["shapes"][0]["material"],
+                          "vertices": [[-0.5, -1, 0.3], [0.1, -1, 0.6], [-0.2, -0.2, 0.4],
+                                       [-0.6, -0.7, 0.7]],
+                          "faces": [[0, 1, 2], [0, 2, 3], [1, 3, 2]],
+                          "normals": [[0, 0, 1], [0.6, 0, 0.8], [0, 0.6, 0.8], [-0.6, 0, 0.8]],
+                          "uvs": [[0, 0], [1, 0], [1, 1], [0, 1]]})
+    return doc
+
+
+FAMILIES.append(dict(TINY, scene=_mesh_scene(), spp=4, tile_size=16))
+
+
 def test01_local_pool_and_celery_render_bit_identical_images(local_client, redis_url,
                                                              spawn_worker, tmp_path):
     local = [run_job(local_client, body, tmp_path / f"local{i}.exr")
@@ -65,6 +85,7 @@ def test01_local_pool_and_celery_render_bit_identical_images(local_client, redis
     assert farm[0]["samples"] == local[0]["samples"] == 32 * 32 * 8
     for i, body in enumerate(FAMILIES):
         assert farm[i]["samples"] == local[i]["samples"] == 32 * 32 * body["spp"], body
+        assert farm[i]["scene_hash"] == local[i]["scene_hash"]  # the same scene everywhere
         assert_bit_identical(channels_of(tmp_path / f"local{i}.exr"),
                              channels_of(tmp_path / f"celery{i}.exr"))
 

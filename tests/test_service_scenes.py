@@ -266,10 +266,10 @@ def _cases():
                        id="mesh-parent")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", bad_obj),),
                        ["body", "scene", f"shapes[{MESH}].file"],
-                       ("cannot parse line 3 of cube.obj", "v 1 x -1"), id="mesh-unparsable")
+                       ("cube.obj:3: cannot parse", "v 1 x -1"), id="mesh-unparsable")
     yield pytest.param(scene_bytes(room("bad")), (("cube.obj", b"v 0 0 0\nv 1 0 0\nf 1 2 9\n"),),
                        ["body", "scene", f"shapes[{MESH}].file"],
-                       ("line 3 of cube.obj", "face vertex index 9 is out of range",
+                       ("cube.obj:3", "face vertex index 9 is out of range",
                         "2 vertices"), id="mesh-index")
     yield pytest.param(scene_bytes(room("bad")), ok_files + (("spare.obj", b"v 0 0 0\n"),),
                        ["body", "files", 1], ("'spare.obj' is not named by any mesh shape",),
@@ -412,12 +412,12 @@ def test11b_an_uploads_mesh_files_are_parsed_outside_the_serving_process(local_c
     # Parsing a large .obj holds the GIL for tens of seconds: in the service's
     # own process it stalled every request. A child process parses it, and a
     # reader patched here (in the serving process) is never called.
-    from renderer import scene_format
+    from renderer import scene_meshes
 
     parsed = []
-    original = scene_format._read_mesh_file
-    monkeypatch.setattr(scene_format, "_read_mesh_file",
-                        lambda path, loc: parsed.append(path) or original(path, loc))
+    original = scene_meshes.read_mesh
+    monkeypatch.setattr(scene_meshes, "read_mesh",
+                        lambda path, **kw: parsed.append(path) or original(path, **kw))
     response = upload(local_client, scene_bytes(room("test11b-room")))
     assert response.status_code == 201, response.text
     assert response.json()["triangles"] == TRIANGLES
@@ -425,7 +425,7 @@ def test11b_an_uploads_mesh_files_are_parsed_outside_the_serving_process(local_c
     # What the child refuses still names where, as test05 shows for every refusal.
     bad = CUBE_OBJ.replace("v 1 -1 -1", "v 1 x -1").encode()
     assert_422(upload(local_client, scene_bytes(room("test11b-bad")), (("cube.obj", bad),)),
-               ["body", "scene", f"shapes[{MESH}].file"], "cannot parse line 3 of cube.obj")
+               ["body", "scene", f"shapes[{MESH}].file"], "cube.obj:3: cannot parse")
 
 
 def test11c_a_job_on_an_upload_is_submitted_without_parsing_the_stored_scene(local_client,

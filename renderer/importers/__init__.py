@@ -83,12 +83,22 @@ def import_scene(path: Path, root: Path | None = None) -> Imported:
     if not path.is_file():
         raise SceneError(f"scene file not found: {path.name}", path.name)
     if suffix == ".xml":
-        from .mitsuba import import_mitsuba  # imported lazily: each importer is optional
-        return import_mitsuba(path, root)
+        return _importer("mitsuba", "import_mitsuba", "Mitsuba XML", path)(path, root)
     if suffix in (".gltf", ".glb"):
-        from .gltf import import_gltf
-        return import_gltf(path, root)
+        return _importer("gltf", "import_gltf", "glTF", path)(path, root)
     return _import_native(path, root)
+
+
+def _importer(module: str, name: str, what: str, path: Path):
+    """An importer's entry point, imported lazily (each importer is optional)."""
+    import importlib
+
+    try:
+        return getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    except ModuleNotFoundError as exc:
+        if exc.name != f"{__name__}.{module}":
+            raise
+        raise SceneError(f"{what} scenes cannot be imported by this build", path.name) from None
 
 
 def _import_native(path: Path, root: Path) -> Imported:
