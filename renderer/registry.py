@@ -146,8 +146,9 @@ class Method:
 
 def shading_features(doc: dict) -> list[str]:
     """What a resolved scene document asks of shading beyond constant
-    one-sided materials on flat triangles: "textures", "textured glossy
-    inputs", "vertex normals", "two-sided materials"."""
+    one-sided constant materials: "textures", "textured glossy inputs",
+    "two-sided materials". (Vertex normals live in the mesh assets, not in
+    the document: every method takes them, radiosity as flat patches.)"""
     out = []
     mats = doc.get("materials", {}).values()
     if any(isinstance(v, dict) for m in mats for v in m.values()):
@@ -155,8 +156,6 @@ def shading_features(doc: dict) -> list[str]:
     if any(m["type"] == "glossy" and (isinstance(m.get("specular"), dict)
                                       or isinstance(m.get("roughness"), dict)) for m in mats):
         out.append("textured glossy inputs")
-    if any("normals" in s for s in doc.get("shapes", ())):
-        out.append("vertex normals")
     if any(m.get("twosided") for m in mats):
         out.append("two-sided materials")
     return out

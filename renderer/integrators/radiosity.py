@@ -539,10 +539,11 @@ def run_radiosity(scene, spec, unit, inputs, options) -> PartialFilm:
 
 
 METHODS = (Method(
-    # Patches are flat and hold one radiosity each: a texture, a normal that
-    # varies over a patch or a back side that shades would need finer patches.
-    unsupported={f: "its patches are flat, one-sided and of one constant albedo"
-                 for f in ("textures", "vertex normals", "two-sided materials")},
+    # Patches are flat and hold one radiosity each: a texture or a back side
+    # that shades would need patches of their own. (Vertex normals: a patch
+    # is shaded with its geometric normal.)
+    unsupported={f: "its patches are one-sided and of one constant albedo"
+                 for f in ("textures", "two-sided materials")},
     name="radiosity",
     aovs=("albedo", "normal", "depth"),
     description="Finite element radiosity: diffuse patches, Monte Carlo form factors with "
