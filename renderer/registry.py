@@ -20,7 +20,7 @@ from typing import Any, Callable
 from .errors import SpecError
 
 __all__ = ["Option", "Method", "Sampler", "METHODS", "SAMPLERS", "register_method",
-           "register_sampler"]
+           "register_sampler", "shading_features"]
 
 
 @dataclass(frozen=True)
@@ -85,6 +85,10 @@ class Method:
     check_scene: Callable | None = None
     warm_options: tuple[dict, ...] = field(default=(), compare=False)
     warm_base: dict = field(default_factory=dict, compare=False)
+    # What a scene may use that this method does not render, each with the
+    # reason: {"textures": why, ...} (keys of `shading_features`); a job of
+    # a scene using one is refused at submission, naming it.
+    unsupported: dict = field(default_factory=dict, compare=False)
     # The AOV layers (film.py) its films carry beyond the beauty, var and
     # samples, and, when there are none, why: what GET /methods says.
     aovs: tuple[str, ...] = ()
@@ -98,7 +102,13 @@ class Method:
         return self.plan(spec, progressive, self.check_options(spec.options))
 
     def check(self, spec, doc: dict) -> None:
-        """`check_scene` with the checked options, if the method has one."""
+        """`check_scene` with the checked options, if the method has one;
+        and the scene's shading features against `unsupported`."""
+        for feature in shading_features(doc):
+            if feature in self.unsupported:
+                raise SpecError("method", f"method '{self.name}' does not render "
+                                          f"{feature} ({self.unsupported[feature]}); this "
+                                          "scene uses them: choose another method")
         if self.check_scene is not None:
             self.check_scene(spec, doc, self.check_options(spec.options))
 
@@ -132,6 +142,23 @@ class Method:
                              "choices": list(o.choices) if o.choices else None,
                              "bounds": list(o.bounds) if o.bounds else None,
                              "description": o.description} for o in self.options]}
+
+
+def shading_features(doc: dict) -> list[str]:
+    """What a resolved scene document asks of shading beyond constant
+    one-sided constant materials: "textures", "textured glossy inputs",
+    "two-sided materials". (Vertex normals live in the mesh assets, not in
+    the document: every method takes them, radiosity as flat patches.)"""
+    out = []
+    mats = doc.get("materials", {}).values()
+    if any(isinstance(v, dict) for m in mats for v in m.values()):
+        out.append("textures")
+    if any(m["type"] == "glossy" and (isinstance(m.get("specular"), dict)
+                                      or isinstance(m.get("roughness"), dict)) for m in mats):
+        out.append("textured glossy inputs")
+    if any(m.get("twosided") for m in mats):
+        out.append("two-sided materials")
+    return out
 
 
 @dataclass(frozen=True)

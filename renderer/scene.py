@@ -19,7 +19,9 @@ from .bvh import build_bvh, collapse_wide, wide_bounds
 from .kernels.camera import filter_params
 from .kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR
 from .kernels.lights import LIGHT_MESH, LIGHT_POINT, LIGHT_SPHERE
-from .primitives import DISK_SEGMENTS, FIXED, world_mesh  # noqa: F401 (DISK_SEGMENTS: re-exported)
+from .kernels.shading import TEX_BITMAP, TEX_CHECKER, TEX_COLUMNS
+from .errors import SceneError
+from .primitives import DISK_SEGMENTS, FIXED, world_mesh, world_mesh_data  # noqa: F401
 from .scene_format import document_assets, resolve_document, scene_hash
 
 __all__ = ["Scene", "SceneArrays", "build_scene", "load_scene", "camera_array", "triangle_count",
@@ -54,6 +56,16 @@ SceneArrays = namedtuple("SceneArrays", [
     "bvh_nodes",    # (N, 24) a 4-wide BVH's child boxes, lanes side by side (bvh.collapse_wide)
     "bvh_info",     # (N, 4) int32 its children: a node (>= 0) or a leaf -(first * 8 + count) - 1
     "bvh_prims",    # (P,) int32 primitive ids in leaf order
+    # Shading (kernels/shading.py). Triangles with per-vertex normals or UVs
+    # have a row in attr_n / attr_uv; the others (-1) shade with the
+    # geometric normal and the barycentric uv (b1, b2), as Mitsuba does.
+    "tri_attr",     # (T,) int32 row in attr_n / attr_uv, or -1
+    "attr_n",       # (A, 9) float64 world vertex normals n0 n1 n2 (all 0: none)
+    "attr_uv",      # (A, 6) float64 vertex uvs u0 v0 u1 v1 u2 v2
+    "mat_tex",      # (M, 2) int32 texture of the colour input, of the roughness; -1 constant
+    "mat_twosided",  # (M,) int32 1: the back side shades as the front (Mitsuba's twosided)
+    "tex_info",     # (X, 16) float64 one row per texture (TEX_* columns, kernels/shading.py)
+    "tex_data",     # (N,) float32 every bitmap's texels, row-major, channels interleaved
 ])
 
 
@@ -83,6 +95,77 @@ def _apply(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return pts @ m[:3, :3].T + m[:3, 3]
 
 
+# Every bitmap's texels together, float32: what a scene may hold (1 GiB).
+MAX_SCENE_TEXELS = 256 * 1024 * 1024
+
+
+def _texels(digest: str, assets, loc: str) -> np.ndarray:
+    """The (H, W, C) float32 texels of the image asset `digest`; `assets` is
+    an asset source (renderer/assets.py: a mapping or a callable, digests
+    checked) or, in tests, a mapping straight to texel arrays."""
+    held = assets.get(digest) if isinstance(assets, dict) else None
+    if isinstance(held, np.ndarray):
+        a = held
+    else:
+        from .assets import decode_asset, load_asset
+
+        asset = decode_asset(load_asset(assets, digest, loc))
+        if asset.kind != "texture":
+            raise SceneError(f"the asset {digest[:12]} is a {asset.kind}, not a texture", loc)
+        a = asset.texels
+    a = np.asarray(a, dtype=np.float32)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3, 4) or a.shape[0] < 1 or a.shape[1] < 1:
+        raise SceneError(f"the image asset {digest[:12]}... is not an (H, W, 1|3|4) image", loc)
+    return a
+
+
+def _texture_arrays(doc: dict, assets) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(index by texture name, tex_info, tex_data) of a resolved document."""
+    textures = doc.get("textures", {})
+    index = {name: i for i, name in enumerate(textures)}
+    info = np.zeros((len(textures), TEX_COLUMNS))
+    chunks, offset = [], 0
+    for i, (name, tex) in enumerate(textures.items()):
+        row = info[i]
+        row[6:8] = tex["uv_scale"]
+        row[8:10] = tex["uv_offset"]
+        if tex["type"] == "checkerboard":
+            row[0] = TEX_CHECKER
+            row[10:13] = tex["color0"]
+            row[13:16] = tex["color1"]
+            continue
+        a = _texels(tex["image"], assets, f"textures.{name}.image")
+        h, w, c = a.shape
+        if offset + a.size > MAX_SCENE_TEXELS:
+            raise SceneError(f"the scene's textures hold more than {MAX_SCENE_TEXELS} texel "
+                             "values in all", f"textures.{name}")
+        row[0] = TEX_BITMAP
+        row[1:6] = offset, w, h, c, 1.0 if tex["filter"] == "bilinear" else 0.0
+        chunks.append(a.reshape(-1))
+        offset += a.size
+    data = np.concatenate(chunks) if chunks else np.zeros(0, np.float32)
+    return index, info, np.ascontiguousarray(data, dtype=np.float32)
+
+
+def _face_attributes(shape: dict, mesh) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Per-face vertex normals (F, 9) in world space and uvs (F, 6) of a
+    shape's world mesh (primitives.world_mesh_data), or None where it has
+    none. A rectangle has Mitsuba's uvs ((x + 1) / 2, (y + 1) / 2) of its
+    local corners; the other fixed shapes the barycentric default."""
+    f = mesh.faces
+    normals = None if mesh.normals is None else mesh.normals[f].reshape(-1, 9)
+    if mesh.uvs is not None:
+        uvs = np.asarray(mesh.uvs, dtype=np.float64)[f].reshape(-1, 6)
+    elif shape["type"] == "rectangle":
+        v, _ = FIXED["rectangle"]
+        uvs = (0.5 * (v[:, :2] + 1.0))[f].reshape(-1, 6)
+    else:
+        uvs = None
+    return normals, uvs
+
+
 def _mesh_source(doc: dict, load_asset):
     """An asset lookup for build_scene: each digest fetched (and checked) and
     decoded once, however many shapes name it."""
@@ -105,22 +188,41 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
     Meshes named by digest are read through `load_asset` (an asset source:
     a callable digest -> blob, or a mapping), each checked against its
     digest; by default from the assets the document carries
-    (scene_format.ResolvedDocument)."""
+    (scene_format.ResolvedDocument); texture images likewise (in tests, the
+    mapping may hold (H, W, C) texel arrays instead of blobs)."""
     mesh_asset = _mesh_source(doc, load_asset)
+    source = load_asset if load_asset is not None else document_assets(doc)
     mat_names = list(doc["materials"])
     mat_index = {name: i for i, name in enumerate(mat_names)}
     mats = [doc["materials"][n] for n in mat_names]
     mat_type = np.array([_MAT_IDS[m["type"]] for m in mats], dtype=np.int32)
+    tex_index, tex_info, tex_data = _texture_arrays(doc, source)
     rgb_field = {"diffuse": "albedo", "mirror": "tint", "glossy": "specular"}
-    mat_rgb = np.array([m.get(rgb_field.get(m["type"], ""), [1.0, 1.0, 1.0]) for m in mats],
-                       dtype=np.float64).reshape(-1, 3)
+    mat_rgb = np.ones((len(mats), 3))
     mat_param = np.zeros((len(mats), 4))
+    mat_tex = np.full((len(mats), 2), -1, np.int32)
+    mat_twosided = np.zeros(len(mats), np.int32)
     for i, m in enumerate(mats):
+        colour = m.get(rgb_field.get(m["type"], ""), [1.0, 1.0, 1.0])
+        if isinstance(colour, dict):
+            mat_tex[i, 0] = tex_index[colour["texture"]]
+        else:
+            mat_rgb[i] = colour
         mat_param[i, 0] = m.get("ior", 1.0)
-        mat_param[i, 1] = m.get("roughness", 0.0)
+        rough = m.get("roughness", 0.0)
+        if isinstance(rough, dict):
+            mat_tex[i, 1] = tex_index[rough["texture"]]
+        else:
+            mat_param[i, 1] = rough
+        # the dielectric is two-sided already (its back is its inside)
+        mat_twosided[i] = 1 if m.get("twosided") and m["type"] != "dielectric" else 0
 
     tris, tri_mat, tri_light = [], [], []  # per shape: (F, 3, 3) corners, (F,) ids
     n_tris = 0
+    attr_rows: list[np.ndarray] = []  # per shape: each triangle's attribute row or -1
+    attr_n: list[np.ndarray] = []
+    attr_uv: list[np.ndarray] = []
+    n_attr = 0
     sph, sph_flip, sph_mat, sph_light = [], [], [], []
     light_type, light_rgb, light_pos, light_sphere = [], [], [], []
     light_groups: list[list[int]] = []  # triangle ids per mesh light
@@ -145,12 +247,23 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
             sph_mat.append(material)
             sph_light.append(light)
             continue
-        wv, f = world_mesh(shape, mesh_asset(shape) if "mesh" in shape else None)
+        mesh = world_mesh_data(shape, mesh_asset(shape) if "mesh" in shape else None)
+        wv, f = mesh.positions, mesh.faces
         first = n_tris
         tris.append(wv[f])
         tri_mat.append(np.full(len(f), material, np.int32))
         tri_light.append(np.full(len(f), light, np.int32))
         n_tris += len(f)
+        normals, uvs = _face_attributes(shape, mesh)
+        if normals is None and uvs is None:
+            attr_rows.append(np.full(len(f), -1, np.int32))
+        else:
+            attr_rows.append(np.arange(n_attr, n_attr + len(f), dtype=np.int32))
+            n_attr += len(f)
+            attr_n.append(normals if normals is not None else np.zeros((len(f), 9)))
+            if uvs is None:  # Mitsuba's default: the barycentrics (b1, b2)
+                uvs = np.tile([0.0, 0.0, 1.0, 0.0, 0.0, 1.0], (len(f), 1))
+            attr_uv.append(uvs)
         if light >= 0:
             light_type.append(LIGHT_MESH)
             light_sphere.append(-1)
@@ -225,6 +338,10 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
         light_sphere=np.asarray(light_sphere, np.int32),
         light_tris=np.asarray(light_tris, np.int32), light_tri_cdf=np.asarray(light_cdf, np.float64),
         bvh_nodes=wide_boxes, bvh_info=wide_kids, bvh_prims=bvh_prims,
+        tri_attr=np.concatenate(attr_rows) if attr_rows else np.zeros(0, np.int32),
+        attr_n=np.ascontiguousarray(np.concatenate(attr_n) if attr_n else np.zeros((0, 9))),
+        attr_uv=np.ascontiguousarray(np.concatenate(attr_uv) if attr_uv else np.zeros((0, 6))),
+        mat_tex=mat_tex, mat_twosided=mat_twosided, tex_info=tex_info, tex_data=tex_data,
     )
     return Scene(doc=doc, hash=scene_hash(doc), arrays=arrays)
 

@@ -54,7 +54,19 @@ from typing import Any
 import numpy as np
 
 from .errors import SceneError
+from .material_format import MATERIAL_TYPES, MIN_ROUGHNESS  # noqa: F401 (re-exported)
+from .material_format import resolve_material as _resolve_material
+from .material_format import resolve_texture as _resolve_texture
 from .primitives import world_mesh
+from .validators import (  # noqa: F401 (MAX_COORDINATE: re-exported)
+    MAX_COORDINATE,
+    _bool,
+    _coordinate,
+    _name_list,
+    _number,
+    _require,
+    _vec3,
+)
 from .scene_meshes import AssetStore, MeshLimits, resolve_mesh
 
 __all__ = [
@@ -71,7 +83,6 @@ __all__ = [
     "SHAPE_TYPES",
 ]
 
-MATERIAL_TYPES = ("diffuse", "mirror", "dielectric", "glossy")
 SHAPE_TYPES = ("rectangle", "disk", "cube", "sphere", "mesh")
 EMITTER_TYPES = ("point",)
 FOV_AXES = ("x", "y", "smaller", "larger", "diagonal")
@@ -80,12 +91,8 @@ MAX_IMAGE_SIDE = 8192
 MAX_TRIANGLES = 5_000_000
 MAX_FILE_BYTES = 256 * 1024 * 1024
 SCENE_FORMAT = "rayfarm-scene/1"  # the one version this renderer reads
-MAX_COORDINATE = 1e6  # |x|, |y|, |z| of any point (local and world), transform entry, radius
 MAX_RADIANCE = 1e6  # area-light radiance and point-light intensity, per component
 MIN_LENGTH = 1.0 / MAX_COORDINATE  # a sphere's radius, camera to target, a rotation axis
-# pbrt-v4 renders a GGX lobe of alpha below 1e-3 as a perfect mirror ("effectively
-# smooth"); here the `mirror` material is that, and alpha^2 underflows far below.
-MIN_ROUGHNESS = 1e-3
 MIN_FOV = 1e-3  # degrees: a film of tan(fov/2)^2 far from underflow
 MIN_EMITTER_AREA = 1e-12  # world-space area of an emitting triangle (or sphere)
 COLLINEAR = 1e-9  # an emitting triangle's height / its longest edge, at least
@@ -98,13 +105,14 @@ MAX_NESTING = 16  # levels of lists and objects (shapes[i].to_world[j].rotate.ax
 # materials and emitters.
 FIELDS: dict[str, set[str]] = {
     "document": {"format", "camera", "materials", "shapes", "emitters", "name", "description",
-                 "defaults"},
+                 "defaults", "textures"},
     "camera": {"type", "origin", "target", "up", "to_world", "fov", "fov_axis", "width",
                "height", "aperture_radius", "focus_distance", "filter"},
     "filter.box": {"type"},
     "filter.tent": {"type", "radius"},
     "filter.gaussian": {"type", "stddev"},
-    "material": {"type"},
+    # (material_format.MATERIAL_FIELDS: the same per type, checked there)
+    "material": {"type", "twosided", "opacity"},
     "material.diffuse": {"albedo"},
     "material.mirror": {"tint"},
     "material.dielectric": {"ior"},
@@ -153,7 +161,7 @@ def _load_builtin(name: str) -> dict:
 
 
 # ----------------------------------------------------------------------------
-# Small validators; each raises SceneError naming the location.
+# Checks of the document's structure (the small validators: validators.py).
 
 def _nesting(value: Any) -> int:
     """How many lists and objects deep `value` goes (iteratively: it may be deep)."""
@@ -165,46 +173,6 @@ def _nesting(value: Any) -> int:
             children = item.values() if isinstance(item, dict) else item
             stack.extend((child, depth + 1) for child in children)
     return deepest
-
-
-def _require(obj: dict, key: str, loc: str) -> Any:
-    if key not in obj:
-        raise SceneError(f"missing required field '{key}'", loc)
-    return obj[key]
-
-
-def _number(value: Any, loc: str, *, lo: float | None = None, hi: float | None = None,
-            lo_open: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise SceneError(f"expected a finite number, got {json.dumps(value)[:60]}", loc)
-    v = float(value)
-    if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise SceneError(f"must be {'>' if lo_open else '>='} {lo}, got {v}", loc)
-    if hi is not None and v > hi:
-        raise SceneError(f"must be <= {hi}, got {v}", loc)
-    return v
-
-
-def _vec3(value: Any, loc: str, *, nonneg: bool = False,
-          limit: float = MAX_COORDINATE) -> list[float]:
-    """Three finite numbers within +-`limit` (0..limit if `nonneg`)."""
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        value = [value, value, value]  # a scalar means grey
-    if not isinstance(value, list) or len(value) != 3:
-        raise SceneError("expected a list of 3 numbers", loc)
-    return [_number(v, f"{loc}[{i}]", lo=0.0 if nonneg else -limit, hi=limit)
-            for i, v in enumerate(value)]
-
-
-def _coordinate(value: Any, loc: str, **bounds) -> float:
-    """A finite number within +-MAX_COORDINATE (and `bounds`, if tighter)."""
-    return _number(value, loc, **{"lo": -MAX_COORDINATE, "hi": MAX_COORDINATE, **bounds})
-
-
-def _bool(value: Any, loc: str) -> bool:
-    if not isinstance(value, bool):
-        raise SceneError(f"expected true or false, got {json.dumps(value)[:60]}", loc)
-    return value
 
 
 def _check_world_points(points: np.ndarray, loc: str, what: str) -> None:
@@ -283,10 +251,6 @@ def _transform(value: Any, loc: str) -> list[list[float]]:
     if not np.allclose(m[3], [0, 0, 0, 1]):
         raise SceneError("last matrix row must be [0, 0, 0, 1] (no projective transforms)", loc)
     return m.tolist()
-
-
-def _name_list(allowed) -> str:
-    return ", ".join(allowed)
 
 
 # ----------------------------------------------------------------------------
@@ -394,37 +358,6 @@ def _resolve_camera(cam: Any) -> dict:
         if filt["type"] != "box":
             out["filter"] = filt
     return out
-
-
-def _resolve_material(name: str, mat: Any) -> dict:
-    loc = f"materials.{name}"
-    if not isinstance(mat, dict):
-        raise SceneError("expected an object", loc)
-    mtype = _require(mat, "type", loc)
-    if isinstance(mtype, str) and mtype in MATERIAL_TYPES:
-        _check_fields(mat, loc, "material", f"material.{mtype}")
-    if mtype == "diffuse":
-        albedo = _vec3(mat.get("albedo", [0.5, 0.5, 0.5]), f"{loc}.albedo", nonneg=True)
-        if max(albedo) > 1.0:
-            raise SceneError("albedo components must be <= 1 (energy conservation)", f"{loc}.albedo")
-        return {"type": "diffuse", "albedo": albedo}
-    if mtype == "mirror":
-        tint = _vec3(mat.get("tint", [1.0, 1.0, 1.0]), f"{loc}.tint", nonneg=True)
-        if max(tint) > 1.0:
-            raise SceneError("tint components must be <= 1", f"{loc}.tint")
-        return {"type": "mirror", "tint": tint}
-    if mtype == "dielectric":
-        ior = _number(mat.get("ior", 1.5), f"{loc}.ior", lo=1.0, hi=4.0)
-        return {"type": "dielectric", "ior": ior}
-    if mtype == "glossy":
-        specular = _vec3(mat.get("specular", [1.0, 1.0, 1.0]), f"{loc}.specular", nonneg=True)
-        if max(specular) > 1.0:
-            raise SceneError("specular components must be <= 1", f"{loc}.specular")
-        roughness = _number(mat.get("roughness", 0.1), f"{loc}.roughness", lo=MIN_ROUGHNESS,
-                            hi=1.0)
-        return {"type": "glossy", "specular": specular, "roughness": roughness}
-    raise SceneError(f"unknown material type '{mtype}' (allowed: {_name_list(MATERIAL_TYPES)})",
-                     f"{loc}.type")
 
 
 def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None,
@@ -656,7 +589,11 @@ def resolve_scene(source: str | Path | dict, *, allow_files: bool = True,
     mats_in = doc.get("materials", {})
     if not isinstance(mats_in, dict):
         raise SceneError("expected an object mapping names to materials", "materials")
-    materials = {str(k): _resolve_material(str(k), v) for k, v in mats_in.items()}
+    tex_in = doc.get("textures", {})
+    if not isinstance(tex_in, dict):
+        raise SceneError("expected an object mapping names to textures", "textures")
+    textures = {str(k): _resolve_texture(str(k), v) for k, v in tex_in.items()}
+    materials = {str(k): _resolve_material(str(k), v, textures) for k, v in mats_in.items()}
     shapes_in = _require(doc, "shapes", "")
     if not isinstance(shapes_in, list):
         raise SceneError("expected a list of shapes", "shapes")
@@ -678,6 +615,8 @@ def resolve_scene(source: str | Path | dict, *, allow_files: bool = True,
         raise SceneError("a scene needs at least one shape", "shapes")
     if "defaults" in doc:
         resolved["defaults"] = _resolve_defaults(doc["defaults"])
+    if textures:  # absent when empty: older scenes keep their hash
+        resolved["textures"] = textures
     named = scene_asset_digests(resolved)
     return resolved, {d: store.produced[d] for d in named if d in store.produced}
 

@@ -106,7 +106,8 @@ def test03_gather_kernel_ignores_photons_from_behind():
     vp_n = np.zeros(shape + (3,))
     vp_n[..., 1] = 1.0
     vp_wo = vp_n.copy()
-    vp_beta = np.ones(shape + (3,))
+    # a diffuse visible point carries its albedo (0.5) in its weight (visible_point)
+    vp_beta = np.full(shape + (3,), 0.5)
     vp_mat = np.zeros(shape, np.int32)
     r2 = np.full(shape, 0.01)
     mat_type = np.zeros(1, np.int32)

@@ -32,8 +32,9 @@ from ..kernels.rng import sample_key, uniform
 from ..kernels.sampling import BALANCE, POWER
 from ..kernels.bsdf import MAT_DIFFUSE, MAT_GLOSSY
 from ..kernels.subpaths import (
+    V_ALB,
     V_MAT,
-    V_N,
+    V_NS,
     V_P,
     ALL_STRATEGIES,
     camera_subpath,
@@ -64,8 +65,8 @@ def _camera_aovs(sc, V, nc):
     for i in range(1, nc):
         mat = int(V[i, V_MAT])
         if mat >= 0 and (sc.mat_type[mat] == MAT_DIFFUSE or sc.mat_type[mat] == MAT_GLOSSY):
-            return (sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2],
-                    V[i, V_N], V[i, V_N + 1], V[i, V_N + 2], dist)
+            return (V[i, V_ALB], V[i, V_ALB + 1], V[i, V_ALB + 2],
+                    V[i, V_NS], V[i, V_NS + 1], V[i, V_NS + 2], dist)
     return 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, dist
 
 

@@ -55,11 +55,11 @@ from ..kernels.geometry import (
     intersect_arrays,
     offset_origin,
     shadow_ray,
-    surface_at_arrays,
 )
 from ..kernels.ggx import glossy_eval, glossy_sample
 from ..kernels.lights import light_pdf, sample_light
 from ..kernels.packet import PACKET, packet_intersect
+from ..kernels.shading import shade_hit
 from ..kernels.rng import sample_key
 from ..kernels.sampling import (
     BALANCE,
@@ -164,28 +164,29 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
     t = fl[T, r]
     br, bg, bb = fl[BR, r], fl[BG, r], fl[BB, r]
     n_lights = sc.light_type.shape[0]
-    light_rgb, mat_type, mat_rgb, mat_param = sc.light_rgb, sc.mat_type, sc.mat_rgb, sc.mat_param
+    light_rgb, mat_type = sc.light_rgb, sc.mat_type
     hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
-    nx, ny, nz, mat, light = surface_at_arrays(sc.tri_n, sc.tri_mat, sc.tri_light, sc.sph,
-                                               sc.sph_flip, sc.sph_mat, sc.sph_light, prim,
-                                               hx, hy, hz)
+    # f: the front (emitting) side; g, n: the geometric and shading normals
+    # of the side the BSDF shades (kernels/shading.py)
+    (fx, fy, fz, gx, gy, gz, nx, ny, nz, ar, ag, ab, alpha,
+     mat, light) = shade_hit(sc, prim, hx, hy, hz, dx, dy, dz)
     if bounce == 0:
         fl[FIRST_T, r] = t
     mtype = mat_type[mat]
     if il[AOV_SET, r] == 0 and (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY):
         il[AOV_SET, r] = 1
-        fl[ALB_R, r], fl[ALB_G, r], fl[ALB_B, r] = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+        fl[ALB_R, r], fl[ALB_G, r], fl[ALB_B, r] = ar, ag, ab
         fl[AN_X, r], fl[AN_Y, r], fl[AN_Z, r] = nx, ny, nz
     specular = il[SPEC, r] != 0
-    cos_o = -(dx * nx + dy * ny + dz * nz)
-    if light >= 0 and cos_o > 0.0:
+    cos_f = -(dx * fx + dy * fy + dz * fz)
+    if light >= 0 and cos_f > 0.0:
         w = 1.0
         if not specular and strategy != BSDF_ONLY:
             if strategy == NEE or (strategy == ONE_SAMPLE and il[CHOSE, r] == 0):
                 w = 0.0  # this light was (or will be) counted by light sampling
             else:
                 pl = light_pdf(sc, light, prim, fl[VX, r], fl[VY, r], fl[VZ, r],
-                               hx, hy, hz, cos_o)
+                               hx, hy, hz, cos_f)
                 prev_pdf = fl[PREV_PDF, r]
                 if strategy == MIS:
                     w = mis_weight(prev_pdf, pl, heuristic)
@@ -198,12 +199,15 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
         il[ACT, r] = 0
         return
     base = 2 + DIMS_PER_BOUNCE * bounce
+    # cosines of wo = -d with the shading and the geometric normal: both must
+    # be positive (the front of a one-sided surface, and no shading normal
+    # turned away from where the light comes from)
+    cos_o = -(dx * nx + dy * ny + dz * nz)
+    cos_g = -(dx * gx + dy * gy + dz * gz)
     if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
-        if cos_o <= 0.0:
+        if cos_o <= 0.0 or cos_g <= 0.0:
             il[ACT, r] = 0  # one-sided: the back of a diffuse or glossy surface is black
             return
-        ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
-        alpha = mat_param[mat, 1]
         use_light = strategy == NEE or strategy == MIS or strategy == DIRECT
         light_scale = 1.0
         if strategy == ONE_SAMPLE:
@@ -216,7 +220,8 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
             ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
             wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, ua, ub)
             cos_i = wx * nx + wy * ny + wz * nz
-            if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
+            if (pl > 0.0 and cos_i > 0.0 and wx * gx + wy * gy + wz * gz > 0.0
+                    and (er > 0.0 or eg > 0.0 or eb > 0.0)):
                 if mtype == MAT_DIFFUSE:
                     f, pb = diffuse_eval(cos_o, cos_i)
                     fr, fg, fb = ar * f, ag * f, ab * f
@@ -227,7 +232,7 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
                                                  alpha, ar, ag, ab)
                 il[RAYS, r] += 1
                 if fr > 0.0 or fg > 0.0 or fb > 0.0:
-                    sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz,
+                    sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, gx, gy, gz,
                                                               wx, wy, wz, dist)
                     if delta or strategy == NEE or strategy == DIRECT:
                         # delta lights: one-sample picks them with probability 1/2 pl
@@ -260,7 +265,8 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
         else:
             wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, ua, ub)
             sr, sg, sb = ar, ag, ab  # f cos / pdf = albedo exactly
-        if pdf <= 0.0 or (sr <= 0.0 and sg <= 0.0 and sb <= 0.0):
+        if (pdf <= 0.0 or (sr <= 0.0 and sg <= 0.0 and sb <= 0.0)
+                or wx * gx + wy * gy + wz * gz <= 0.0):  # through the surface: no light
             il[ACT, r] = 0
             return
         br *= sr
@@ -269,17 +275,19 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
         fl[PREV_PDF, r] = pdf
         il[SPEC, r] = 0
         fl[VX, r], fl[VY, r], fl[VZ, r] = hx, hy, hz
-        ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, 1.0)
+        ox, oy, oz = offset_origin(hx, hy, hz, gx, gy, gz, 1.0)
         dx, dy, dz = wx, wy, wz
     else:  # a mirror or glass
-        if mtype == MAT_MIRROR and cos_o <= 0.0:
+        if mtype == MAT_MIRROR and (cos_o <= 0.0 or cos_g <= 0.0):
             il[ACT, r] = 0
             return
         u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
                                                 base + DIM_GLASS, memo)
         dx, dy, dz, ox, oy, oz, wr, wg, wb, es = specular_step(
-            mtype, mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2], mat_param[mat, 0],
-            hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+            mtype, ar, ag, ab, sc.mat_param[mat, 0], hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+        if mtype == MAT_MIRROR and dx * gx + dy * gy + dz * gz <= 0.0:
+            il[ACT, r] = 0  # the shading normal reflected it into the surface
+            return
         br *= wr
         bg *= wg
         bb *= wb

@@ -423,6 +423,8 @@ OPTIONS = (
 )
 
 METHODS = (Method(
+    unsupported={"textured glossy inputs": "its gather evaluates a glossy BSDF with the "
+                                           "material's constant specular and roughness"},
     name="photon",
     aovs=("albedo", "normal", "depth"),
     aliases=("sppm",),

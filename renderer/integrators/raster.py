@@ -40,6 +40,7 @@ from ..kernels.lights import sample_light
 from ..kernels.rng import sample_key
 from ..kernels.sampling import INV_PI
 from ..errors import SpecError
+from ..kernels.shading import shade_hit
 from ..registry import SAMPLERS, Method
 from ..samplers import NO_MEMO, u2d
 from ..scene import camera_array
@@ -169,36 +170,44 @@ def _raster_pass(verts, cam, width, height, x0, y0, x1, y1, sample_x, sample_y, 
 def _shade(sc, cam, width, height, fx, fy, z, tri, tri_n, tri_mat, tri_light, key, smp, seed,
            pixel, index, spp, memo):
     """Local shading of the visible point at camera depth z on triangle tri:
-    (r, g, b, distance t to it; the camera ray is a unit vector)."""
+    (r, g, b, distance t to it; the camera ray is a unit vector; then the
+    colour input and the shading normal there, for the AOVs). The scene's
+    own triangles shade as every method does (kernels/shading.py); a
+    sphere's tessellation (the rows past them) with its flat normals."""
     dx, dy, dz = camera_ray(cam, width, height, fx, fy)
     t = z / (dx * cam[9] + dy * cam[10] + dz * cam[11])
     px, py, pz = cam[0] + t * dx, cam[1] + t * dy, cam[2] + t * dz
-    nx, ny, nz = tri_n[tri, 0], tri_n[tri, 1], tri_n[tri, 2]
-    cos_o = -(dx * nx + dy * ny + dz * nz)
-    if cos_o <= 0.0:
-        return 0.0, 0.0, 0.0, t  # one-sided: the back side is black and emits nothing
+    if tri < sc.tri_n.shape[0]:
+        (fnx, fny, fnz, gx, gy, gz, nx, ny, nz, ar, ag, ab, alpha,
+         mat, light) = shade_hit(sc, tri, px, py, pz, dx, dy, dz)
+    else:
+        nx, ny, nz = tri_n[tri, 0], tri_n[tri, 1], tri_n[tri, 2]
+        fnx, fny, fnz, gx, gy, gz = nx, ny, nz, nx, ny, nz
+        mat, light = tri_mat[tri], tri_light[tri]
+        ar, ag, ab = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
+        alpha = sc.mat_param[mat, 1]
     r, g, b = 0.0, 0.0, 0.0
-    light = tri_light[tri]
-    if light >= 0:
+    if light >= 0 and -(dx * fnx + dy * fny + dz * fnz) > 0.0:  # emits from its front only
         r, g, b = sc.light_rgb[light, 0], sc.light_rgb[light, 1], sc.light_rgb[light, 2]
-    mat = tri_mat[tri]
+    cos_o = -(dx * nx + dy * ny + dz * nz)
+    if cos_o <= 0.0 or -(dx * gx + dy * gy + dz * gz) <= 0.0:
+        return r, g, b, t, ar, ag, ab, nx, ny, nz  # one-sided: the back side is black
     mtype = sc.mat_type[mat]
     if (mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY) and sc.light_type.shape[0] > 0:
         ua, ub = u2d(smp, key, seed, pixel, index, spp, 2, memo)
         wx, wy, wz, dist, pdf, er, eg, eb, delta = sample_light(sc, px, py, pz, ua, ub)
         cos_i = wx * nx + wy * ny + wz * nz
-        if pdf > 0.0 and cos_i > 0.0:
-            ar, ag, ab = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
+        if pdf > 0.0 and cos_i > 0.0 and wx * gx + wy * gy + wz * gz > 0.0:
             if mtype == MAT_DIFFUSE:
                 fr, fg, fb = ar * INV_PI, ag * INV_PI, ab * INV_PI
             else:
                 fr, fg, fb, _ = glossy_eval(nx, ny, nz, -dx, -dy, -dz, wx, wy, wz,
-                                            sc.mat_param[mat, 1], ar, ag, ab)
+                                            alpha, ar, ag, ab)
             k = cos_i / pdf  # unshadowed: no visibility test
             r += fr * er * k
             g += fg * eg * k
             b += fb * eb * k
-    return r, g, b, t
+    return r, g, b, t, ar, ag, ab, nx, ny, nz
 
 
 @kernel_parallel
@@ -232,7 +241,8 @@ def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, widt
                     if tri < 0:
                         continue
                     key = sample_key(seed, (y0 + row) * width + x0 + c, s)
-                    r, g, b, dist = _shade(sc, cam, width, height, sample_x[row, c],
+                    r, g, b, dist, ar, ag, ab, nx, ny, nz = _shade(
+                                           sc, cam, width, height, sample_x[row, c],
                                            sample_y[row, c], zbuf[row, c], tri, tri_n, tri_mat,
                                            tri_light, key, smp, seed,
                                            (y0 + row) * width + x0 + c, s, spp, no_memo)
@@ -244,10 +254,12 @@ def _raster_tile(sc, verts, tri_n, tri_mat, tri_light, cam, x0, y0, x1, y1, widt
                     block_acc[row, c, 5] += b * b
                     mat = tri_mat[tri]
                     if sc.mat_type[mat] == MAT_DIFFUSE or sc.mat_type[mat] == MAT_GLOSSY:
-                        for k in range(3):
-                            block_acc[row, c, 6 + k] += sc.mat_rgb[mat, k]
-                    for k in range(3):
-                        block_acc[row, c, 9 + k] += tri_n[tri, k]
+                        block_acc[row, c, 6] += ar
+                        block_acc[row, c, 7] += ag
+                        block_acc[row, c, 8] += ab
+                    block_acc[row, c, 9] += nx
+                    block_acc[row, c, 10] += ny
+                    block_acc[row, c, 11] += nz
                     block_acc[row, c, 12] += dist
         for row in prange(h):
             for c in range(w):

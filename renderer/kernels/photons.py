@@ -14,6 +14,7 @@ from numba import get_thread_id, prange
 from ..samplers import DIM_GLASS, DIM_LENS, DIM_LIGHT, DIMS_PER_BOUNCE, u1d, u2d
 from . import kernel, kernel_inline, kernel_parallel
 from .bsdf import (
+    MAT_DIELECTRIC,
     MAT_DIFFUSE,
     MAT_GLOSSY,
     MAT_MIRROR,
@@ -28,10 +29,10 @@ from .geometry import (
     intersect_arrays,
     offset_origin,
     shadow_ray,
-    surface_at_arrays,
 )
 from .ggx import glossy_eval, glossy_sample
 from .lights import sample_emission, sample_light
+from .shading import shade_hit
 from .rng import STREAM_PHOTONS, sample_key, stream_key, uniform
 from .sampling import INV_PI
 from .tile import (add_aov_block, add_aov_sample, add_block, add_sample, n_samples, store_aov,
@@ -81,9 +82,12 @@ def trace_photons(sc, stack, seed, g0, g1, depth, pos, dirs, power, hits):
             if p < 0:
                 break
             hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
-            nx, ny, nz, mat, light = surface_at_arrays(tri_n, tri_mat, tri_light, sph, sph_flip,
-                                                       sph_mat, sph_light, p, hx, hy, hz)
+            (fx, fy, fz, gx, gy, gz, nx, ny, nz, ar, ag, ab, alpha,
+             mat, light) = shade_hit(sc, p, hx, hy, hz, dx, dy, dz)
             cos_in = -(dx * nx + dy * ny + dz * nz)
+            cos_g = -(dx * gx + dy * gy + dz * gz)
+            if cos_g <= 0.0 and mat_type[mat] != MAT_DIELECTRIC:
+                break  # the back of a one-sided surface absorbs
             mtype = mat_type[mat]
             base = PHOTON_DIMS + DIMS_PER_PHOTON_HIT * (hit - 1)
             side = 1.0
@@ -101,13 +105,12 @@ def trace_photons(sc, stack, seed, g0, g1, depth, pos, dirs, power, hits):
                 if hit == depth:
                     break
                 ua, ub = uniform(key, base), uniform(key, base + 1)
-                ar, ag, ab = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
                 if mtype == MAT_DIFFUSE:
                     wx, wy, wz, cos_w, pdf = diffuse_sample(nx, ny, nz, ua, ub)
                     sr, sg, sb = ar, ag, ab
                 else:  # GGX is symmetric: sampling about -d gives f |cos wo| / pdf
                     wx, wy, wz, sr, sg, sb, pdf = glossy_sample(
-                        nx, ny, nz, -dx, -dy, -dz, mat_param[mat, 1], ar, ag, ab, ua, ub)
+                        nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab, ua, ub)
                 if pdf <= 0.0:
                     break
                 dx, dy, dz = wx, wy, wz
@@ -115,14 +118,25 @@ def trace_photons(sc, stack, seed, g0, g1, depth, pos, dirs, power, hits):
                 if cos_in <= 0.0 or hit == depth:
                     break
                 dx, dy, dz = reflect(dx, dy, dz, nx, ny, nz)
-                sr, sg, sb = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+                sr, sg, sb = ar, ag, ab
             else:  # dielectric: importance transport, no 1/eta^2, weight 1
                 if hit == depth:
                     break
                 dx, dy, dz, w, es, side = dielectric_sample(
                     dx, dy, dz, nx, ny, nz, mat_param[mat, 0], uniform(key, base + 2))
                 sr, sg, sb = 1.0, 1.0, 1.0
-            ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+            if gx != nx or gy != ny or gz != nz:  # a shading normal: the side checks
+                wig = dx * gx + dy * gy + dz * gz
+                wis = dx * nx + dy * ny + dz * nz
+                if ((mtype != MAT_DIELECTRIC and wig <= 0.0) or wig * wis <= 0.0
+                        or cos_in * cos_g <= 0.0):
+                    break
+                c = abs(cos_in) * abs(wig) / (abs(cos_g) * abs(wis))  # Veach's adjoint BSDF
+                sr, sg, sb = sr * c, sg * c, sb * c
+            if mtype == MAT_DIELECTRIC:
+                ox, oy, oz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+            else:
+                ox, oy, oz = offset_origin(hx, hy, hz, gx, gy, gz, side)
             m_old = max(br, max(bg, bb))
             nr, ng, nb = br * sr, bg * sg, bb * sb
             m_new = max(nr, max(ng, nb))
@@ -169,16 +183,17 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
         if prim < 0:
             break
         hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
-        nx, ny, nz, mat, light = surface_at_arrays(tri_n, tri_mat, tri_light, sph, sph_flip,
-                                                   sph_mat, sph_light, prim, hx, hy, hz)
+        (fx, fy, fz, gx, gy, gz, nx, ny, nz, ar, ag, ab, alpha,
+         mat, light) = shade_hit(sc, prim, hx, hy, hz, dx, dy, dz)
         if bounce == 0:
             first_t = t
         if not aov_set and (mat_type[mat] == MAT_DIFFUSE or mat_type[mat] == MAT_GLOSSY):
             aov_set = True
-            alb_r, alb_g, alb_b = mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2]
+            alb_r, alb_g, alb_b = ar, ag, ab
             an_x, an_y, an_z = nx, ny, nz
         cos_o = -(dx * nx + dy * ny + dz * nz)
-        if light >= 0 and cos_o > 0.0:
+        cos_g = -(dx * gx + dy * gy + dz * gz)
+        if light >= 0 and -(dx * fx + dy * fy + dz * fz) > 0.0:
             lr += br * light_rgb[light, 0]
             lg += bg * light_rgb[light, 1]
             lb += bb * light_rgb[light, 2]
@@ -187,21 +202,21 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
         base = 2 + DIMS_PER_BOUNCE * bounce
         mtype = mat_type[mat]
         if mtype == MAT_DIFFUSE or mtype == MAT_GLOSSY:
-            if cos_o <= 0.0:
+            if cos_o <= 0.0 or cos_g <= 0.0:
                 break
             if n_lights > 0:
                 ua, ub = u2d(smp, key, seed, pixel, index, spp, base + DIM_LIGHT, memo)
                 wx, wy, wz, dist, pl, er, eg, eb, delta = sample_light(sc, hx, hy, hz, ua, ub)
                 cos_i = wx * nx + wy * ny + wz * nz
-                if pl > 0.0 and cos_i > 0.0 and (er > 0.0 or eg > 0.0 or eb > 0.0):
+                if (pl > 0.0 and cos_i > 0.0 and wx * gx + wy * gy + wz * gz > 0.0
+                        and (er > 0.0 or eg > 0.0 or eb > 0.0)):
                     if mtype == MAT_DIFFUSE:
                         f, pb = diffuse_eval(cos_o, cos_i)
-                        fr, fg, fb = mat_rgb[mat, 0] * f, mat_rgb[mat, 1] * f, mat_rgb[mat, 2] * f
+                        fr, fg, fb = ar * f, ag * f, ab * f
                     else:
                         fr, fg, fb, pb = glossy_eval(nx, ny, nz, -dx, -dy, -dz, wx, wy, wz,
-                                                     mat_param[mat, 1], mat_rgb[mat, 0],
-                                                     mat_rgb[mat, 1], mat_rgb[mat, 2])
-                    sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, nx, ny, nz, wx, wy, wz,
+                                                     alpha, ar, ag, ab)
+                    sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, gx, gy, gz, wx, wy, wz,
                                                               dist)
                     rays += 1
                     if (fr > 0.0 or fg > 0.0 or fb > 0.0) and intersect_arrays(
@@ -212,15 +227,18 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
                         lg += bg * fg * eg * w
                         lb += bb * fb * eb * w
             kmax = depth - bounce
+            if mtype == MAT_DIFFUSE:  # the albedo (maybe textured) rides in beta (_photon_f)
+                br, bg, bb = br * ar, bg * ag, bb * ab
             break
         else:  # a mirror or glass: radiance transport on the camera side (1/eta^2)
-            if mtype == MAT_MIRROR and cos_o <= 0.0:
+            if mtype == MAT_MIRROR and (cos_o <= 0.0 or cos_g <= 0.0):
                 break
             u = 0.0 if mtype == MAT_MIRROR else u1d(smp, key, seed, pixel, index, spp,
                                                     base + DIM_GLASS, memo)
             dx, dy, dz, ox, oy, oz, wr, wg, wb, _es = specular_step(
-                mtype, mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2], mat_param[mat, 0],
-                hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+                mtype, ar, ag, ab, mat_param[mat, 0], hx, hy, hz, nx, ny, nz, dx, dy, dz, u)
+            if mtype == MAT_MIRROR and dx * gx + dy * gy + dz * gz <= 0.0:
+                break  # the shading normal reflected it into the surface
             br *= wr
             bg *= wg
             bb *= wb
@@ -332,9 +350,12 @@ def build_grid(ppos, inv_h, lo, hi, cell, bucket, start, cursor, order):
 
 @kernel_inline
 def _photon_f(mat_type, mat_rgb, mat_param, mat, nx, ny, nz, wx, wy, wz, ix, iy, iz):
-    """BSDF value at a visible point for a photon arriving along -wi."""
+    """BSDF value at a visible point for a photon arriving along -wi; a
+    diffuse point's albedo is in its beta already (visible_point: it may be
+    textured), so its f here is 1 / pi. A glossy one's inputs are constants
+    (the photon method refuses textured glossy materials)."""
     if mat_type[mat] == MAT_DIFFUSE:
-        return mat_rgb[mat, 0] * INV_PI, mat_rgb[mat, 1] * INV_PI, mat_rgb[mat, 2] * INV_PI
+        return INV_PI, INV_PI, INV_PI
     fr, fg, fb, pdf = glossy_eval(nx, ny, nz, wx, wy, wz, ix, iy, iz, mat_param[mat, 1],
                                   mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2])
     return fr, fg, fb

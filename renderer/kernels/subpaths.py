@@ -12,8 +12,13 @@ vertices are `delta`: their pdfs are 0, remapped to 1 in the ratios, and no
 strategy connects at them or next to them; point lights are delta positions
 (no s = 0 strategy). The camera (a pinhole, or a thin lens whose point t = 1
 samples anew) is connectible (t = 1).
-BSDFs: geometric normals only; the light subpath transports importance, so
-refraction takes no 1/eta^2 (the adjoint BSDF, pbrt's TransportMode::Importance).
+BSDFs are evaluated in the shading frame (V_NS) and are 0 where a direction
+lies behind the geometric normal (V_N); geometry terms take the shading
+cosines and density conversions the geometric ones (pbrt-v3). The light
+subpath transports importance: refraction takes no 1/eta^2, and its BSDF
+values carry Veach's adjoint correction for shading normals,
+|wo.ns| |wi.ng| / (|wo.ng| |wi.ns|), so that light tracing and path tracing
+agree (the adjoint BSDF, pbrt's TransportMode::Importance).
 No Russian roulette (as pbrt-v3's BDPT): paths end at the depth limit.
 
 Vertex records: a float64 row per vertex (fields V_* below) in one buffer per
@@ -50,34 +55,48 @@ import numpy as np
 
 from . import kernel, kernel_inline
 from .bsdf import (
+    MAT_DIELECTRIC,
     MAT_DIFFUSE,
     MAT_GLOSSY,
     MAT_MIRROR,
     dielectric_sample,
-    diffuse_eval,
     diffuse_sample,
     reflect,
 )
 from .camera import CAM_MARGIN, camera_connect, camera_pdf_dir, camera_ray_at
-from .geometry import intersect_arrays, offset_origin, surface_at_arrays
+from .geometry import intersect_arrays, offset_origin
+from .shading import shade_hit
 from .ggx import glossy_eval, glossy_sample
 from .lights import LIGHT_POINT, sample_emission
 from .sampling import BALANCE
-
-# Vertex record fields.
-V_P = 0  # position xyz 0..2
-V_N = 3  # front normal 3..5 (0 for the camera and point lights: not on a surface)
-V_BETA = 6  # throughput rgb 6..8
-V_PDF_FWD = 9
-V_PDF_REV = 10
-V_TYPE = 11
-V_DELTA = 12  # sampled by a specular lobe
-V_MAT = 13
-V_LIGHT = 14  # light index (light vertices, emitting surfaces) or -1
-V_WO = 15  # 15..17 unit direction towards the previous vertex of its subpath
-V_DLIGHT = 18  # 1 on a point light's vertex (delta position)
-NV = 19
-T_CAMERA, T_LIGHT, T_SURFACE = 0.0, 1.0, 2.0
+from .vertices import (  # noqa: F401 (the record's layout: re-exported)
+    V_P,
+    V_N,
+    V_BETA,
+    V_PDF_FWD,
+    V_PDF_REV,
+    V_TYPE,
+    V_DELTA,
+    V_MAT,
+    V_LIGHT,
+    V_WO,
+    V_DLIGHT,
+    V_NS,
+    V_ALB,
+    V_ALPHA,
+    V_FRONT,
+    NV,
+    T_CAMERA,
+    T_LIGHT,
+    T_SURFACE,
+    _on_surface,
+    _convert,
+    _bsdf_f_pdf,
+    shading_cos,
+    _connectible,
+    _dir,
+    vertex_f,
+)
 
 ALL_STRATEGIES = -1
 
@@ -106,69 +125,6 @@ def workspace(depth: int) -> np.ndarray:
 
 
 @kernel
-def _on_surface(V, i):
-    return V[i, V_N] != 0.0 or V[i, V_N + 1] != 0.0 or V[i, V_N + 2] != 0.0
-
-
-@kernel
-def _convert(V, i, pdf, j):
-    """Solid-angle pdf at vertex i towards vertex j -> area density at j."""
-    wx, wy, wz = V[j, 0] - V[i, 0], V[j, 1] - V[i, 1], V[j, 2] - V[i, 2]
-    d2 = wx * wx + wy * wy + wz * wz
-    if d2 == 0.0:
-        return 0.0
-    if _on_surface(V, j):
-        inv = 1.0 / math.sqrt(d2)
-        pdf *= abs(V[j, V_N] * wx + V[j, V_N + 1] * wy + V[j, V_N + 2] * wz) * inv
-    return pdf / d2
-
-
-@kernel
-def _bsdf_f_pdf(mat_type, mat_rgb, mat_param, mat, nx, ny, nz, wox, woy, woz, wix, wiy, wiz):
-    """(f rgb, pdf of sampling wi given wo) of a non-specular material; 0 for
-    specular ones (delta lobes are never evaluated)."""
-    mt = mat_type[mat]
-    if mt == MAT_DIFFUSE:
-        f, pdf = diffuse_eval(wox * nx + woy * ny + woz * nz, wix * nx + wiy * ny + wiz * nz)
-        return mat_rgb[mat, 0] * f, mat_rgb[mat, 1] * f, mat_rgb[mat, 2] * f, pdf
-    if mt == MAT_GLOSSY:
-        return glossy_eval(nx, ny, nz, wox, woy, woz, wix, wiy, wiz, mat_param[mat, 1],
-                           mat_rgb[mat, 0], mat_rgb[mat, 1], mat_rgb[mat, 2])
-    return 0.0, 0.0, 0.0, 0.0
-
-
-@kernel
-def _connectible(mat_type, V, i):
-    if V[i, V_TYPE] != T_SURFACE:
-        return True
-    mt = mat_type[int(V[i, V_MAT])]
-    return mt == MAT_DIFFUSE or mt == MAT_GLOSSY
-
-
-@kernel
-def _dir(V, i, j):
-    wx, wy, wz = V[j, 0] - V[i, 0], V[j, 1] - V[i, 1], V[j, 2] - V[i, 2]
-    d2 = wx * wx + wy * wy + wz * wz
-    if d2 == 0.0:
-        return 0.0, 0.0, 0.0, 0.0
-    inv = 1.0 / math.sqrt(d2)
-    return wx * inv, wy * inv, wz * inv, d2
-
-
-@kernel
-def vertex_f(mat_type, mat_rgb, mat_param, V, i, j):
-    """BSDF of surface vertex i scattering between its previous vertex (wo)
-    and vertex j (rgb). Reciprocal BSDFs: the same in both transport modes."""
-    wx, wy, wz, d2 = _dir(V, i, j)
-    if d2 == 0.0:
-        return 0.0, 0.0, 0.0
-    fr, fg, fb, pdf = _bsdf_f_pdf(mat_type, mat_rgb, mat_param, int(V[i, V_MAT]),
-                                  V[i, V_N], V[i, V_N + 1], V[i, V_N + 2],
-                                  V[i, V_WO], V[i, V_WO + 1], V[i, V_WO + 2], wx, wy, wz)
-    return fr, fg, fb
-
-
-@kernel
 def pdf_light(light_type, light_area, V, i, j):
     """Area density at j of a ray leaving light (or emitting surface) vertex i
     towards j as `sample_emission` draws it (pbrt's PdfLight; no pick)."""
@@ -178,8 +134,9 @@ def pdf_light(light_type, light_area, V, i, j):
     li = int(V[i, V_LIGHT])
     if light_type[li] == LIGHT_POINT:
         pdf = 0.25 / math.pi
-    else:
-        pdf = max(V[i, V_N] * wx + V[i, V_N + 1] * wy + V[i, V_N + 2] * wz, 0.0) / math.pi
+    else:  # the emitting side: V_N turned back to the front where it was turned
+        front = V[i, V_FRONT] * (V[i, V_N] * wx + V[i, V_N + 1] * wy + V[i, V_N + 2] * wz)
+        pdf = max(front, 0.0) / math.pi
     if _on_surface(V, j):
         pdf *= abs(V[j, V_N] * wx + V[j, V_N + 1] * wy + V[j, V_N + 2] * wz)
     return pdf / d2
@@ -211,8 +168,7 @@ def vertex_pdf(mat_type, mat_rgb, mat_param, light_type, light_area, cam, width,
         px, py, pz, e2 = _dir(V, i, prev)
         if e2 == 0.0:
             return 0.0
-        pdf = _bsdf_f_pdf(mat_type, mat_rgb, mat_param, int(V[i, V_MAT]), V[i, V_N],
-                          V[i, V_N + 1], V[i, V_N + 2], px, py, pz, wx, wy, wz)[3]
+        pdf = _bsdf_f_pdf(mat_type, V, i, px, py, pz, wx, wy, wz)[3]
     return _convert(V, i, pdf, j)
 
 
@@ -232,11 +188,10 @@ def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf
         if prim < 0:
             break
         hx, hy, hz = sx + t * dx, sy + t * dy, sz + t * dz
-        nx, ny, nz, mat, light = surface_at_arrays(sc.tri_n, sc.tri_mat, sc.tri_light, sc.sph,
-                                                   sc.sph_flip, sc.sph_mat, sc.sph_light, prim,
-                                                   hx, hy, hz)
+        (fx, fy, fz, gx, gy, gz, nx, ny, nz, ar, ag, ab, alpha,
+         mat, light) = shade_hit(sc, prim, hx, hy, hz, dx, dy, dz)
         V[n, 0], V[n, 1], V[n, 2] = hx, hy, hz
-        V[n, 3], V[n, 4], V[n, 5] = nx, ny, nz
+        V[n, 3], V[n, 4], V[n, 5] = gx, gy, gz
         V[n, 6], V[n, 7], V[n, 8] = br, bg, bb
         V[n, V_PDF_REV] = 0.0
         V[n, V_TYPE] = T_SURFACE
@@ -245,6 +200,10 @@ def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf
         V[n, V_LIGHT] = light
         V[n, V_WO], V[n, V_WO + 1], V[n, V_WO + 2] = -dx, -dy, -dz
         V[n, V_DLIGHT] = 0.0
+        V[n, V_NS], V[n, V_NS + 1], V[n, V_NS + 2] = nx, ny, nz
+        V[n, V_ALB], V[n, V_ALB + 1], V[n, V_ALB + 2] = ar, ag, ab
+        V[n, V_ALPHA] = alpha
+        V[n, V_FRONT] = 1.0 if fx * gx + fy * gy + fz * gz >= 0.0 else -1.0
         V[n, V_PDF_FWD] = _convert(V, n - 1, pdf_fwd, n)
         n += 1
         if n >= n_end:
@@ -252,29 +211,30 @@ def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf
         k = ubase + 4 * (n - n0 - 1)
         mt = sc.mat_type[mat]
         cos_o = -(dx * nx + dy * ny + dz * nz)
+        cos_g = -(dx * gx + dy * gy + dz * gz)
         side = 1.0
         delta = False
         if mt == MAT_DIFFUSE:
-            if cos_o <= 0.0:
+            if cos_o <= 0.0 or cos_g <= 0.0:
                 break
             wx, wy, wz, cos_i, pdf = diffuse_sample(nx, ny, nz, u[k], u[k + 1])
             if pdf <= 0.0:
                 break
-            wr, wg, wb = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
+            wr, wg, wb = ar, ag, ab
             pdf_rev = cos_o / math.pi
         elif mt == MAT_GLOSSY:
-            alpha = sc.mat_param[mat, 1]
+            if cos_g <= 0.0:
+                break
             wx, wy, wz, wr, wg, wb, pdf = glossy_sample(
-                nx, ny, nz, -dx, -dy, -dz, alpha, sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1],
-                sc.mat_rgb[mat, 2], u[k], u[k + 1])
+                nx, ny, nz, -dx, -dy, -dz, alpha, ar, ag, ab, u[k], u[k + 1])
             if pdf <= 0.0:
                 break
             pdf_rev = glossy_eval(nx, ny, nz, wx, wy, wz, -dx, -dy, -dz, alpha, 1.0, 1.0, 1.0)[3]
         elif mt == MAT_MIRROR:
-            if cos_o <= 0.0:
+            if cos_o <= 0.0 or cos_g <= 0.0:
                 break
             wx, wy, wz = reflect(dx, dy, dz, nx, ny, nz)
-            wr, wg, wb = sc.mat_rgb[mat, 0], sc.mat_rgb[mat, 1], sc.mat_rgb[mat, 2]
+            wr, wg, wb = ar, ag, ab
             delta = True
             pdf = 0.0
             pdf_rev = 0.0
@@ -287,6 +247,14 @@ def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf
             delta = True
             pdf = 0.0
             pdf_rev = 0.0
+        if gx != nx or gy != ny or gz != nz:  # a shading normal: the usual side checks
+            wig = wx * gx + wy * gy + wz * gz
+            wis = wx * nx + wy * ny + wz * nz
+            if (mt != MAT_DIELECTRIC and wig <= 0.0) or wig * wis <= 0.0 or cos_o * cos_g <= 0.0:
+                break  # (glass may leave through the surface, on the side it refracts to)
+            if importance:  # Veach's adjoint BSDF for shading normals
+                c = abs(cos_o) * abs(wig) / (abs(cos_g) * abs(wis))
+                wr, wg, wb = wr * c, wg * c, wb * c
         if wr <= 0.0 and wg <= 0.0 and wb <= 0.0:
             break
         br *= wr
@@ -296,7 +264,10 @@ def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf
             V[n - 1, V_DELTA] = 1.0
         pdf_fwd = pdf
         V[n - 2, V_PDF_REV] = _convert(V, n - 1, pdf_rev, n - 2)
-        sx, sy, sz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+        if mt == MAT_DIELECTRIC:
+            sx, sy, sz = offset_origin(hx, hy, hz, nx, ny, nz, side)
+        else:
+            sx, sy, sz = offset_origin(hx, hy, hz, gx, gy, gz, side)
         dx, dy, dz = wx, wy, wz
     return n, rays
 
@@ -338,6 +309,8 @@ def light_subpath(sc, stack, V, row0, n_max, u, ubase):
         V[r, c] = 0.0
     V[r, 0], V[r, 1], V[r, 2] = ox, oy, oz
     V[r, 3], V[r, 4], V[r, 5] = nx, ny, nz
+    V[r, V_NS], V[r, V_NS + 1], V[r, V_NS + 2] = nx, ny, nz
+    V[r, V_FRONT] = 1.0
     V[r, 6], V[r, 7], V[r, 8] = er / pdf_pos, eg / pdf_pos, eb / pdf_pos
     V[r, V_PDF_FWD] = pdf_pos
     V[r, V_TYPE] = T_LIGHT
@@ -462,8 +435,8 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
     if s == 0:
         li = int(V[pt, V_LIGHT])
         if V[pt, V_TYPE] == T_SURFACE and li >= 0:
-            cos = (V[pt, V_N] * V[pt, V_WO] + V[pt, V_N + 1] * V[pt, V_WO + 1]
-                   + V[pt, V_N + 2] * V[pt, V_WO + 2])
+            cos = V[pt, V_FRONT] * (V[pt, V_N] * V[pt, V_WO] + V[pt, V_N + 1] * V[pt, V_WO + 1]
+                                    + V[pt, V_N + 2] * V[pt, V_WO + 2])
             if cos > 0.0:
                 r = V[pt, 6] * sc.light_rgb[li, 0]
                 g = V[pt, 7] * sc.light_rgb[li, 1]
@@ -490,7 +463,7 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
         else:
             # one camera row of V holds the camera's point (row 0): connect to it
             fr, fg, fb = vertex_f(sc.mat_type, sc.mat_rgb, sc.mat_param, V, qs, 0)
-            c = abs(V[qs, 3] * wx + V[qs, 4] * wy + V[qs, 5] * wz)
+            c = shading_cos(V, qs, wx, wy, wz, True)
             fr, fg, fb = fr * c, fg * c, fb * c
         k = we * cos_cam / (dist * dist)
         r, g, b = V[qs, 6] * fr * k, V[qs, 7] * fg * k, V[qs, 8] * fb * k
@@ -510,6 +483,8 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
             V[srow, c] = 0.0
         V[srow, 0], V[srow, 1], V[srow, 2] = ox, oy, oz
         V[srow, 3], V[srow, 4], V[srow, 5] = nx, ny, nz
+        V[srow, V_NS], V[srow, V_NS + 1], V[srow, V_NS + 2] = nx, ny, nz
+        V[srow, V_FRONT] = 1.0
         V[srow, V_TYPE] = T_LIGHT
         V[srow, V_MAT] = -1.0
         V[srow, V_LIGHT] = li
@@ -526,7 +501,7 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
                 return 0.0, 0.0, 0.0, fx, fy, 0
             k = cos_l / (pdf_pos * d2)
         fr, fg, fb = vertex_f(sc.mat_type, sc.mat_rgb, sc.mat_param, V, pt, srow)
-        c = abs(V[pt, 3] * wx + V[pt, 4] * wy + V[pt, 5] * wz) * k
+        c = shading_cos(V, pt, wx, wy, wz, False) * k
         r = V[pt, 6] * fr * er * c
         g = V[pt, 7] * fg * eg * c
         b = V[pt, 8] * fb * eb * c
@@ -547,8 +522,7 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
             return 0.0, 0.0, 0.0, fx, fy, 0
         ar, ag, ab = vertex_f(sc.mat_type, sc.mat_rgb, sc.mat_param, V, qs, pt)
         cr, cg, cb = vertex_f(sc.mat_type, sc.mat_rgb, sc.mat_param, V, pt, qs)
-        gterm = abs(V[qs, 3] * wx + V[qs, 4] * wy + V[qs, 5] * wz) * abs(
-            V[pt, 3] * wx + V[pt, 4] * wy + V[pt, 5] * wz) / d2
+        gterm = shading_cos(V, qs, wx, wy, wz, True) * shading_cos(V, pt, wx, wy, wz, False) / d2
         r = V[qs, 6] * ar * cr * V[pt, 6] * gterm
         g = V[qs, 7] * ag * cg * V[pt, 7] * gterm
         b = V[qs, 8] * ab * cb * V[pt, 8] * gterm
