@@ -1,37 +1,116 @@
-"""Scene importers: a user's file tree in, a native document plus assets out.
+"""Scene importers: a scene file (and the folder around it) in, a native
+rayfarm document and its assets out.
 
-Placeholder until the "assets" branch lands its dispatcher (contract section 2):
-only the types the glTF importer returns, shaped as the contract says.
+    imported = import_scene(Path("veach-bidir/scene.xml"))
+    doc, assets = resolve_scene(imported.doc, assets=imported.assets)
+
+`import_scene` dispatches on the suffix: ``.json`` is rayfarm's own format,
+``.xml`` Mitsuba (renderer.importers.mitsuba), ``.gltf``/``.glb`` glTF 2.0
+(renderer.importers.gltf). Every relative path a scene names must stay inside
+`root` (default: the scene file's folder). The document names meshes and
+textures by digest; `assets` holds their blobs (renderer.assets). `report`
+lists every element that is not rendered as written (approximated, ignored),
+with its file and line: nothing a file asks for is dropped without an entry.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Imported", "ReportEntry", "import_scene"]
+from ..errors import SceneError
+
+__all__ = ["Imported", "ReportEntry", "import_scene", "inside_root", "IMPORT_SUFFIXES"]
+
+IMPORT_SUFFIXES = (".json", ".xml", ".gltf", ".glb")
 
 
 @dataclass(frozen=True)
 class ReportEntry:
+    """One element not rendered as written: `element` e.g.
+    ``bsdf type="roughplastic" id="Floor"``, `file` relative to the root,
+    `line` (None where a format has none), `action` e.g. ``approximated as
+    diffuse (reflectance = diffuseReflectance)`` or ``ignored``."""
+
     element: str
     file: str
     line: int | None
     action: str
 
+    def to_dict(self) -> dict:
+        return {"element": self.element, "file": self.file, "line": self.line,
+                "action": self.action}
+
+    def __str__(self) -> str:
+        where = f"{self.file}:{self.line}" if self.line is not None else self.file
+        return f"{where}: {self.element}: {self.action}"
+
 
 @dataclass
 class Imported:
+    """A native document (meshes and textures by digest), its asset blobs by
+    digest, and the import report."""
+
     doc: dict
     assets: dict[str, bytes] = field(default_factory=dict)
     report: list[ReportEntry] = field(default_factory=list)
 
 
+def inside_root(root: Path, relative: str, where: str = "") -> Path:
+    """`relative` (a path a scene file names, with / or \\ separators) resolved
+    under `root`; refused if it is absolute or leaves `root` (also through a
+    symbolic link)."""
+    rel = str(relative).replace("\\", "/")
+    if not rel or rel.startswith("/") or (len(rel) > 1 and rel[1] == ":"):
+        raise SceneError(f"path '{str(relative)[:80]}' must be relative to the scene's folder",
+                         where)
+    base = Path(root).resolve()
+    target = (base / rel).resolve()
+    if target != base and base not in target.parents:
+        raise SceneError(f"path '{str(relative)[:80]}' leaves the scene's folder", where)
+    return target
+
+
 def import_scene(path: Path, root: Path | None = None) -> Imported:
+    """Import the scene file `path`; relative paths stay inside `root`."""
     path = Path(path)
+    root = Path(root) if root is not None else path.parent
     suffix = path.suffix.lower()
+    if suffix not in IMPORT_SUFFIXES:
+        raise SceneError(f"unknown scene file type '{path.suffix}' (allowed: "
+                         f"{', '.join(IMPORT_SUFFIXES)})", path.name)
+    if not path.is_file():
+        raise SceneError(f"scene file not found: {path.name}", path.name)
+    if suffix == ".xml":
+        from .mitsuba import import_mitsuba  # imported lazily: each importer is optional
+        return import_mitsuba(path, root)
     if suffix in (".gltf", ".glb"):
         from .gltf import import_gltf
         return import_gltf(path, root)
-    from ..errors import SceneError
-    raise SceneError(f"unsupported scene file type '{suffix}'", path.name)
+    return _import_native(path, root)
+
+
+def _import_native(path: Path, root: Path) -> Imported:
+    """A rayfarm JSON scene: its mesh files become assets, named by digest."""
+    from ..scene_format import MAX_FILE_BYTES, MAX_NESTING, _nesting, resolve_scene
+
+    if path.stat().st_size > MAX_FILE_BYTES:
+        raise SceneError("scene file too large", path.name)
+    try:
+        doc = json.loads(path.read_text())
+    except UnicodeDecodeError:
+        raise SceneError(f"{path.name} is not a text file", path.name) from None
+    except json.JSONDecodeError as exc:
+        raise SceneError(f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}",
+                         f"{path.name}:{exc.lineno}") from None
+    except RecursionError:
+        raise SceneError(f"{path.name} is nested too deeply", path.name) from None
+    if isinstance(doc, (dict, list)) and _nesting(doc) > MAX_NESTING:
+        raise SceneError(f"{path.name} nests lists and objects more than {MAX_NESTING} levels "
+                         "deep", path.name)
+    base = path.parent
+    if Path(root).resolve() not in (base.resolve(), *base.resolve().parents):
+        raise SceneError("the scene file lies outside its root folder", path.name)
+    doc, assets = resolve_scene(doc, base_dir=base, root=root)
+    return Imported(doc=doc, assets=assets, report=[])
