@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from renderer.assets import decode_asset
 from renderer.errors import SceneError
 from renderer.importers import import_scene
 from renderer.importers import gltf as G
@@ -63,6 +64,7 @@ def _check_imported(imported, where: str) -> None:
     doc = imported.doc
     for digest, blob in imported.assets.items():
         assert G.asset_digest(blob) == digest, where
+        decode_asset(blob)  # the canonical encoding's own checks accept it
     assert doc["shapes"], where
     for s in doc["shapes"]:
         assert s["mesh"] in imported.assets and s["material"] in doc["materials"], where

@@ -36,32 +36,7 @@ from ..scene_format import (COLLINEAR, MAX_COORDINATE, MAX_FILE_BYTES, MAX_RADIA
                             MAX_TRIANGLES, MIN_EMITTER_AREA, MIN_ROUGHNESS)
 from . import Imported, ReportEntry
 
-try:
-    from ..assets import asset_digest, encode_mesh, encode_texture
-except ImportError:  # until the assets branch lands: same signatures, provisional bytes
-    import hashlib
-
-    def _pack(tag: bytes, *arrays: np.ndarray | None) -> bytes:
-        parts = [tag]
-        for a in arrays:
-            if a is None:
-                parts.append(b"\0")
-                continue
-            a = np.ascontiguousarray(a)
-            parts.append(b"\1" + struct.pack("<4sI", a.dtype.str.encode(), a.ndim)
-                         + struct.pack(f"<{a.ndim}Q", *a.shape) + a.tobytes())
-        return b"".join(parts)
-
-    def encode_mesh(positions, faces, normals=None, uvs=None) -> bytes:
-        return _pack(b"RFMESH0", np.asarray(positions, "<f8"), np.asarray(faces, "<i8"),
-                     None if normals is None else np.asarray(normals, "<f8"),
-                     None if uvs is None else np.asarray(uvs, "<f8"))
-
-    def encode_texture(texels) -> bytes:
-        return _pack(b"RFTEX0", np.asarray(texels, "<f4"))
-
-    def asset_digest(blob: bytes) -> str:
-        return hashlib.sha256(blob).hexdigest()
+from ..assets import asset_digest, encode_mesh, encode_texture
 
 __all__ = ["import_gltf", "SUPPORTED_EXTENSIONS", "POINT_CANDELA_PER_WATT_SR"]
 
