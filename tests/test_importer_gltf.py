@@ -392,6 +392,9 @@ HOSTILE = [
     ("huge translation", _set("nodes/0/translation", [1e300, 0, 0]), "values must lie",
      "#/nodes/0/translation"),
     ("huge count", _set("accessors/1/count", 10 ** 12), "count must lie", "#/accessors/1/count"),
+    ("zeros for free", lambda g: (g["accessors"][0].pop("bufferView"),
+                                  g["accessors"][0].update(count=2_000_000)),
+     "without a bufferView", "#/accessors/0/count"),
     ("attribute counts", lambda g: g["meshes"][0]["primitives"][0]["attributes"].update(NORMAL=1),
      "VEC3", "#/accessors/1"),
 ]

@@ -59,6 +59,8 @@ MAX_NODE_DEPTH = 128  # levels of the node hierarchy
 MAX_SHAPES = 100_000  # mesh primitives placed by nodes
 MAX_TOTAL_BYTES = 1024 * 1024 * 1024  # buffers and images read, all together
 MAX_ACCESSOR_ELEMENTS = 3 * MAX_TRIANGLES
+MAX_ZERO_ELEMENTS = 1 << 20  # elements of an accessor with no buffer view
+MAX_TEXTURE_BYTES = 512 * 1024 * 1024  # texture assets made, all together
 DEFAULT_LONG_SIDE = 512  # pixels along the longer side of the image
 DEFAULT_FOV = 40.0  # degrees, the framing camera's field of view
 
@@ -135,6 +137,7 @@ class _Importer:
         self.meshes: dict[tuple[int, int], dict | None] = {}
         self.triangles = 0
         self.skipped_modes: set[str] = set()
+        self.texture_bytes = 0
 
     # -- errors, report -------------------------------------------------------
 
@@ -405,17 +408,22 @@ class _Importer:
                                 f"{a['bufferView']} has {len(view)}", ptr)
             out = np.ndarray((count, n), dtype=dtype, buffer=view, offset=offset,
                              strides=(stride, size)).copy()
-        else:
+        else:  # all zeros (or sparse): cheap to ask for, so bounded tighter
+            if count > MAX_ZERO_ELEMENTS:
+                raise self.fail(f"an accessor without a bufferView may have at most "
+                                f"{MAX_ZERO_ELEMENTS} elements, this one has {count}",
+                                f"{ptr}/count")
             out = np.zeros((count, n), dtype=dtype)
         sparse = self.get(a, "sparse", ptr, "obj")
         if sparse is not None:
             self.apply_sparse(out, sparse, f"{ptr}/sparse", count, n, dtype, size)
-        if dtype == "<f4":
-            out = out.astype(np.float64)
-        elif normalized:
-            out = _normalize(out, ctype)
-        else:
-            out = out.astype(np.int64)
+        with np.errstate(invalid="ignore", over="ignore"):  # NaN and inf are checked by use
+            if dtype == "<f4":
+                out = out.astype(np.float64)
+            elif normalized:
+                out = _normalize(out, ctype)
+            else:
+                out = out.astype(np.int64)
         self.accessors[key] = out
         return out
 
@@ -659,8 +667,6 @@ class _Importer:
             shape = {"type": "mesh", "mesh": prim["digest"], "material": name,
                      "to_world": world.tolist(),
                      "name": f"{label or 'mesh ' + str(mi)}/{k}"}
-            if prim["face_normals"]:
-                shape["face_normals"] = True
             if emission is not None:
                 digest = self.emitting_mesh(prim, world, pptr)
                 if digest is None:
@@ -757,8 +763,7 @@ class _Importer:
         digest = asset_digest(blob)
         self.assets[digest] = blob
         entry = {"digest": digest, "positions": pos, "faces": faces, "normals": normals,
-                 "uvs": uvs, "material": material, "triangles": len(faces),
-                 "face_normals": False}
+                 "uvs": uvs, "material": material, "triangles": len(faces)}
         self.meshes[key] = entry
         return entry
 
@@ -815,10 +820,9 @@ class _Importer:
         else:
             m, ptr = self.item("materials", mi)
             label = self.get(m, "name", ptr, "str") or f"material{mi}"
-        name = label
+        name = label if label not in self.material_names else f"{label}#{key}"
         while name in self.material_names:
-            name = f"{label}#{mi}"
-            label = name
+            name += "'"
         self.material_names.add(name)
         what = f'"{label}"'
         pbr = self.obj(self.get(m, "pbrMetallicRoughness", ptr, "obj", default={}),
@@ -1067,6 +1071,10 @@ class _Importer:
     def baked(self, info: dict, purpose: str, texels: np.ndarray, material: str) -> dict:
         """A bitmap texture entry for `texels` (the glTF factors already
         multiplied in), named after the material and its input."""
+        self.texture_bytes += texels.size * 4
+        if self.texture_bytes > MAX_TEXTURE_BYTES:
+            raise self.fail(f"the textures of the scene's materials exceed {MAX_TEXTURE_BYTES} "
+                            "bytes of texels", info["ptr"])
         blob = encode_texture(np.ascontiguousarray(texels, dtype=np.float32))
         digest = asset_digest(blob)
         self.assets[digest] = blob
