@@ -711,7 +711,8 @@ class _Importer:
         floats = (5126,)
         quant_pos = (5120, 5121, 5122, 5123) if self.quantized else ()
         pos = self.accessor(self.index(attrs, "POSITION", f"{ptr}/attributes", "accessors"),
-                            f"POSITION of {ptr}", ("VEC3",), floats + quant_pos)
+                            f"POSITION of {ptr}", ("VEC3",), floats + quant_pos
+                            ).astype(np.float64)
         nv = len(pos)
         _check_finite(self, pos, attrs["POSITION"], "POSITION")
         if np.any(np.abs(pos) > MAX_COORDINATE):
@@ -723,6 +724,8 @@ class _Importer:
             ni = self.index(attrs, "NORMAL", f"{ptr}/attributes", "accessors")
             normals = self.accessor(ni, f"NORMAL of {ptr}", ("VEC3",),
                                     floats + ((5120, 5122) if self.quantized else ()))
+            if normals.dtype != np.float64:
+                raise self.fail("integer NORMAL must be normalized", f"/accessors/{ni}")
             self.same_count(normals, nv, ni, "NORMAL", ptr)
             length = np.linalg.norm(normals, axis=1)
             bad = ~np.isfinite(length) | (length < 1e-6)
@@ -737,8 +740,9 @@ class _Importer:
             ti = self.index(attrs, "TEXCOORD_0", f"{ptr}/attributes", "accessors")
             uvs = self.accessor(ti, f"TEXCOORD_0 of {ptr}", ("VEC2",),
                                 floats + (5121, 5123) + ((5120, 5122) if self.quantized else ()))
-            if uvs.dtype != np.float64:
+            if uvs.dtype != np.float64 and not self.quantized:
                 raise self.fail("integer TEXCOORD_0 must be normalized", f"/accessors/{ti}")
+            uvs = uvs.astype(np.float64)
             self.same_count(uvs, nv, ti, "TEXCOORD_0", ptr)
             if not np.all(np.isfinite(uvs)):
                 self.note(ptr, "TEXCOORD_0 ignored: it holds values that are not finite")
