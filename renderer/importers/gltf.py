@@ -148,7 +148,7 @@ class _Importer:
         return SceneError(message, self.where(ptr) if ptr else self.name)
 
     def note(self, ptr: str, action: str, what: str = "") -> None:
-        element = f"{ptr}{' ' + what if what else ''}" if ptr else (what or "file")
+        element = f"#{ptr}{' ' + what if what else ''}" if ptr else (what or "#")
         if (element, action) not in self.reported:
             self.reported.add((element, action))
             self.report.append(ReportEntry(element=element, file=self.name, line=None,
