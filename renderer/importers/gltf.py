@@ -78,13 +78,14 @@ WRAP_REPEAT = 10497
 IMAGE_SUFFIX = {"image/png": ".png", "image/jpeg": ".jpg"}
 
 
-def _read_texture(path: Path, raw: bool) -> np.ndarray:
-    """(H, W, C) float32 linear texels (sRGB decoded unless `raw`)."""
+def _read_texture(path: Path, raw: bool, name: str) -> np.ndarray:
+    """(H, W, C) float32 linear texels (sRGB decoded unless `raw`); errors call
+    the image `name`."""
     try:
         from ..textures import read_texture
-    except ImportError:  # until the shading branch lands its reader
+    except ImportError:  # until the shading branch's reader is merged: then unused
         return _read_texture_pillow(path, raw)
-    return read_texture(path, raw=raw)
+    return read_texture(path, raw=raw, name=name)
 
 
 def _read_texture_pillow(path: Path, raw: bool) -> np.ndarray:
@@ -1040,7 +1041,8 @@ class _Importer:
         img, iptr = self.item("images", info["image"])
         uri = self.get(img, "uri", iptr, "str")
         if uri is not None and not uri.startswith("data:"):
-            texels = self.decode(self.local_file(uri, f"{iptr}/uri"), raw, iptr)
+            f = self.local_file(uri, f"{iptr}/uri")
+            texels = self.decode(f, raw, iptr, f.relative_to(self.root).as_posix())
         else:
             if uri is not None:
                 data, mime = self.data_uri(uri, f"{iptr}/uri")
@@ -1054,7 +1056,7 @@ class _Importer:
             with tempfile.TemporaryDirectory(prefix="rayfarm-gltf-") as tmp:
                 f = Path(tmp) / f"image{IMAGE_SUFFIX[mime]}"
                 f.write_bytes(data)
-                texels = self.decode(f, raw, iptr)
+                texels = self.decode(f, raw, iptr, f"{self.name}#{iptr}")
         texels = np.asarray(texels, dtype=np.float32)
         if texels.ndim == 2:
             texels = texels[..., None]
@@ -1065,10 +1067,10 @@ class _Importer:
         self.images[key] = texels
         return texels
 
-    def decode(self, f: Path, raw: bool, ptr: str) -> np.ndarray:
+    def decode(self, f: Path, raw: bool, ptr: str, name: str) -> np.ndarray:
         self.count_bytes(f.stat().st_size, ptr)
         try:
-            return _read_texture(f, raw)
+            return _read_texture(f, raw, name)
         except SceneError as exc:
             raise self.fail(exc.message, ptr) from None
 
