@@ -439,3 +439,51 @@ def test05_broken_containers_are_refused(tmp_path):
     (tmp_path / "inner").mkdir()
     with pytest.raises(SceneError, match="outside its root"):
         import_scene(tmp_path / "nan.gltf", root=tmp_path / "inner")
+
+
+def test06_default_framing_lights_and_degenerate_emitters(tmp_path, recorded):
+    """Without a camera, one frames the bounds from +z (the bounding sphere
+    inside a 40-degree view); a spot light is a point light and a directional
+    one is left out, both reported; an emitting primitive loses the triangles
+    an area light cannot have (none left: no emitter), reported."""
+    quad = np.array([[-2, -1, 0], [2, -1, 0], [2, 1, 0], [-2, 1, 0], [5, 5, 5]], "<f4")
+    data, views, acc = _pack([quad, np.array([0, 1, 2, 0, 2, 3, 4, 4, 4], "<u2")])
+    gltf = {
+        "bufferViews": views, "accessors": acc, "extensionsUsed": ["KHR_lights_punctual"],
+        "scenes": [{"nodes": [0, 1, 2]}],
+        "nodes": [{"mesh": 0, "translation": [10, 0, 0]},
+                  {"extensions": {"KHR_lights_punctual": {"light": 0}}, "translation": [0, 3, 0]},
+                  {"extensions": {"KHR_lights_punctual": {"light": 1}}}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1,
+                                    "material": 0}]}],
+        "materials": [{"emissiveFactor": [1, 1, 1]}],
+        "extensions": {"KHR_lights_punctual": {"lights": [
+            {"type": "spot", "intensity": 683, "spot": {"outerConeAngle": 0.5}},
+            {"type": "directional", "intensity": 5}]}},
+    }
+    imported = import_scene(_write(tmp_path, gltf, data))
+    doc = imported.doc
+    (shape,) = doc["shapes"]
+    assert recorded[shape["mesh"]]["faces"].tolist() == [[0, 1, 2], [0, 2, 3]]
+    assert shape["emitter"] == {"type": "area", "radiance": [1.0, 1.0, 1.0]}
+    assert doc["emitters"] == [{"type": "point", "position": [0.0, 3.0, 0.0],
+                                "intensity": [1.0, 1.0, 1.0]}]
+    cam = doc["camera"]
+    m = np.asarray(cam["to_world"])
+    lo, hi = np.array([8, -1, 0]), np.array([15, 5, 5])  # the world bounds of all 5 vertices
+    radius = np.linalg.norm(hi - lo) / 2
+    assert np.allclose(m[:3, 3], (lo + hi) / 2 + [0, 0, radius / math.sin(math.radians(20))])
+    assert np.allclose(m[:3, 2], [0, 0, -1]) and np.allclose(m[:3, 0], [-1, 0, 0])
+    assert cam["fov"] == 40 and cam["fov_axis"] == "smaller"
+    actions = " | ".join(f"{e.element}: {e.action}" for e in imported.report)
+    for words in ("1 degenerate triangles left out", "spot light approximated",
+                  "#/extensions/KHR_lights_punctual/lights/1: ignored", "default camera frames"):
+        assert words in actions, actions
+    gltf["materials"][0]["emissiveFactor"] = [0, 0, 0]
+    gltf["meshes"][0]["primitives"][0]["material"] = 1
+    gltf["materials"].append({"emissiveFactor": [1, 0, 0]})
+    acc2 = dict(acc[1], count=3, byteOffset=12)  # only the degenerate triangle
+    gltf["accessors"] = [acc[0], acc2]
+    imported = import_scene(_write(tmp_path, gltf, data))
+    assert "emitter" not in imported.doc["shapes"][0]
+    assert any("none of its triangles has an area" in e.action for e in imported.report)
