@@ -40,7 +40,7 @@ from .errors import SceneError
 
 __all__ = ["Asset", "AssetSource", "encode_mesh", "encode_texture", "decode_asset",
            "asset_digest", "asset_header", "load_asset", "is_digest", "MAX_ASSET_TRIANGLES",
-           "MAX_ASSET_VERTICES", "MAX_TEXTURE_TEXELS"]
+           "MAX_ASSET_VERTICES", "MAX_TEXTURE_TEXELS", "DirectorySource", "write_assets"]
 
 MAGIC = b"RFAS"
 VERSION = 1
@@ -234,3 +234,39 @@ def load_asset(source: AssetSource | Mapping[str, bytes] | None, digest: str,
     if asset_digest(blob) != digest:
         raise SceneError(f"asset {digest[:12]} does not match its digest", where)
     return bytes(blob) if not isinstance(blob, bytes) else blob
+
+
+class DirectorySource:
+    """An asset source reading `<directory>/<digest>` files (the store's
+    asset folder, a render's temporary folder); picklable, so it crosses
+    process boundaries as a path."""
+
+    def __init__(self, directory):
+        self.directory = str(directory)
+
+    def __call__(self, digest: str) -> bytes:
+        if not is_digest(digest):
+            raise KeyError(digest)
+        import os
+
+        with open(os.path.join(self.directory, digest), "rb") as fh:
+            return fh.read()
+
+    def __repr__(self) -> str:
+        return f"DirectorySource({self.directory!r})"
+
+
+def write_assets(directory, assets: Mapping[str, bytes]) -> None:
+    """Write blobs as `<directory>/<digest>` files (a DirectorySource reads them)."""
+    import os
+
+    os.makedirs(directory, exist_ok=True)
+    for digest, blob in assets.items():
+        if not is_digest(digest) or asset_digest(blob) != digest:
+            raise SceneError(f"asset {str(digest)[:12]} does not match its digest")
+        path = os.path.join(directory, digest)
+        if not os.path.exists(path):
+            tmp = path + ".tmp"
+            with open(tmp, "wb") as fh:
+                fh.write(blob)
+            os.replace(tmp, path)

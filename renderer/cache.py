@@ -34,7 +34,7 @@ __all__ = ["CACHES", "DEFAULT_MAX_BYTES", "DiskCache", "CacheInfo", "cache_root"
            "disk_cache", "reset"]
 
 DEFAULT_MAX_BYTES = 1 << 30
-CACHES = ("radiosity",)  # the named caches of the renderer (subdirectories of the root)
+CACHES = ("radiosity", "assets")  # the named caches of the renderer (subdirectories of the root)
 _KEY = re.compile(r"[0-9A-Za-z_-]{1,128}")
 _SUFFIX = ".entry"
 _STALE_TMP_SECONDS = 3600.0  # a temporary file this old was left by a dead process

@@ -34,6 +34,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 from collections import deque
@@ -41,6 +42,7 @@ from concurrent.futures import FIRST_COMPLETED, Future, wait
 from multiprocessing.connection import wait as wait_ready
 from typing import Callable
 
+from .assets import DirectorySource, write_assets
 from .cache import cache_root
 from .film import Film, PartialFilm, merge
 from .plan import Unit
@@ -124,11 +126,12 @@ def _child_main(conn, parent_pid: int, cache) -> None:
             return
         if args is None:
             return
-        scene_key, text, spec, unit, inputs, job_id = args
+        scene_key, text, spec, unit, inputs, job_id, asset_dir = args
         captured = None
         try:  # the unit's own log lines and traceback travel with its outcome
             with capture_unit_log(job_id, unit.get("index")) as captured:
-                film = execute_unit(scene_key, lambda: text, spec, unit, inputs)
+                film = execute_unit(scene_key, lambda: text, spec, unit, inputs,
+                                    DirectorySource(asset_dir) if asset_dir else None)
             outcome = (True, film, captured.to_dict())
         except BaseException as exc:  # noqa: BLE001 - reported to the unit's future
             outcome = (False, exc, captured.to_dict() if captured is not None else None)
@@ -238,11 +241,13 @@ class LocalPool:
             thread.start()
 
     def submit(self, scene_key: str, text: str, spec: dict, unit: dict, tag: int = 0,
-               inputs: dict[int, bytes] | None = None, job_id: str | None = None) -> Future:
+               inputs: dict[int, bytes] | None = None, job_id: str | None = None,
+               asset_dir: str | None = None) -> Future:
         """Run one unit; the future's result is the partial film's bytes. A
         nonzero `tag` shows in `rendering()` while a process renders the unit;
         `inputs` are the film bytes of the units it needs; `job_id` names the
-        job in its log records. Canceling the future works until a process
+        job in its log records; `asset_dir` holds the scene's assets as
+        `<digest>` files (read once, when a process first builds the scene). Canceling the future works until a process
         takes it. Once the future is done, `future.unit_log` is the unit's
         captured log (renderer.unitlog), or None if the process died."""
         future: Future = Future()
@@ -250,7 +255,8 @@ class LocalPool:
         with self._changed:
             if self._closed:
                 raise RuntimeError("the pool is shut down")
-            self._waiting.append((future, (scene_key, text, spec, unit, inputs, job_id), tag))
+            self._waiting.append((future, (scene_key, text, spec, unit, inputs, job_id,
+                                           None if asset_dir is None else str(asset_dir)), tag))
             self._changed.notify()
         return future
 
@@ -404,6 +410,12 @@ def render(scene_source, spec: RenderSpec, *, pool: LocalPool | None = None,
     spec.validate(scene=doc)
     key, text = scene_text(doc)
     units = METHODS[spec.method].make_plan(spec, progressive)
+    # The render processes read the scene's meshes and textures from files:
+    # a blob is written once, not pickled with every unit.
+    asset_tmp = tempfile.TemporaryDirectory(prefix="rayfarm-assets-") if doc.assets else None
+    if asset_tmp is not None:
+        write_assets(asset_tmp.name, doc.assets)
+    asset_dir = asset_tmp.name if asset_tmp is not None else None
     own_pool = pool is None
     pool = pool or LocalPool(workers)
     # Each unit waits for the count of its needs still missing; a finished
@@ -423,7 +435,8 @@ def render(scene_source, spec: RenderSpec, *, pool: LocalPool | None = None,
             while ready:
                 u = ready.popleft()
                 futures[pool.submit(key, text, spec.to_dict(), u.to_dict(),
-                                    inputs={i: results[i] for i in u.needs})] = u
+                                    inputs={i: results[i] for i in u.needs},
+                                    asset_dir=asset_dir)] = u
             done, _ = wait(futures, return_when=FIRST_COMPLETED)
             for fut in done:
                 unit = futures.pop(fut)
@@ -442,4 +455,6 @@ def render(scene_source, spec: RenderSpec, *, pool: LocalPool | None = None,
     finally:
         if own_pool:
             pool.shutdown()
+        if asset_tmp is not None:
+            asset_tmp.cleanup()
     return merge(spec.width, spec.height, (parts[u.index] for u in units))

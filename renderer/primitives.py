@@ -1,6 +1,7 @@
 """The triangles of a resolved shape, in local and in world space.
 
-    vertices, faces = world_mesh(shape)   # (V, 3) float64, (F, 3) int64
+    vertices, faces = world_mesh(shape, assets)   # (V, 3) float64, (F, 3) int64
+    mesh = world_mesh_data(shape, assets)         # and normals, uvs (or None)
 
 Mitsuba's primitives (rectangle, disk, cube) are fixed meshes in local
 space; a mesh shape carries its own. `world_mesh` applies `to_world` and
@@ -14,10 +15,12 @@ Spheres are analytic: they have no triangles here.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["DISK_SEGMENTS", "local_mesh", "world_mesh", "apply_transform"]
+__all__ = ["DISK_SEGMENTS", "MeshArrays", "local_mesh", "local_mesh_data", "world_mesh",
+           "world_mesh_data", "apply_transform"]
 
 # Mitsuba's primitives in local space.
 RECT_V = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=np.float64)
@@ -68,22 +71,71 @@ def apply_transform(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return pts @ m[:3, :3].T + m[:3, 3]
 
 
-def local_mesh(shape: dict) -> tuple[np.ndarray, np.ndarray]:
+def _mesh_asset(shape: dict, assets):
+    """The decoded asset of a mesh shape named by digest; `assets` is the
+    decoded Asset itself, a mapping digest -> blob or an asset source."""
+    from .assets import Asset, decode_asset, load_asset
+
+    if isinstance(assets, Asset):
+        return assets
+    return decode_asset(load_asset(assets, shape["mesh"], "mesh"))
+
+
+def local_mesh(shape: dict, assets=None) -> tuple[np.ndarray, np.ndarray]:
     """(vertices, faces) of a resolved non-sphere shape in its local space."""
+    mesh = local_mesh_data(shape, assets)
+    return mesh.positions, mesh.faces
+
+
+def local_mesh_data(shape: dict, assets=None) -> "MeshArrays":
+    """Positions, faces, and the normals and UVs a mesh has (else None), in local space."""
     if shape["type"] in FIXED:
-        return FIXED[shape["type"]]
-    return (np.asarray(shape["vertices"], dtype=np.float64).reshape(-1, 3),
-            np.asarray(shape["faces"], dtype=np.int64).reshape(-1, 3))
+        v, f = FIXED[shape["type"]]
+        return MeshArrays(v, f, None, None)
+    if "mesh" in shape:
+        a = _mesh_asset(shape, assets)
+        return MeshArrays(np.asarray(a.positions, dtype=np.float64),
+                          np.asarray(a.faces, dtype=np.int64),
+                          None if a.normals is None else np.asarray(a.normals, np.float64),
+                          None if a.uvs is None else np.asarray(a.uvs, np.float64))
+    # documents resolved before meshes became assets inlined them
+    return MeshArrays(np.asarray(shape["vertices"], dtype=np.float64).reshape(-1, 3),
+                      np.asarray(shape["faces"], dtype=np.int64).reshape(-1, 3), None, None)
 
 
-def world_mesh(shape: dict) -> tuple[np.ndarray, np.ndarray]:
-    """(world vertices, faces wound so their front side is the emitting one)."""
+class MeshArrays(NamedTuple):
+    positions: np.ndarray  # (V, 3) float64
+    faces: np.ndarray  # (F, 3) int64
+    normals: np.ndarray | None  # (V, 3) float64, unit length in world space
+    uvs: np.ndarray | None  # (V, 2) float64
+
+
+def world_mesh_data(shape: dict, assets=None) -> MeshArrays:
+    """A shape's triangles in world space: positions, faces wound so their
+    front side is the emitting one, and the mesh's shading normals (through
+    the inverse transpose, normalised, turned with the faces by
+    `flip_normals`) and UVs where it has them. `assets`: where a mesh named
+    by digest is read (the decoded Asset, a mapping or an asset source)."""
     m = np.asarray(shape["to_world"], dtype=np.float64)
-    v, f = local_mesh(shape)
+    local = local_mesh_data(shape, assets)
+    v, f, n = local.positions, local.faces, local.normals
     with np.errstate(over="ignore", invalid="ignore"):  # the caller checks finiteness
         wv = apply_transform(m, v)
     if np.linalg.det(m[:3, :3]) < 0:  # a mirroring transform flips the winding
         f = f[:, ::-1]
     if shape.get("flip_normals"):
         f = f[:, ::-1]
-    return wv, f
+    if n is not None:
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            n = n @ np.linalg.inv(m[:3, :3])  # rows: (M^-T n)^T = n^T M^-1
+            length = np.linalg.norm(n, axis=1, keepdims=True)
+            n = np.where(length > 0, n / np.where(length > 0, length, 1.0), 0.0)
+        if shape.get("flip_normals"):
+            n = -n
+    return MeshArrays(wv, f, n, local.uvs)
+
+
+def world_mesh(shape: dict, assets=None) -> tuple[np.ndarray, np.ndarray]:
+    """(world vertices, faces wound so their front side is the emitting one)."""
+    mesh = world_mesh_data(shape, assets)
+    return mesh.positions, mesh.faces

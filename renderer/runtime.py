@@ -34,7 +34,11 @@ class SceneCache:
         self.capacity = capacity
         self._scenes: OrderedDict[str, Scene] = OrderedDict()
 
-    def get(self, key: str, load_text: Callable[[], str]) -> Scene:
+    def get(self, key: str, load_text: Callable[[], str],
+            load_asset: Callable[[str], bytes] | None = None) -> Scene:
+        """The built scene `key`; on a miss its text comes from `load_text()`
+        and the assets it names from `load_asset(digest)` (checked against
+        their digests), each fetched once for the build."""
         scene = self._scenes.get(key)
         if scene is None:
             import json
@@ -43,7 +47,7 @@ class SceneCache:
             if scene_hash(doc) != key:
                 raise ValueError(f"scene text does not match its hash {key[:12]}")
             t0 = time.perf_counter()
-            scene = build_scene(doc)
+            scene = build_scene(doc, load_asset=load_asset)
             log.info("scene %s built in %.3f s", key[:12], time.perf_counter() - t0)
             self._scenes[key] = scene
             while len(self._scenes) > self.capacity:
@@ -74,15 +78,17 @@ def run_unit(scene: Scene, spec: RenderSpec, unit: Unit,
 
 
 def execute_unit(scene_key: str, load_scene_text: Callable[[], str], spec: dict,
-                 unit: dict, inputs: dict[int, bytes] | None = None) -> bytes:
+                 unit: dict, inputs: dict[int, bytes] | None = None,
+                 load_asset: Callable[[str], bytes] | None = None) -> bytes:
     """Run a unit from plain data; returns the partial film's bytes.
 
     `load_scene_text()` is called only if this process has not built the
-    scene `scene_key` yet (the farm fetches it from the broker by hash).
+    scene `scene_key` yet (the farm fetches it from the broker by hash), and
+    then `load_asset(digest)` for each mesh or texture the scene names.
     `inputs` are the film bytes of the units it needs, by index.
     """
     _crash_if_asked(spec)
-    scene = _CACHE.get(scene_key, load_scene_text)
+    scene = _CACHE.get(scene_key, load_scene_text, load_asset)
     films = {int(i): PartialFilm.from_bytes(b) for i, b in (inputs or {}).items()}
     return run_unit(scene, RenderSpec.from_dict(spec), Unit.from_dict(unit), films).to_bytes()
 

@@ -19,7 +19,7 @@ from .bvh import build_bvh, collapse_wide, wide_bounds
 from .kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR
 from .kernels.lights import LIGHT_MESH, LIGHT_POINT, LIGHT_SPHERE
 from .primitives import DISK_SEGMENTS, FIXED, world_mesh  # noqa: F401 (DISK_SEGMENTS: re-exported)
-from .scene_format import resolve_document, scene_hash
+from .scene_format import document_assets, resolve_document, scene_hash
 
 __all__ = ["Scene", "SceneArrays", "build_scene", "load_scene", "camera_array", "triangle_count",
            "MAT_DIFFUSE", "MAT_MIRROR", "MAT_DIELECTRIC", "MAT_GLOSSY", "LIGHT_MESH", "LIGHT_SPHERE",
@@ -82,8 +82,30 @@ def _apply(m: np.ndarray, pts: np.ndarray) -> np.ndarray:
     return pts @ m[:3, :3].T + m[:3, 3]
 
 
-def build_scene(doc: dict) -> Scene:
-    """Flatten a resolved document into kernel arrays and build the BVH."""
+def _mesh_source(doc: dict, load_asset):
+    """An asset lookup for build_scene: each digest fetched (and checked) and
+    decoded once, however many shapes name it."""
+    from .assets import decode_asset
+    from .assets import load_asset as fetch
+
+    source = load_asset if load_asset is not None else document_assets(doc)
+    decoded: dict = {}
+
+    def get(shape: dict):
+        digest = shape["mesh"]
+        if digest not in decoded:
+            decoded[digest] = decode_asset(fetch(source, digest, "mesh"))
+        return decoded[digest]
+    return get
+
+
+def build_scene(doc: dict, load_asset=None) -> Scene:
+    """Flatten a resolved document into kernel arrays and build the BVH.
+    Meshes named by digest are read through `load_asset` (an asset source:
+    a callable digest -> blob, or a mapping), each checked against its
+    digest; by default from the assets the document carries
+    (scene_format.ResolvedDocument)."""
+    mesh_asset = _mesh_source(doc, load_asset)
     mat_names = list(doc["materials"])
     mat_index = {name: i for i, name in enumerate(mat_names)}
     mats = [doc["materials"][n] for n in mat_names]
@@ -121,7 +143,7 @@ def build_scene(doc: dict) -> Scene:
             sph_mat.append(material)
             sph_light.append(light)
             continue
-        wv, f = world_mesh(shape)
+        wv, f = world_mesh(shape, mesh_asset(shape) if "mesh" in shape else None)
         first = len(tris)
         tris.extend(wv[f])
         tri_mat.extend([material] * len(f))
@@ -206,7 +228,8 @@ def triangle_count(doc: dict) -> int:
     """Triangles a resolved document becomes (analytic spheres count none),
     without building it: ``triangle_count(resolve_document("cornell-box"))``."""
     fixed = {**{name: len(faces) for name, (_, faces) in FIXED.items()}, "sphere": 0}
-    return sum(len(s["faces"]) if s["type"] == "mesh" else fixed[s["type"]] for s in doc["shapes"])
+    return sum((s["triangles"] if "triangles" in s else len(s["faces"])) if s["type"] == "mesh"
+               else fixed[s["type"]] for s in doc["shapes"])
 
 
 def load_scene(source) -> Scene:

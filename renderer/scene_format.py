@@ -50,12 +50,19 @@ from typing import Any
 
 import numpy as np
 
+from . import assets as _assets
 from .errors import SceneError
+from .meshio import MESH_SUFFIXES, read_mesh
 from .primitives import world_mesh
 
 __all__ = [
     "builtin_scene_names",
     "resolve_document",
+    "resolve_scene",
+    "ResolvedDocument",
+    "document_assets",
+    "scene_asset_digests",
+    "FIELDS",
     "scene_hash",
     "canonical_json",
     "MATERIAL_TYPES",
@@ -81,6 +88,43 @@ MIN_FOV = 1e-3  # degrees: a film of tan(fov/2)^2 far from underflow
 MIN_EMITTER_AREA = 1e-12  # world-space area of an emitting triangle (or sphere)
 COLLINEAR = 1e-9  # an emitting triangle's height / its longest edge, at least
 MAX_NESTING = 16  # levels of lists and objects (shapes[i].to_world[j].rotate.axis: 6)
+
+# The fields each object of the format may hold: anything else is refused
+# with its location (a misspelt or unsupported field must not be silently
+# ignored). One table, so that a new field is added in one place: "shape"
+# holds every shape's fields, "shape.<type>" a type's own, likewise for
+# materials and emitters.
+FIELDS: dict[str, set[str]] = {
+    "document": {"format", "camera", "materials", "shapes", "emitters", "name", "description"},
+    "camera": {"type", "origin", "target", "up", "fov", "fov_axis", "width", "height"},
+    "material": {"type"},
+    "material.diffuse": {"albedo"},
+    "material.mirror": {"tint"},
+    "material.dielectric": {"ior"},
+    "material.glossy": {"specular", "roughness"},
+    "shape": {"type", "material", "to_world", "flip_normals", "name", "emitter"},
+    "shape.rectangle": set(),
+    "shape.disk": set(),
+    "shape.cube": set(),
+    "shape.sphere": {"center", "radius"},
+    # a mesh: one of `mesh` (an asset's digest), `file` (+ `shape_index` for a
+    # .serialized file), inline `vertices` + `faces` [+ `normals`, `uvs`];
+    # `triangles` is what resolving writes beside `mesh` (checked if given)
+    "shape.mesh": {"mesh", "file", "shape_index", "vertices", "faces", "normals", "uvs",
+                   "face_normals", "triangles"},
+    "emitter.area": {"type", "radiance"},
+    "emitter.point": {"type", "position", "intensity"},
+    "transform.rotate": {"axis", "angle"},
+}
+
+
+def _check_fields(obj: dict, loc: str, *kinds: str) -> None:
+    """Refuse a field of `obj` that none of the FIELDS tables `kinds` allows."""
+    allowed = set().union(*(FIELDS.get(k, set()) for k in kinds))
+    for key in obj:
+        if key not in allowed:
+            raise SceneError(f"unknown field '{str(key)[:40]}' (allowed: "
+                             f"{', '.join(sorted(allowed))})", f"{loc}.{key}" if loc else str(key))
 
 
 # ----------------------------------------------------------------------------
@@ -212,6 +256,7 @@ def _transform(value: Any, loc: str) -> list[list[float]]:
             elif kind == "rotate":
                 if not isinstance(arg, dict):
                     raise SceneError("expected {'axis': [x, y, z], 'angle': degrees}", f"{oloc}.rotate")
+                _check_fields(arg, f"{oloc}.rotate", "transform.rotate")
                 axis = _vec3(_require(arg, "axis", f"{oloc}.rotate"), f"{oloc}.rotate.axis")
                 if not np.linalg.norm(axis) >= MIN_LENGTH:
                     raise SceneError(f"a rotation axis needs a length of at least "
@@ -244,6 +289,7 @@ def _resolve_camera(cam: Any) -> dict:
     if not isinstance(cam, dict):
         raise SceneError("expected an object", loc)
     ctype = cam.get("type", "perspective")
+    _check_fields(cam, loc, "camera")
     if ctype != "perspective":
         raise SceneError(f"unknown camera type '{ctype}' (allowed: perspective)", f"{loc}.type")
     out = {
@@ -277,6 +323,8 @@ def _resolve_material(name: str, mat: Any) -> dict:
     if not isinstance(mat, dict):
         raise SceneError("expected an object", loc)
     mtype = _require(mat, "type", loc)
+    if isinstance(mtype, str) and mtype in MATERIAL_TYPES:
+        _check_fields(mat, loc, "material", f"material.{mtype}")
     if mtype == "diffuse":
         albedo = _vec3(mat.get("albedo", [0.5, 0.5, 0.5]), f"{loc}.albedo", nonneg=True)
         if max(albedo) > 1.0:
@@ -301,52 +349,177 @@ def _resolve_material(name: str, mat: Any) -> dict:
                      f"{loc}.type")
 
 
-def _read_mesh_file(path: Path, loc: str) -> tuple[list, list]:
-    """Read a Wavefront OBJ (v and f records; polygons are fanned)."""
-    if not path.is_file():
-        raise SceneError(f"mesh file not found: {path.name}", loc)
-    if path.stat().st_size > MAX_FILE_BYTES:
-        raise SceneError("mesh file too large", loc)
-    if path.suffix.lower() != ".obj":
-        raise SceneError(f"unsupported mesh file type '{path.suffix}' (allowed: .obj)", loc)
-    vertices, faces, face_lines = [], [], []
-    with path.open("r", errors="replace") as fh:
-        for lineno, line in enumerate(fh, 1):
-            parts = line.split()
-            if not parts:
-                continue
+class _Assets:
+    """The assets a resolution produces and reads: `produced` (digest ->
+    blob) becomes the resolved scene's assets; `source` is where a `mesh`
+    digest that was not produced here is fetched from."""
+
+    def __init__(self, source):
+        self.source = source
+        self.produced: dict[str, bytes] = {}
+        self.decoded: dict[str, _assets.Asset] = {}
+
+    def add(self, blob: bytes) -> str:
+        digest = _assets.asset_digest(blob)
+        self.produced.setdefault(digest, blob)
+        return digest
+
+    def fetch(self, digest: str, where: str) -> bytes:
+        if digest in self.produced:
+            return self.produced[digest]
+        if isinstance(self.source, _Assets):
+            blob = self.source.fetch(digest, where)
+        else:
+            blob = _assets.load_asset(self.source, digest, where)
+        self.produced[digest] = blob
+        return blob
+
+
+def _mesh_arrays(shape: dict, loc: str, base_dir: Path | None, root: Path | None,
+                 store: _Assets) -> tuple[tuple, str]:
+    """(positions, faces, normals, uvs) of a mesh shape's one source (`mesh`,
+    `file`, or inline `vertices`/`faces`) and the location to name in errors."""
+    given = [k for k in ("mesh", "file", "vertices") if k in shape]
+    if len(given) != 1:
+        raise SceneError("a mesh needs exactly one of 'mesh' (an asset digest), 'file' or "
+                         f"'vertices' + 'faces' (got {', '.join(given) or 'none'})", loc)
+    if "shape_index" in shape and "file" not in shape:
+        raise SceneError("shape_index goes with a .serialized 'file'", f"{loc}.shape_index")
+    for key in ("faces", "normals", "uvs"):
+        if key in shape and "vertices" not in shape:
+            raise SceneError(f"'{key}' goes with inline 'vertices'", f"{loc}.{key}")
+    if "mesh" in shape:
+        where = f"{loc}.mesh"
+        blob = store.fetch(shape["mesh"], where)
+        asset = store.decoded.get(shape["mesh"])
+        if asset is None:
             try:
-                if parts[0] == "v":
-                    vertices.append([float(x) for x in parts[1:4]])
-                elif parts[0] == "f":
-                    idx, raw = [], []
-                    for p in parts[1:]:
-                        raw.append(p.split("/")[0])
-                        i = int(raw[-1])
-                        idx.append(i - 1 if i > 0 else len(vertices) + i)
-                    for k in range(1, len(idx) - 1):
-                        faces.append([idx[0], idx[k], idx[k + 1]])
-                        face_lines.append((lineno, [raw[0], raw[k], raw[k + 1]]))
-            except (ValueError, IndexError):
-                raise SceneError(f"cannot parse line {lineno} of {path.name}: {line.strip()[:60]}",
-                                 loc) from None
-    # Checked here, where the file and line are known (a positive index may
-    # name a vertex defined further down, so only once the file is read).
-    for face, (lineno, raw) in zip(faces, face_lines):
-        bad = [r for i, r in zip(face, raw) if not 0 <= i < len(vertices)]
-        if bad:
-            raise SceneError(f"line {lineno} of {path.name}: face vertex index {bad[0]} is out "
-                             f"of range (the file has {len(vertices)} vertices)", loc)
-    return vertices, faces
+                asset = _assets.decode_asset(blob)
+            except SceneError as exc:
+                raise SceneError(f"asset {shape['mesh'][:12]}: {exc.message}", where) from None
+            if asset.kind != "mesh":
+                raise SceneError(f"asset {shape['mesh'][:12]} is a {asset.kind}, not a mesh",
+                                 where)
+            store.decoded[shape["mesh"]] = asset
+        return (asset.positions, asset.faces, asset.normals, asset.uvs), where
+    if "file" in shape:
+        where = f"{loc}.file"
+        if base_dir is None:
+            raise SceneError("mesh files need a scene file on disk (or inline vertices/faces)",
+                             where)
+        name = shape["file"]
+        if not isinstance(name, str) or not name:
+            raise SceneError("expected a relative path (a string)", where)
+        rel = name.replace("\\", "/")
+        top = Path(root if root is not None else base_dir).resolve()
+        fpath = (Path(base_dir) / rel).resolve()
+        if rel.startswith("/") or (top not in fpath.parents):
+            raise SceneError("mesh file must lie inside the scene's directory", where)
+        if fpath.suffix.lower() not in MESH_SUFFIXES:
+            raise SceneError(f"unsupported mesh file type '{fpath.suffix}' (allowed: "
+                             f"{', '.join(MESH_SUFFIXES)})", where)
+        index = shape.get("shape_index", 0)
+        if isinstance(index, bool) or not isinstance(index, int) or index < 0:
+            raise SceneError("expected an integer >= 0", f"{loc}.shape_index")
+        if "shape_index" in shape and fpath.suffix.lower() != ".serialized":
+            raise SceneError("shape_index goes with a .serialized file", f"{loc}.shape_index")
+        label = str(fpath.relative_to(top)) if top in fpath.parents else fpath.name
+        try:
+            mesh = read_mesh(fpath, shape_index=index, label=label,
+                             max_bytes=MAX_FILE_BYTES, max_triangles=MAX_TRIANGLES)
+        except SceneError as exc:  # named as the file says (models/a.obj:12), from the shape
+            raise SceneError(f"{exc.location}: {exc.message}" if exc.location else exc.message,
+                             where) from None
+        return (mesh.positions, mesh.faces, mesh.normals, mesh.uvs), where
+    where = f"{loc}.vertices"
+    vertices = shape["vertices"]
+    faces = _require(shape, "faces", loc)
+    try:
+        v = np.asarray(vertices, dtype=np.float64)
+        f_raw = np.asarray(faces, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise SceneError("vertices must be [[x, y, z], ...] and faces [[i, j, k], ...]", loc) from None
+    if f_raw.size and (not np.all(np.isfinite(f_raw)) or np.any(f_raw != np.round(f_raw))):
+        raise SceneError("face indices must be integers", f"{loc}.faces")
+    if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
+        raise SceneError("vertices must be a list of finite [x, y, z]", f"{loc}.vertices")
+    extra = []
+    for key, width in (("normals", 3), ("uvs", 2)):
+        if key not in shape:
+            extra.append(None)
+            continue
+        try:
+            a = np.asarray(shape[key], dtype=np.float64)
+        except (ValueError, TypeError):
+            a = np.zeros(0)
+        if a.shape != (len(v), width) or not np.all(np.isfinite(a)):
+            raise SceneError(f"{key} must be one finite [{', '.join('xyz'[:width] if width == 3 else 'uv')}] "
+                             f"per vertex ({len(v)})", f"{loc}.{key}")
+        extra.append(a)
+    return (v, f_raw.astype(np.int64).reshape(-1, 3) if f_raw.ndim == 2 and f_raw.shape[1] == 3
+            else f_raw, *extra), where
 
 
-def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -> dict:
+def _smooth_normals(positions: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (zero where no face has an area)."""
+    tri = positions[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    out = np.zeros_like(positions)
+    for k in range(3):
+        np.add.at(out, faces[:, k], cross)
+    return out
+
+
+def _resolve_mesh(shape: dict, out: dict, loc: str, base_dir: Path | None, root: Path | None,
+                  store: _Assets) -> tuple:
+    (v, f, normals, uvs), where = _mesh_arrays(shape, loc, base_dir, root, store)
+    if not np.all(np.abs(v) <= MAX_COORDINATE):
+        j = int(np.argmax(np.any(np.abs(v) > MAX_COORDINATE, axis=1)))
+        raise SceneError(f"vertex {j} is {v[j].tolist()}; every coordinate must be within "
+                         f"+-{MAX_COORDINATE:g}", where)
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise SceneError("faces must be a non-empty list of [i, j, k] triangles",
+                         f"{loc}.faces" if "vertices" in shape else where)
+    if f.min() < 0 or f.max() >= len(v):
+        raise SceneError(f"face index out of range (mesh has {len(v)} vertices)",
+                         f"{loc}.faces" if "vertices" in shape else where)
+    if len(f) > MAX_TRIANGLES:
+        raise SceneError(f"too many triangles (limit {MAX_TRIANGLES})",
+                         f"{loc}.faces" if "vertices" in shape else where)
+    face_normals = _bool(shape.get("face_normals", False), f"{loc}.face_normals")
+    if face_normals:
+        normals = None  # shading uses each triangle's own normal
+    if normals is not None:
+        length = np.linalg.norm(normals, axis=1)
+        if np.any(length == 0):  # e.g. "vn 0 0 0": the faces around the vertex decide
+            normals = np.array(normals, dtype=np.float64)
+            zero = length == 0
+            normals[zero] = _smooth_normals(v, f)[zero]
+            still = np.linalg.norm(normals, axis=1) == 0
+            normals[still] = [0.0, 0.0, 1.0]  # only degenerate faces touch it: never hit
+    blob = _assets.encode_mesh(v, f, normals, uvs)
+    digest = store.add(blob)
+    if "mesh" not in shape or digest != shape["mesh"]:
+        store.decoded[digest] = _assets.decode_asset(blob)
+    if "triangles" in shape and shape["triangles"] != len(f):
+        raise SceneError(f"the mesh has {len(f)} triangles, not {shape['triangles']}",
+                         f"{loc}.triangles")
+    out["mesh"] = digest
+    out["triangles"] = int(len(f))
+    out["face_normals"] = face_normals
+    return store.decoded[digest]
+
+
+def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None,
+                   root: Path | None = None, store: _Assets | None = None) -> dict:
     loc = f"shapes[{i}]"
+    store = store if store is not None else _Assets(None)
     if not isinstance(shape, dict):
         raise SceneError("expected an object", loc)
     stype = _require(shape, "type", loc)
     if stype not in SHAPE_TYPES:
         raise SceneError(f"unknown shape type '{stype}' (allowed: {_name_list(SHAPE_TYPES)})", f"{loc}.type")
+    _check_fields(shape, loc, "shape", f"shape.{stype}")
     mat = _require(shape, "material", loc)
     if not isinstance(mat, str):
         raise SceneError("expected a material name (a string)", f"{loc}.material")
@@ -370,58 +543,31 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None) -
         if not np.allclose(mtm, np.eye(3) * s2, rtol=1e-6, atol=1e-9 * max(s2, 1e-300)):
             raise SceneError("a sphere's to_world must be a similarity transform "
                              "(rotation, uniform scale, translation)", f"{loc}.to_world")
+    asset = None
+    where = f"{loc}.to_world"
     if stype == "mesh":
-        if "file" in shape:
-            if base_dir is None:
-                raise SceneError("mesh files need a scene file on disk (or inline vertices/faces)",
-                                 f"{loc}.file")
-            fpath = (base_dir / str(shape["file"])).resolve()
-            if base_dir.resolve() not in fpath.parents:
-                raise SceneError("mesh file must lie inside the scene's directory", f"{loc}.file")
-            vertices, faces = _read_mesh_file(fpath, f"{loc}.file")
-        else:
-            vertices = _require(shape, "vertices", loc)
-            faces = _require(shape, "faces", loc)
-        try:
-            v = np.asarray(vertices, dtype=np.float64)
-            f_raw = np.asarray(faces, dtype=np.float64)
-        except (ValueError, TypeError):
-            raise SceneError("vertices must be [[x, y, z], ...] and faces [[i, j, k], ...]", loc) from None
-        if f_raw.size and (not np.all(np.isfinite(f_raw)) or np.any(f_raw != np.round(f_raw))):
-            raise SceneError("face indices must be integers", f"{loc}.faces")
-        f = f_raw.astype(np.int64)
-        if v.ndim != 2 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
-            raise SceneError("vertices must be a list of finite [x, y, z]", f"{loc}.vertices")
-        if not np.all(np.abs(v) <= MAX_COORDINATE):
-            j = int(np.argmax(np.any(np.abs(v) > MAX_COORDINATE, axis=1)))
-            raise SceneError(f"vertex {j} is {v[j].tolist()}; every coordinate must be within "
-                             f"+-{MAX_COORDINATE:g}", f"{loc}.vertices")
-        if f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
-            raise SceneError("faces must be a non-empty list of [i, j, k] triangles", f"{loc}.faces")
-        if f.min() < 0 or f.max() >= len(v):
-            raise SceneError(f"face index out of range (mesh has {len(v)} vertices)", f"{loc}.faces")
-        if len(f) > MAX_TRIANGLES:
-            raise SceneError(f"too many triangles (limit {MAX_TRIANGLES})", f"{loc}.faces")
-        out["vertices"] = v.tolist()
-        out["faces"] = f.tolist()
+        asset = _resolve_mesh(shape, out, loc, base_dir, root, store)
+        where = f"{loc}.vertices" if "vertices" in shape else \
+            f"{loc}.file" if "file" in shape else f"{loc}.mesh"
     em = shape.get("emitter")
     if em is not None:
         eloc = f"{loc}.emitter"
         if not isinstance(em, dict) or em.get("type") != "area":
             raise SceneError("a shape's emitter must be {'type': 'area', 'radiance': [r, g, b]}", eloc)
+        _check_fields(em, eloc, "emitter.area")
         out["emitter"] = {"type": "area",
                           "radiance": _vec3(_require(em, "radiance", eloc), f"{eloc}.radiance",
                                             nonneg=True, limit=MAX_RADIANCE)}
-    _check_world_geometry(out, loc)
+    _check_world_geometry(out, loc, asset, where)
     return out
 
 
-def _check_world_geometry(shape: dict, loc: str) -> None:
+def _check_world_geometry(shape: dict, loc: str, asset=None, where: str | None = None) -> None:
     """A resolved shape in world space: its points within bounds, and if it
     emits, triangles with an area (see the module doc: a light without one
     crashes the renderer)."""
     m = np.asarray(shape["to_world"])
-    where = f"{loc}.vertices" if "vertices" in shape else f"{loc}.to_world"
+    where = where or f"{loc}.to_world"
     if shape["type"] == "sphere":
         centre = m[:3, :3] @ np.asarray(shape["center"]) + m[:3, 3]
         radius = shape["radius"] * float(np.linalg.norm(m[:3, 0]))  # a similarity
@@ -433,7 +579,7 @@ def _check_world_geometry(shape: dict, loc: str) -> None:
             raise SceneError(f"an emitting sphere needs an area of at least {MIN_EMITTER_AREA:g} "
                              f"(radius {radius:.3g} after to_world)", f"{loc}.radius")
         return
-    vertices, faces = world_mesh(shape)
+    vertices, faces = world_mesh(shape, asset)
     _check_world_points(vertices, where, "vertex {j}")
     if "emitter" not in shape:
         return  # degenerate triangles that emit nothing are merely never hit
@@ -444,14 +590,16 @@ def _check_world_geometry(shape: dict, loc: str) -> None:
     bad = (0.5 * double_area < MIN_EMITTER_AREA) | (double_area < COLLINEAR * longest * longest)
     if np.any(bad):
         j = int(np.argmax(bad))
-        which = f"face {j}" if "faces" in shape else f"its triangle {j}"
+        meshed = shape["type"] == "mesh"
+        which = f"face {j}" if meshed else f"its triangle {j}"
         raise SceneError(f"an area light's triangles need an area: {which} is degenerate "
                          f"after to_world (area {0.5 * double_area[j]:.3g}, height "
                          f"{double_area[j] / max(longest[j], 1e-300):.3g} across a longest edge "
                          f"of {longest[j]:.3g}: collinear or coincident vertices); an emitting "
                          f"triangle needs an area of at least {MIN_EMITTER_AREA:g} and a height "
                          f"of at least {COLLINEAR:g} times its longest edge",
-                         f"{loc}.faces[{j}]" if "faces" in shape else f"{loc}.to_world")
+                         f"{loc}.faces[{j}]" if meshed and where.endswith(".vertices")
+                         else where if meshed else f"{loc}.to_world")
 
 
 def _resolve_emitter(i: int, em: Any) -> dict:
@@ -462,26 +610,79 @@ def _resolve_emitter(i: int, em: Any) -> dict:
     if etype != "point":
         raise SceneError(f"unknown emitter type '{etype}' (allowed: point; area emitters "
                          "are attached to shapes)", f"{loc}.type")
+    _check_fields(em, loc, "emitter.point")
     return {"type": "point",
             "position": _vec3(_require(em, "position", loc), f"{loc}.position"),
             "intensity": _vec3(_require(em, "intensity", loc), f"{loc}.intensity", nonneg=True,
                                limit=MAX_RADIANCE)}
 
 
+class ResolvedDocument(dict):
+    """A resolved document (a plain dict to every reader) that carries the
+    assets it names: `assets` is a mapping digest -> blob, or an asset
+    source (a callable). `build_scene(doc)` reads meshes from it; what goes
+    over a wire is the canonical text plus the assets, never this object."""
+
+    assets: Any = None
+
+    def __init__(self, doc: dict, assets: Any = None):
+        super().__init__(doc)
+        self.assets = assets
+
+
+def document_assets(doc: dict) -> Any:
+    """The assets a resolved document carries (see ResolvedDocument), or None."""
+    return getattr(doc, "assets", None)
+
+
+def scene_asset_digests(doc: dict) -> list[str]:
+    """The digests a resolved document names (meshes, texture images), in
+    order of first mention, without duplicates."""
+    found: dict[str, None] = {}
+    for shape in doc.get("shapes", ()):
+        if isinstance(shape, dict) and isinstance(shape.get("mesh"), str):
+            found.setdefault(shape["mesh"], None)
+    textures = doc.get("textures")
+    if isinstance(textures, dict):
+        for tex in textures.values():
+            if isinstance(tex, dict) and isinstance(tex.get("image"), str):
+                found.setdefault(tex["image"], None)
+    return list(found)
+
+
 def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
-                     base_dir: Path | None = None) -> dict:
-    """Validate a scene and return its resolved, self-contained document.
+                     base_dir: Path | None = None, root: Path | None = None,
+                     assets: Any = None) -> ResolvedDocument:
+    """Validate a scene and return its resolved document, which carries the
+    assets it names (`ResolvedDocument.assets`; `resolve_scene` returns them
+    apart). Arguments as for `resolve_scene`."""
+    doc, produced = resolve_scene(source, allow_files=allow_files, base_dir=base_dir, root=root,
+                                  assets=assets)
+    return ResolvedDocument(doc, produced)
+
+
+def resolve_scene(source: str | Path | dict, *, allow_files: bool = True,
+                  base_dir: Path | None = None, root: Path | None = None,
+                  assets: Any = None) -> tuple[dict, dict[str, bytes]]:
+    """Validate a scene: (its resolved document, the assets it names by digest).
 
     `source` is a built-in scene name (``"cornell-box"``), a path to a JSON
     scene file (only if `allow_files`), or an already-parsed dict. A dict's
-    mesh `file`s are read from `base_dir` (and must lie inside it); without
-    one, a dict must inline its meshes.
+    mesh `file`s are read from `base_dir` (and must lie inside `root`,
+    default `base_dir`); without one, a dict must inline its meshes or name
+    them by digest. `assets` is where a `mesh` digest is fetched from: a
+    mapping digest -> blob or a callable (an asset source); a dict that
+    carries assets (a ResolvedDocument) brings its own. Every mesh becomes
+    an asset, named by digest in the document: the resolved document names
+    exactly the returned assets, and resolving it again gives the same.
     """
     if isinstance(source, dict):
         if _nesting(source) > MAX_NESTING:  # copying (or printing) it would exhaust the stack
             raise SceneError(f"the document nests lists and objects more than {MAX_NESTING} "
                              "levels deep")
-        doc = copy.deepcopy(source)
+        if assets is None:
+            assets = document_assets(source)
+        doc = copy.deepcopy(dict(source))
     elif isinstance(source, (str, Path)) and str(source) in builtin_scene_names():
         doc, base_dir = _load_builtin(str(source)), None
     elif isinstance(source, (str, Path)) and allow_files and Path(source).is_file():
@@ -506,8 +707,8 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
                          f"{_name_list(builtin_scene_names())}; or give a path to a scene file)")
     if not isinstance(doc, dict):
         raise SceneError("a scene document must be a JSON object")
-    known = {"format", "camera", "materials", "shapes", "emitters", "name", "description"}
-    unknown = sorted(set(doc) - known)
+    known = FIELDS["document"]
+    unknown = sorted(str(k) for k in set(doc) - known)
     if unknown:
         raise SceneError(f"unknown top-level field(s): {', '.join(unknown)} "
                          f"(allowed: {', '.join(sorted(known))})")
@@ -525,18 +726,21 @@ def resolve_document(source: str | Path | dict, *, allow_files: bool = True,
     emitters_in = doc.get("emitters", [])
     if not isinstance(emitters_in, list):
         raise SceneError("expected a list of emitters", "emitters")
+    store = _Assets(assets)
     resolved = {
         "format": SCENE_FORMAT,
         "name": str(doc.get("name", "")),
         "description": str(doc.get("description", "")),
         "camera": _resolve_camera(_require(doc, "camera", "")),
         "materials": materials,
-        "shapes": [_resolve_shape(i, s, materials, base_dir) for i, s in enumerate(shapes_in)],
+        "shapes": [_resolve_shape(i, s, materials, base_dir, root, store)
+                   for i, s in enumerate(shapes_in)],
         "emitters": [_resolve_emitter(i, e) for i, e in enumerate(emitters_in)],
     }
     if not resolved["shapes"]:
         raise SceneError("a scene needs at least one shape", "shapes")
-    return resolved
+    named = scene_asset_digests(resolved)
+    return resolved, {d: store.produced[d] for d in named if d in store.produced}
 
 
 def canonical_json(doc: dict) -> str:

@@ -79,7 +79,8 @@ class Farm:
             leadership.join(settings.data_dir)
             # A farm always has an admin (`rayfarm serve` made it already and printed its URL).
             bootstrap_admin(sessions, settings.data_dir, settings.admin_token)
-            executor = make_executor(settings, store.scene_text, store.unit_film)
+            executor = make_executor(settings, store.scene_text, store.unit_film,
+                                     asset_dir=store.asset_dir)
         except BaseException:
             leadership.stop()
             engine.dispose()

@@ -63,7 +63,8 @@ def _resolve_scene(session: Session, store: Store, actor: Principal, scene: str 
                                           "or an inline scene object)")
         return *uploaded, scene
     try:
-        doc = resolve_document(scene, allow_files=False)
+        # an inline scene may name meshes already in the store by digest
+        doc = resolve_document(scene, allow_files=False, assets=store.asset_bytes)
     except SceneError:
         raise
     except (TypeError, ValueError, KeyError, IndexError, AttributeError) as exc:
@@ -104,6 +105,7 @@ def create_job(session: Session, store: Store, settings: Settings, actor: Princi
                         denoise=request.denoise)
     if key is None:  # an upload's text is stored under its hash already
         key, text = scene_text(doc)
+        store.put_assets(getattr(doc, "assets", None) or {})
         store.put_scene(key, text)
     job = Job(id=new_job_id(), created=now, status="queued", owner=actor.user,
               scene=scene_name[:200],

@@ -46,6 +46,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from renderer import SceneError, builtin_scene_names, resolve_document, scene_text
 from renderer.scene import triangle_count
+from renderer.scene_format import ResolvedDocument
 
 from .access import Principal, require_submit
 from .errors import (Conflict, Forbidden, InvalidRequest, NotFound, RateLimited, ResultNotReady,
@@ -172,7 +173,7 @@ def uploaded_document(session: Session, store: Store, actor: Principal, scene_id
         return None
     if not whole:
         return {"camera": {"width": record.width, "height": record.height}}, record.name
-    return json.loads(store.scene_text(record.id)), record.name
+    return ResolvedDocument(json.loads(store.scene_text(record.id)), store.asset_bytes), record.name
 
 
 def thumbnail_file(session: Session, store: Store, actor: Principal, scene_id: str) -> Path:
@@ -248,6 +249,7 @@ def _store_upload(store: Store, scene: UploadedFile, files: list[UploadedFile],
     """Resolve an upload and store its canonical text: the record's fields."""
     doc, stem = resolve_upload(scene, files, directory)
     key, text = scene_text(doc)
+    store.put_assets(doc.assets)  # before the text: a stored scene finds its assets
     store.put_scene(key, text)
     camera = doc["camera"]
     return dict(id=key, name=(doc["name"] or stem)[:200], description=doc["description"],

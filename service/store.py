@@ -3,6 +3,7 @@
     <data_dir>/data_dir.id                     the data dir's random id (`data_dir_identity`)
     <data_dir>/store/scenes/<hash>.json        canonical scene text
     <data_dir>/store/scenes/<hash>.png         its thumbnail
+    <data_dir>/store/assets/<digest>           a mesh or texture blob (renderer.assets)
     <data_dir>/uploads/<random>/               an upload while it is checked (then deleted)
     <data_dir>/jobs/<job_id>/units/<i>.film    a unit's PartialFilm bytes
     <data_dir>/jobs/<job_id>/logs/<i>/<n>.json  unit i's log from its n-th task (JSON)
@@ -19,6 +20,7 @@ written outside the data directory.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -72,12 +74,21 @@ class Store:
     def __init__(self, root: Path):
         self.root = Path(root).resolve()
         (self.root / "store" / "scenes").mkdir(parents=True, exist_ok=True)
+        (self.root / "store" / "assets").mkdir(parents=True, exist_ok=True)
         (self.root / "jobs").mkdir(parents=True, exist_ok=True)
         self._remove_stale_uploads()
 
     # -- paths ---------------------------------------------------------------
     def scene_path(self, scene_hash: str) -> Path:
         return self.root / "store" / "scenes" / f"{_check(_HASH, scene_hash, 'scene hash')}.json"
+
+    @property
+    def asset_dir(self) -> Path:
+        """Where assets live, one `<digest>` file each (a render process reads them)."""
+        return self.root / "store" / "assets"
+
+    def asset_path(self, digest: str) -> Path:
+        return self.asset_dir / _check(_HASH, digest, "asset digest")
 
     def thumbnail_path(self, scene_hash: str) -> Path:
         return self.scene_path(scene_hash).with_suffix(".png")
@@ -162,6 +173,28 @@ class Store:
 
     def scene_text(self, scene_hash: str) -> str:
         return self.scene_path(scene_hash).read_text()
+
+    def put_asset(self, digest: str, blob: bytes) -> None:
+        """Keep an asset under its digest (checked: the name is the content's)."""
+        path = self.asset_path(digest)
+        if hashlib.sha256(blob).hexdigest() != digest:
+            raise ValueError(f"asset bytes do not match the digest {digest[:12]}")
+        if not path.exists():  # content-addressed: an existing file is the same bytes
+            self._write_atomic(path, blob)
+
+    def put_assets(self, assets: dict[str, bytes]) -> None:
+        for digest, blob in assets.items():
+            self.put_asset(digest, blob)
+
+    def asset_bytes(self, digest: str) -> bytes:
+        """An asset's blob; FileNotFoundError if the store has none (an asset source)."""
+        return self.asset_path(digest).read_bytes()
+
+    def has_asset(self, digest: str) -> bool:
+        return self.asset_path(digest).is_file()
+
+    def asset_size(self, digest: str) -> int:
+        return self.asset_path(digest).stat().st_size
 
     def put_thumbnail(self, scene_hash: str, png: bytes) -> None:
         self._write_atomic(self.thumbnail_path(scene_hash), png)

@@ -51,22 +51,26 @@ def thumbnail_size(width: int, height: int, size: int = SIZE) -> tuple[int, int]
     return max(1, round(width * scale)), max(1, round(height * scale))
 
 
-def render_thumbnail(doc: dict) -> bytes:
-    """PNG bytes of a resolved document's thumbnail, rendered in this process."""
+def render_thumbnail(doc: dict, load_asset=None) -> bytes:
+    """PNG bytes of a resolved document's thumbnail, rendered in this process
+    (its meshes and textures read through `load_asset`, an asset source)."""
     from PIL import Image
 
     width, height = thumbnail_size(doc["camera"]["width"], doc["camera"]["height"])
     spec = RenderSpec(method="path", spp=SPP, depth=DEPTH, width=width, height=height,
                       tile_size=max(width, height)).validate()
-    scene = build_scene(doc)
+    scene = build_scene(doc, load_asset=load_asset)
     film = merge(width, height, [run_unit(scene, spec, unit) for unit in plan(spec)])
     buffer = io.BytesIO()
     Image.fromarray(tonemap_srgb8(film.mean())).save(buffer, format="PNG")
     return buffer.getvalue()
 
 
-def _render_in_child(scene_files: list[tuple[str, str]], results) -> None:
+def _render_in_child(scene_files: list[tuple[str, str]], results,
+                     asset_dir: str | None = None) -> None:
     """The child process: for each (hash, scene file) send (hash, png, error)."""
+    from renderer.assets import DirectorySource
+
     try:
         os.nice(19)
     except OSError:
@@ -76,7 +80,9 @@ def _render_in_child(scene_files: list[tuple[str, str]], results) -> None:
     numba.set_num_threads(1)
     for key, path in scene_files:
         try:
-            results.send((key, render_thumbnail(json.loads(Path(path).read_text())), None))
+            results.send((key, render_thumbnail(json.loads(Path(path).read_text()),
+                                                DirectorySource(asset_dir) if asset_dir else None),
+                          None))
         except Exception as exc:
             results.send((key, None, f"{type(exc).__name__}: {exc}"))
     results.close()
@@ -145,7 +151,8 @@ class Thumbnailer:
         receiving, sending = self._context.Pipe(duplex=False)
         child = self._context.Process(
             target=_render_in_child, name="rayfarm-thumbnail", daemon=True,
-            args=([(h, str(self.store.scene_path(h))) for h in todo], sending))
+            args=([(h, str(self.store.scene_path(h))) for h in todo], sending,
+                  str(self.store.asset_dir)))
         try:
             child.start()
         except (EOFError, ConnectionError) as exc:

@@ -110,8 +110,10 @@ def test07_mesh_from_obj_file_and_transform_ops(tmp_path):
     scene = load_scene(path)
     assert scene.arrays.tri_p.shape == (2, 3, 3)
     assert scene.arrays.tri_p[:, :, 2].max() == -1.0 and scene.arrays.tri_p[:, :, 0].max() == 2.0
-    # the resolved document is self-contained: the mesh is inlined
-    assert "vertices" in scene.doc["shapes"][0] and "file" not in scene.doc["shapes"][0]
+    # the resolved document names the mesh by its asset's digest: no file, no numbers
+    shape = scene.doc["shapes"][0]
+    assert "vertices" not in shape and "file" not in shape and shape["triangles"] == 2
+    assert list(scene.doc.assets) == [shape["mesh"]]
     doc["shapes"][0]["file"] = "../outside.obj"
     path.write_text(json.dumps(doc))
     with pytest.raises(SceneError, match="inside the scene's directory"):

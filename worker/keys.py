@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 __all__ = ["TASK_RENDER_UNIT", "QUEUE", "WORKERS", "FILM_TTL", "scene_key", "heartbeat_key",
-           "cancel_key", "stopped_key", "job_films_key", "worker_key", "worker_running_key", "input_key", "unit_log_key",
+           "cancel_key", "stopped_key", "asset_key", "job_films_key", "worker_key", "worker_running_key", "input_key", "unit_log_key",
            "DISABLED_WORKERS"]
 
 TASK_RENDER_UNIT = "rayfarm.render_unit"
@@ -22,6 +22,12 @@ FILM_TTL = 24 * 3600
 def scene_key(scene_hash: str) -> str:
     """Where the service publishes a scene's canonical text for the workers."""
     return f"rayfarm:scene:{scene_hash}"
+
+
+def asset_key(digest: str) -> str:
+    """A scene's asset (a mesh or texture blob, renderer.assets) by its
+    SHA-256: published by the service with the scene's text and its TTL."""
+    return f"rayfarm:asset:{digest}"
 
 
 def input_key(digest: str) -> str:

@@ -48,7 +48,7 @@ from renderer import PartialFilm, execute_unit
 from renderer.unitlog import capture_unit_log
 
 from . import presence
-from .keys import (FILM_TTL, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key, job_films_key,
+from .keys import (FILM_TTL, TASK_RENDER_UNIT, asset_key, cancel_key, heartbeat_key, input_key, job_films_key,
                    scene_key, stopped_key, unit_log_key)
 
 __all__ = ["register_tasks", "render_unit", "publish_film", "Heartbeat", "SceneUnavailable", "InputUnavailable"]
@@ -85,6 +85,29 @@ def _fetch_input(client: redis.Redis, digest: str) -> bytes:
         while len(_inputs) > _INPUTS_KEPT:
             _inputs.pop(next(iter(_inputs)))
     return data
+
+
+def _asset_source(client: redis.Redis):
+    """Where a render process reads a scene's assets: the renderer's disk
+    cache ("assets"), else the broker (then kept in the cache), so a worker
+    host fetches each asset once. Checked against its digest on every read."""
+    from renderer.cache import disk_cache
+
+    def load(digest: str) -> bytes:
+        cache = disk_cache("assets")
+        data = cache.get(digest) if cache is not None else None
+        if data is not None and hashlib.sha256(data).hexdigest() == digest:
+            return data
+        data = client.get(asset_key(digest))
+        if data is None:
+            raise SceneUnavailable(f"asset {digest[:12]} is not in the broker")
+        if hashlib.sha256(data).hexdigest() != digest:
+            client.delete(asset_key(digest))  # the service publishes it again from its store
+            raise SceneUnavailable(f"asset {digest[:12]} in the broker does not match its digest")
+        if cache is not None:
+            cache.put(digest, data)
+        return data
+    return load
 
 
 class Heartbeat:
@@ -208,7 +231,8 @@ def render_unit(client: redis.Redis, worker: str, payload: dict[str, Any],
                 capture_unit_log(job_id, index) as captured:
             inputs = {int(i): _fetch_input(client, digest)
                       for i, digest in (payload.get("inputs") or {}).items()}
-            film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs)
+            film = execute_unit(scene, load_scene_text, payload["spec"], payload["unit"], inputs,
+                                load_asset=_asset_source(client))
             # Published while the heartbeat still says the unit is alive.
             digest = publish_film(client, job_id, film)
         stats = PartialFilm.stats_from_bytes(film)

@@ -448,7 +448,7 @@ def _document_geometry(doc: dict):
             lo.append(centre - radius)
             hi.append(centre + radius)
             continue
-        vertices, faces = world_mesh(shape)
+        vertices, faces = world_mesh(shape, getattr(doc, "assets", None))
         tri = vertices[faces]
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         tri = tri[np.linalg.norm(cross, axis=1) > 0]  # build_scene's degenerate ones are no patches

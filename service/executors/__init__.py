@@ -10,6 +10,7 @@ picks one: Celery when `broker_url` is set, else the local pool.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Callable
 
 from ..settings import Settings
@@ -20,13 +21,16 @@ __all__ = ["Executor", "Flight", "Observation", "RunningUnit", "Ticket", "Worker
 
 
 def make_executor(settings: Settings, load_scene_text: Callable[[str], str],
-                  load_unit_film: Callable[[str, int], bytes] | None = None) -> Executor:
+                  load_unit_film: Callable[[str, int], bytes] | None = None,
+                  asset_dir: Path | None = None) -> Executor:
     """The executor `settings` ask for; `load_scene_text(hash)` and
-    `load_unit_film(job_id, index)` read the store (a DAG unit's inputs)."""
+    `load_unit_film(job_id, index)` read the store (a DAG unit's inputs);
+    `asset_dir` is the store's folder of assets (`<digest>` files), which
+    the scenes' meshes and textures are read from."""
     if settings.broker_url:
         from .celery_farm import CeleryExecutor
 
-        return CeleryExecutor(settings, load_scene_text, load_unit_film)
+        return CeleryExecutor(settings, load_scene_text, load_unit_film, asset_dir=asset_dir)
     from .local import LocalExecutor
 
-    return LocalExecutor(settings, load_scene_text, load_unit_film)
+    return LocalExecutor(settings, load_scene_text, load_unit_film, asset_dir=asset_dir)

@@ -71,13 +71,15 @@ import time
 import uuid
 from collections import Counter
 from datetime import datetime, timedelta, timezone
+from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import redis
 
 from renderer import process_death
+from renderer.scene_format import scene_asset_digests
 from worker.celery_app import create_celery_app
-from worker.keys import (FILM_TTL, QUEUE, TASK_RENDER_UNIT, cancel_key, heartbeat_key, input_key,
+from worker.keys import (FILM_TTL, QUEUE, TASK_RENDER_UNIT, asset_key, cancel_key, heartbeat_key, input_key,
                          job_films_key, scene_key, stopped_key, unit_log_key)
 from worker.presence import forget_worker, read_workers, set_disabled
 from celery.utils.nodenames import worker_direct
@@ -117,8 +119,11 @@ class CeleryExecutor(Executor):
     NO_WORKER_SLOTS = 4
 
     def __init__(self, settings: Settings, load_scene_text: Callable[[str], str],
-                 load_unit_film: Callable[[str, int], bytes] | None = None):
+                 load_unit_film: Callable[[str, int], bytes] | None = None,
+                 asset_dir=None):
         self.app = create_celery_app(settings)
+        self.asset_dir = None if asset_dir is None else Path(asset_dir)
+        self._scene_assets: dict[str, list[str]] = {}  # scene hash -> the digests it names
         self.lease = timedelta(seconds=settings.unit_lease_seconds)
         self.lease_seconds = settings.unit_lease_seconds
         # The unit heartbeat's TTL: a few beats, never more than the lease.
@@ -160,8 +165,31 @@ class CeleryExecutor(Executor):
         if now - self._published.get(scene_hash, -1e9) < 5.0:
             return
         key = scene_key(scene_hash)
+        text = None
         if not self.redis.expire(key, SCENE_TTL):
-            self.redis.set(key, self._load_scene_text(scene_hash), ex=SCENE_TTL)
+            text = self._load_scene_text(scene_hash)
+            self.redis.set(key, text, ex=SCENE_TTL)
+        # Its assets go with it, with the same lifetime (a worker reads them
+        # when it first builds the scene).
+        digests = self._scene_assets.get(scene_hash)
+        if digests is None:
+            text = text if text is not None else self._load_scene_text(scene_hash)
+            digests = scene_asset_digests(json.loads(text))
+            if len(self._scene_assets) >= 64:
+                self._scene_assets.pop(next(iter(self._scene_assets)))
+            self._scene_assets[scene_hash] = digests
+        if digests:
+            pipe = self.redis.pipeline(transaction=False)
+            for digest in digests:
+                pipe.expire(asset_key(digest), SCENE_TTL)
+            for digest, present in zip(digests, pipe.execute()):
+                if not present:
+                    if self.asset_dir is None:
+                        raise RuntimeError(f"asset {digest[:12]} of scene {scene_hash[:12]} is "
+                                           "not in the broker and this executor cannot read the "
+                                           "store")
+                    blob = (self.asset_dir / digest).read_bytes()
+                    self.redis.set(asset_key(digest), blob, ex=SCENE_TTL)
         self._published[scene_hash] = now
 
     def _refresh_inputs(self, ticket: Ticket) -> dict[str, str]:

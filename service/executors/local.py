@@ -49,8 +49,11 @@ class LocalExecutor(Executor):
     FILMS_KEPT_BYTES = 256 * 1024 * 1024  # input films kept in memory (see the module doc)
 
     def __init__(self, settings: Settings, load_scene_text: Callable[[str], str],
-                 load_unit_film: Callable[[str, int], bytes] | None = None):
+                 load_unit_film: Callable[[str, int], bytes] | None = None,
+                 asset_dir=None):
         self.processes = settings.local_workers
+        # the render processes read a scene's assets from the store's files
+        self.asset_dir = None if asset_dir is None else str(asset_dir)
         self.poll_interval = settings.poll_interval  # the longest a unit waits for a tick
         self._load_scene_text = load_scene_text
         self._load_unit_film = load_unit_film
@@ -120,7 +123,7 @@ class LocalExecutor(Executor):
         inputs = {i: self._input(ticket.job_id, i, digest) for i, digest in ticket.inputs.items()}
         future = self._pool.submit(ticket.scene_hash, self._scene(ticket.scene_hash), ticket.spec,
                                    ticket.unit, tag=tag, inputs=inputs or None,
-                                   job_id=ticket.job_id)
+                                   job_id=ticket.job_id, asset_dir=self.asset_dir)
         if ticket.is_input:
             self._input_tasks.add(task_id)
         future.add_done_callback(lambda _future: self._landed(ticket.job_id))
