@@ -81,7 +81,6 @@ def _check_imported(imported, where: str) -> None:
         assert e.file and e.action and e.line is None, where
 
 
-@pytest.mark.timeout(60)
 def test01_assimp_corpus_imports_or_is_refused_naming_why():
     """Every .gltf/.glb of assimp-testmodels: the valid ones import (meshes,
     materials, textures as assets, a camera, a report), the broken or
