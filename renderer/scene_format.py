@@ -546,6 +546,7 @@ def resolve_scene(source: str | Path | dict, *, allow_files: bool = True,
     an asset, named by digest in the document: the resolved document names
     exactly the returned assets, and resolving it again gives the same.
     """
+    explicit = assets is not None
     if isinstance(source, dict):
         if _nesting(source) > MAX_NESTING:  # copying (or printing) it would exhaust the stack
             raise SceneError(f"the document nests lists and objects more than {MAX_NESTING} "
@@ -618,6 +619,12 @@ def resolve_scene(source: str | Path | dict, *, allow_files: bool = True,
     if textures:  # absent when empty: older scenes keep their hash
         resolved["textures"] = textures
     named = scene_asset_digests(resolved)
+    if explicit:
+        # every asset the document names travels with it (a bitmap's image too,
+        # which nothing above reads): a named asset the given source lacks is
+        # refused here, before any render process could meet it
+        for digest in named:
+            store.fetch(digest, "textures" if digest not in store.produced else "")
     return resolved, {d: store.produced[d] for d in named if d in store.produced}
 
 
