@@ -374,7 +374,7 @@ def _without_decoding(monkeypatch):
     from renderer.meshio import MeshData
 
     triangle = MeshData(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]]), np.array([[0, 1, 2]]))
-    monkeypatch.setattr(mitsuba, "read_mesh", lambda path, **kw: triangle)
+    monkeypatch.setattr(mitsuba.shapes, "read_mesh", lambda path, **kw: triangle)
     monkeypatch.setattr(mitsuba._Importer, "_image", lambda self, path, raw: {"image": path.name})
 
 
