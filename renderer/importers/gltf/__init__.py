@@ -16,8 +16,8 @@ The work is bounded: the file, every buffer and image are read at most once
 and only when used; triangles, shapes and node depth have limits, so a hostile
 file is refused before it costs memory or time.
 
-The modules, each a layer of the importer (every one builds on the ones
-before it): reader (state, errors, the report, typed JSON access),
+The modules, each a layer of the importer (each imports only modules
+named before it): reader (state, errors, the report, typed JSON access),
 container (.gltf/.glb, buffers, URIs, buffer views), accessors,
 materials (materials and their textures), meshes (primitives placed by
 nodes), scene_graph (nodes, cameras, lights), document (the native

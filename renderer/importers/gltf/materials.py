@@ -14,40 +14,13 @@ import numpy as np
 from ...assets import asset_digest, encode_texture
 from ...errors import SceneError
 from ...scene_format import MAX_COORDINATE, MAX_RADIANCE, MIN_ROUGHNESS
+from ...textures import read_texture
 from .container import _Container
 
 MAX_TEXTURE_BYTES = 512 * 1024 * 1024  # texture assets made, all together
 FILTER_NEAREST = 9728
 WRAP_REPEAT = 10497
 IMAGE_SUFFIX = {"image/png": ".png", "image/jpeg": ".jpg"}
-
-
-def _read_texture(path: Path, raw: bool, name: str) -> np.ndarray:
-    """(H, W, C) float32 linear texels (sRGB decoded unless `raw`); errors call
-    the image `name`."""
-    try:
-        from ...textures import read_texture
-    except ImportError:  # until the shading branch's reader is merged: then unused
-        return _read_texture_pillow(path, raw)
-    return read_texture(path, raw=raw, name=name)
-
-
-def _read_texture_pillow(path: Path, raw: bool) -> np.ndarray:
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            if im.width * im.height > 1 << 26:
-                raise SceneError(f"image of {im.width}x{im.height} pixels is too large", path.name)
-            im = im.convert("RGBA" if "A" in im.getbands() else "RGB")
-            texels = np.asarray(im, dtype=np.float32) / 255.0
-    except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
-        raise SceneError(f"cannot decode image: {exc}", path.name) from None
-    if not raw:
-        rgb = texels[..., :3]
-        texels[..., :3] = np.where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055) ** 2.4)
-    return texels
-
 
 
 class _Materials(_Container):
@@ -310,7 +283,7 @@ class _Materials(_Container):
     def decode(self, f: Path, raw: bool, ptr: str, name: str) -> np.ndarray:
         self.count_bytes(f.stat().st_size, ptr)
         try:
-            return _read_texture(f, raw, name)
+            return read_texture(f, raw=raw, name=name)
         except SceneError as exc:
             raise self.fail(exc.message, ptr) from None
 
