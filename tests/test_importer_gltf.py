@@ -182,8 +182,9 @@ def recorded(monkeypatch):
         seen[G.asset_digest(blob)] = {"texels": np.asarray(texels)}
         return blob
 
-    monkeypatch.setattr(G, "encode_mesh", mesh)
-    monkeypatch.setattr(G, "encode_texture", texture)
+    # Patched where the importer calls them: meshes and materials encode assets.
+    monkeypatch.setattr(G.meshes, "encode_mesh", mesh)
+    monkeypatch.setattr(G.materials, "encode_texture", texture)
     return seen
 
 
