@@ -199,7 +199,7 @@ def test05_a_unit_whose_message_a_live_worker_holds_stays_queued_past_the_lease(
 
     client = redis.Redis.from_url(redis_url)
     executor = CeleryExecutor(_settings(tmp_path, redis_url, unit_lease_seconds=1.0),
-                              load_scene_text=lambda h: "")
+                              load_scene_text=lambda h: "{}")
     now = datetime.now(timezone.utc)
     flight = Flight("job", 0, "queued", ("t-held",), now - timedelta(seconds=30), None)
     presence = Presence(client, "w-cold", 2, 0.1, reserved=lambda: ["t-held", "t-other"])
@@ -276,7 +276,7 @@ def test07_a_unit_in_a_stopped_workers_own_queue_is_enqueued_again(redis_url, tm
 
     client = redis.Redis.from_url(redis_url)
     executor = CeleryExecutor(_settings(tmp_path, redis_url, unit_lease_seconds=1.0),
-                              load_scene_text=lambda h: "")
+                              load_scene_text=lambda h: "{}")
     workers = [Presence(client, name, 1, 0.1) for name in ("w-bad", "w-good")]
     for presence in workers:
         presence.start()
