@@ -72,12 +72,22 @@ REAL_DATA = np.load(Path(__file__).parent / "data" / "real_mitsuba_8x8_blocks.np
 REAL_REF_SPP = 16384
 
 
-@pytest.mark.parametrize("name", ["cornell-box", "veach-bidir"])
-def test03_published_mitsuba_scenes_agree_with_mitsuba_rendering_the_same_file(name):
+@pytest.mark.parametrize("name, spp", [
+    ("cornell-box", 64),
+    # At 64 spp the test passed with an image mean half of Mitsuba's: the
+    # variance floor from the reference hid it. At 256 spp it shows where:
+    # the glass egg's highlight lands a block lower than in Mitsuba's render
+    # and the lamp's region is 0.6-0.8 of Mitsuba's (smooth-shaded glass and
+    # the rough conductor approximated as GGX glossy are the suspects).
+    pytest.param("veach-bidir", 256, marks=pytest.mark.xfail(
+        strict=True, reason="the glass egg's highlight and the lamp's light differ from "
+        "Mitsuba 3's render of the same file (cause not yet found)")),
+])
+def test03_published_mitsuba_scenes_agree_with_mitsuba_rendering_the_same_file(name, spp):
     """The published files, imported as written (tent filter, one-sided walls
     seen from behind, the file's max depth), rendered by `path-mis` at 64x64,
     against Mitsuba 3 rendering the same XML with a plain `path` of the same
-    depth: 16384 spp in 16 passes, 8x8 block means and their standard errors
+    depth (Mitsuba's max_depth - 1 bounces): 16384 spp in 16 passes, 8x8 block means and their standard errors
     (tests/data/real_mitsuba_8x8_blocks.npz, made by `python
     bench/mitsuba_reference.py --xml <scene.xml> --size 64x64 --spp 16384`).
     The same block z-test as above, Sidak-corrected alpha = 0.01."""
@@ -91,7 +101,7 @@ def test03_published_mitsuba_scenes_agree_with_mitsuba_rendering_the_same_file(n
     doc = resolve_document(imported.doc, assets=imported.assets)
     scene = build_scene(doc)
     depth = doc["defaults"]["max_depth"]
-    spec = RenderSpec(method="path-mis", spp=64, depth=depth, width=64, height=64,
+    spec = RenderSpec(method="path-mis", spp=spp, depth=depth, width=64, height=64,
                       tile_size=32, seed=7, sampler="random")
     film = merge(64, 64, [run_unit(scene, spec, u) for u in plan(spec)])
     key = name.replace("-", "_")
