@@ -124,7 +124,7 @@ interleaved pairs of processes against 2.05-2.15 M samples/s):
   array's increfs made the same code 15 ns).
 
 Measured and not kept (2026-11-27, third session, AVX2 machine): whole-path
-stratification, the one lever of issue 13 not measured before. cornell-box,
+stratification, the one lever of the sampler race not measured before. cornell-box,
 path-mis, depth 7, MSE against the 8192-spp reference (bench/throughput.py's
 functions), mean of 4 seeds, standard error 2.5 / 0.9 / 0.5 % at 16 / 64 /
 256 spp; changes against this sampler:
