@@ -11,7 +11,7 @@ import urllib.parse
 from pathlib import Path
 from typing import Any
 
-from ...scene_format import MAX_FILE_BYTES
+from ...scene_format import MAX_FILE_BYTES, _nesting
 from .reader import _Reader
 
 GLB_MAGIC = b"glTF"
@@ -157,13 +157,3 @@ class _Container(_Reader):
                             f"({len(data)} bytes)", ptr)
         return memoryview(data)[offset:offset + length], stride, ptr
 
-
-def _nesting(value: Any) -> int:
-    deepest, stack = 0, [(value, 1)]
-    while stack:
-        item, depth = stack.pop()
-        if isinstance(item, (dict, list)):
-            deepest = max(deepest, depth)
-            stack.extend((c, depth + 1) for c in (item.values() if isinstance(item, dict)
-                                                   else item))
-    return deepest
