@@ -9,7 +9,6 @@ import json
 import struct
 import urllib.parse
 from pathlib import Path
-from typing import Any
 
 from ...scene_format import MAX_FILE_BYTES, _nesting
 from .reader import _Reader
