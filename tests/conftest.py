@@ -10,6 +10,9 @@
 - `embedded_serve`: one `rayfarm serve` child in embedded mode (no broker:
   SQLite, a local pool of 2) per test module; yields (child, base URL).
 - `reference_channels`: an undisturbed render of a job body, in this process.
+- `real_scenes()`: the folder of the shared Mitsuba research scenes, which
+  never enter the repository ($RAYFARM_REAL_SCENES, else ../shared/scenes/real
+  beside the checkout); a test that needs them is skipped where they are not.
 - `postgres_server` / `postgres_url`: a PostgreSQL cluster this test run
   initialised and started itself (Debian's `initdb`/`pg_ctl`, a tmp data dir,
   a free port, its socket in tmp), stopped at the end; `postgres_url` is a
@@ -58,6 +61,25 @@ os.environ["RAYFARM_ALLOWED_HOSTS"] = "testserver,farm.test"
 ADMIN_HEADERS = {"Authorization": f"Bearer {TEST_ADMIN_TOKEN}"}
 TINY = {"scene": "cornell-box", "method": "path", "spp": 4, "depth": 3, "tile_size": 8,
         "seed": 7, "width": 32, "height": 32}
+# The shared Mitsuba research scenes are never copied into the repository.
+REAL_SCENES_DEFAULT = ROOT.parent / "shared" / "scenes" / "real"
+
+
+def real_scenes(*required: str) -> Path:
+    """The folder of the shared real scenes: $RAYFARM_REAL_SCENES, else
+    ../shared/scenes/real beside the checkout. Skips the calling test when
+    that folder, or any `required` path inside it (`"veach-bidir/scene.xml"`),
+    is missing, naming both places it looks."""
+    configured = os.environ.get("RAYFARM_REAL_SCENES")
+    folder = Path(configured).expanduser() if configured else REAL_SCENES_DEFAULT
+    missing = [name for name in required if not (folder / name).exists()]
+    if not folder.is_dir() or missing:
+        what = f"{', '.join(missing)} not in {folder}" if folder.is_dir() else f"no folder {folder}"
+        source = " (from RAYFARM_REAL_SCENES)" if configured else ""
+        pytest.skip(f"the shared real scenes are missing: {what}{source}; set RAYFARM_REAL_SCENES "
+                    f"to their folder, or put them at {REAL_SCENES_DEFAULT} (the default, "
+                    "../shared/scenes/real beside the checkout)")
+    return folder
 
 
 def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.05):

@@ -16,7 +16,7 @@ from renderer.importers import import_scene
 from renderer.importers.mitsuba import UNBOUNDED_DEPTH, look_at
 from renderer.importers.spectra import srgb_to_linear, xyz_to_srgb
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "real"
+from conftest import real_scenes
 
 CAMERA_06 = """
   <sensor type="thinlens">
@@ -361,10 +361,7 @@ def test_integrator_blocks_and_films_are_never_refused(tmp_path):
 
 
 def _real(name: str):
-    path = REAL / name / "scene.xml"
-    if not path.is_file():
-        pytest.skip(f"the shared real scenes are not at {REAL} (see shared/scenes/real/README.md)")
-    return import_scene(path)
+    return import_scene(real_scenes(f"{name}/scene.xml") / name / "scene.xml")
 
 
 def _without_decoding(monkeypatch):

@@ -4,7 +4,6 @@ and the native format's meshes, normals, UVs and unknown-field refusals."""
 import json
 import struct
 import zlib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +15,8 @@ from renderer.meshio import MeshData, read_mesh, write_serialized
 from renderer.primitives import world_mesh_data
 from renderer.scene_format import FIELDS, resolve_scene
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "real"
+from conftest import real_scenes
+
 CAMERA = {"origin": [0, 0, 5], "target": [0, 0, 0], "fov": 40}
 
 
@@ -127,9 +127,8 @@ def test02_obj_errors_name_file_and_line(tmp_path, text, line, match):
 
 
 def test03_real_obj_files_parse_as_the_slow_reader_reads_them():
-    if not REAL.is_dir():
-        pytest.skip(f"the shared real scenes are not here ({REAL})")
-    files = sorted(REAL.glob("classroom/models/*.obj")) + sorted(REAL.glob("living-room/models/*.obj"))
+    real = real_scenes()
+    files = sorted(real.glob("classroom/models/*.obj")) + sorted(real.glob("living-room/models/*.obj"))
     assert files, "the shared scenes have OBJ files"
     total = 0
     for path in files:

@@ -27,6 +27,8 @@ from scipy.stats import norm
 
 from renderer import RenderSpec, load_scene, merge, plan, run_unit
 
+from conftest import real_scenes
+
 DATA = np.load(Path(__file__).parent / "data" / "cornell_mitsuba_8x8_blocks.npz")
 B = 8
 REF_SPP = {1: 4096, 7: 8192}
@@ -67,7 +69,6 @@ def test02_cornell_box_image_mean_with_the_default_sampler_agrees_with_mitsuba()
     assert np.all(np.abs(ours.mean(axis=(0, 1)) - ref.mean(axis=(0, 1))) <= 4.5 * se)
 
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "scenes" / "real"
 REAL_DATA = np.load(Path(__file__).parent / "data" / "real_mitsuba_8x8_blocks.npz")
 REAL_REF_SPP = 16384
 
@@ -91,9 +92,7 @@ def test03_published_mitsuba_scenes_agree_with_mitsuba_rendering_the_same_file(n
     (tests/data/real_mitsuba_8x8_blocks.npz, made by `python
     bench/mitsuba_reference.py --xml <scene.xml> --size 64x64 --spp 16384`).
     The same block z-test as above, Sidak-corrected alpha = 0.01."""
-    scene_xml = REAL / name / "scene.xml"
-    if not scene_xml.is_file():
-        pytest.skip(f"{scene_xml} is missing: the published scenes live outside the repository")
+    scene_xml = real_scenes(f"{name}/scene.xml") / name / "scene.xml"
     from renderer import build_scene, resolve_document
     from renderer.importers import import_scene
 

@@ -20,8 +20,8 @@ from PIL import Image
 
 from renderer import builtin_scene_names, resolve_document, scene_text
 
-from conftest import (ADMIN_HEADERS, ROOT, TINY, assert_bit_identical, channels_of, embedded_env,
-                      get_json, poll_job, start_serve, submit, wait_for)
+from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, embedded_env,
+                      get_json, poll_job, real_scenes, start_serve, submit, wait_for)
 
 WALL = {"type": "rectangle", "material": "white"}
 ROOM = {
@@ -438,17 +438,12 @@ def test13b_a_check_that_takes_too_long_is_stopped(local_app):
                                 directory, None, UploadLimits(max_seconds=1e-3))
 
 
-REAL = ROOT.parent / "shared" / "scenes" / "real"
-
-
 def test14_a_mitsuba_scene_uploads_with_its_import_report(local_client):
     """The shared cornell-box, its folder zipped: the import report (the
     integrator parameters no Mitsuba release knows, the <mode> element...)
     comes back from the upload, is stored with the scene and shown by
     GET /scenes/{id} and GET /scenes; each entry names file and line."""
-    scene = REAL / "cornell-box" / "scene.xml"
-    if not scene.is_file():
-        pytest.skip(f"the shared real scenes are not at {REAL}")
+    scene = real_scenes("cornell-box/scene.xml") / "cornell-box" / "scene.xml"
     pytest.importorskip("renderer.importers.mitsuba",
                         reason="the Mitsuba importer is not in this checkout")
     archive = zipped({"cornell-box/scene.xml": scene.read_bytes(),
@@ -465,6 +460,7 @@ def test14_a_mitsuba_scene_uploads_with_its_import_report(local_client):
     assert local_client.get(f"/scenes/{record['id']}").json()["report"] == report
     listed = {s["id"]: s for s in local_client.get("/scenes").json()}
     assert listed[record["id"]]["report"] == report
+
 
 
 # -- jobs, lookups and deletion --------------------------------------------------------------
