@@ -82,6 +82,13 @@ def real_scenes(*required: str) -> Path:
     return folder
 
 
+def zip_of_folder(folder: Path, out_dir: Path) -> Path:
+    """`folder` zipped as `zip -r NAME.zip NAME` packs it (every file under
+    NAME/), written to out_dir/NAME.zip; returns its path."""
+    return Path(shutil.make_archive(str(out_dir / folder.name), "zip", root_dir=folder.parent,
+                                    base_dir=folder.name))
+
+
 def wait_for(predicate: Callable[[], object], timeout: float, what: str, interval: float = 0.05):
     """Poll `predicate` until it returns something truthy; fail after `timeout` s."""
     deadline = time.monotonic() + timeout

@@ -21,7 +21,8 @@ from pathlib import Path
 import httpx
 import pytest
 
-from conftest import ADMIN_HEADERS, ROOT, TEST_ADMIN_TOKEN, TINY, poll_job, wait_for
+from conftest import (ADMIN_HEADERS, ROOT, TEST_ADMIN_TOKEN, TINY, assert_bit_identical,
+                      channels_of, poll_job, real_scenes, wait_for, zip_of_folder)
 
 CHROMIUM = os.environ.get("RAYFARM_CHROMIUM", "/usr/bin/chromium")
 SHOTS = ROOT / "test-artifacts" / "screenshots"
@@ -309,6 +310,44 @@ def test07_upload_a_scene_with_its_mesh_through_the_form_and_render_it(page, tmp
     assert "browser-folder/room.json" in info and "Imported as written" in info, info
     assert page.is_hidden("[data-field='main']")
     shot(page, "11b-submit-uploaded-folder")
+
+
+def test07b_a_zipped_mitsuba_folder_uploads_renders_and_downloads_the_renderers_own_exr(
+        page, tmp_path, reference_channels):
+    """veach-bidir's folder zipped as a user zips it, chosen in the upload's
+    file picker, rendered small through the form; the EXR downloaded from the
+    job page is bit for bit the renderer's own render of scene.xml with the
+    job's spec."""
+    from renderer import scene_text
+    from renderer.cli import load_scene as read_scene_file  # what `rayfarm render FILE` reads
+
+    from test_service_scenes import VEACH_JOB
+
+    folder = real_scenes("veach-bidir/scene.xml") / "veach-bidir"
+    archive = zip_of_folder(folder, tmp_path)
+    local = read_scene_file(str(folder / "scene.xml"))
+    scene_id = scene_text(local)[0]
+    page.goto(f"{page.base}/#/submit")
+    page.wait_for_selector("#f-method option[value='path-mis']", state="attached")
+    page.set_input_files("#f-upload", str(archive))
+    page.click("#upload-button")
+    page.wait_for_function("id => document.querySelector('#f-scene').value === id", arg=scene_id)
+    page.select_option("#f-method", "path-mis")
+    for name in ("spp", "depth", "width", "height", "tile_size", "seed"):
+        page.fill(f"#f-{name}", str(VEACH_JOB[name]))
+    page.click("#submit-button")
+    page.wait_for_url("**/#/jobs/*")
+    job_id = page.url.rsplit("/", 1)[1]
+    page.wait_for_selector("#view .page-head .badge[data-state='done']", timeout=120_000)
+    shot(page, "11c-veach-bidir-rendered")
+    with page.expect_download() as download:
+        page.click("#download-exr")
+    download.value.save_as(tmp_path / "farm.exr")
+    with api(page.base) as client:
+        job = client.get(f"/jobs/{job_id}").json()
+    assert {k: job[k] for k in VEACH_JOB} == VEACH_JOB and job["scene_hash"] == scene_id
+    assert_bit_identical(channels_of(tmp_path / "farm.exr"),
+                         reference_channels(dict(VEACH_JOB, scene=local, sampler=job["sampler"])))
 
 
 def test08_a_dag_job_shows_its_phases(page):

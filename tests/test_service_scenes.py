@@ -21,7 +21,8 @@ from PIL import Image
 from renderer import builtin_scene_names, resolve_document, scene_text
 
 from conftest import (ADMIN_HEADERS, TINY, assert_bit_identical, channels_of, embedded_env,
-                      get_json, poll_job, real_scenes, start_serve, submit, wait_for)
+                      get_json, poll_job, real_scenes, start_serve, submit, wait_for,
+                      zip_of_folder)
 
 WALL = {"type": "rectangle", "material": "white"}
 ROOM = {
@@ -461,6 +462,36 @@ def test14_a_mitsuba_scene_uploads_with_its_import_report(local_client):
     listed = {s["id"]: s for s in local_client.get("/scenes").json()}
     assert listed[record["id"]]["report"] == report
 
+
+# A small render of the shared veach-bidir: seconds, not minutes.
+VEACH_JOB = {"method": "path-mis", "spp": 16, "depth": 5, "width": 64, "height": 64,
+             "tile_size": 32, "seed": 11}
+
+
+def test14b_a_zipped_mitsuba_folder_renders_as_the_renderer_renders_its_file(
+        local_client, tmp_path, reference_channels):
+    """veach-bidir's folder zipped as a user zips it (meshes, license and the
+    Tungsten render beside scene.xml), uploaded to POST /scenes and rendered
+    by the farm: the same scene hash as scene.xml imported locally, and the
+    EXR bit for bit the renderer's own render of that file with the same spec."""
+    from renderer.cli import load_scene as read_scene_file  # what `rayfarm render FILE` reads
+
+    folder = real_scenes("veach-bidir/scene.xml") / "veach-bidir"
+    archive = zip_of_folder(folder, tmp_path)
+    with archive.open("rb") as data:
+        response = local_client.post("/scenes", files=[("scene", (archive.name, data,
+                                                                  "application/zip"))])
+    assert response.status_code in (200, 201), response.text
+    assert response.json()["source"] == "veach-bidir/scene.xml"
+    local = read_scene_file(str(folder / "scene.xml"))
+    body = dict(VEACH_JOB, scene=response.json()["id"])
+    job = poll_job(get_json(local_client), submit(local_client, body)["id"])
+    assert job["status"] == "done", job
+    assert job["scene_hash"] == scene_text(local)[0]
+    (tmp_path / "farm.exr").write_bytes(local_client.get(job["result_url"]).content)
+    farm = channels_of(tmp_path / "farm.exr")
+    assert farm["R"].shape == (64, 64) and farm["R"].max() > 0
+    assert_bit_identical(farm, reference_channels(dict(body, scene=local)))
 
 
 # -- jobs, lookups and deletion --------------------------------------------------------------
