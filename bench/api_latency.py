@@ -22,10 +22,7 @@ import json
 import os
 import platform
 import shutil
-import signal
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -34,6 +31,9 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from embedded import embedded_service  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 TOKEN = "rf_bench_api_latency_0123456789abcdef"
@@ -71,35 +71,6 @@ def grid_obj(mib: float) -> bytes:
     np.savetxt(out, faces, fmt="f %d %d %d")
     out.seek(0)
     return out.read()
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def start_service(tree: Path, data: Path, log: Path, workers: int) -> tuple[subprocess.Popen, str]:
-    port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update(RAYFARM_DATA_DIR=str(data), RAYFARM_ADMIN_TOKEN=TOKEN, PYTHONUNBUFFERED="1",
-               RAYFARM_LOCAL_WORKERS=str(workers), PYTHONPATH=str(tree))
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--host", "127.0.0.1",
-                             "--port", str(port), "--loglevel", "warning"],
-                            cwd=tree, env=env, stdout=log.open("wb"), stderr=subprocess.STDOUT,
-                            start_new_session=True)
-    base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 600
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise SystemExit(f"rayfarm serve exited:\n{log.read_text()}")
-        try:
-            if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
-                return proc, base
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.2)
-    raise SystemExit("rayfarm serve did not become healthy")
 
 
 class Poller(threading.Thread):
@@ -151,61 +122,60 @@ def main() -> int:
           f"{args.tree}; {args.uploads} uploads of {len(obj) / 2**20:.1f} MiB .obj "
           f"({triangles} triangles); {args.jobs} finished jobs listed", flush=True)
     scratch = Path(tempfile.mkdtemp(prefix="rayfarm-api-latency-"))
-    proc, base = start_service(args.tree, scratch / "data", scratch / "serve.log", args.workers)
     try:
-        with httpx.Client(base_url=base, headers=HEADERS, timeout=60) as client:
-            ids = [client.post("/jobs", json={"scene": "cornell-box", "method": "path", "spp": 1,
-                                              "depth": 2, "width": 16, "height": 16,
-                                              "seed": i}).json()["id"]
-                   for i in range(args.jobs)]
-            while any(client.get(f"/jobs/{i}").json()["status"] not in ("done", "failed")
-                      for i in ids):
-                time.sleep(0.5)
-        poller = Poller(base, args.gap)
-        poller.start()
-        t0 = time.monotonic()
-        time.sleep(args.idle)
-        t1 = time.monotonic()
-        results: list[tuple[int, float, str]] = []
+        with embedded_service(workers=args.workers, data_dir=scratch / "data", token=TOKEN,
+                              command=[sys.executable, "-m", "service"], cwd=args.tree,
+                              env={"PYTHONPATH": str(args.tree)}, loglevel="warning",
+                              log=scratch / "serve.log", timeout=600) as server:
+            base = server.base
+            with httpx.Client(base_url=base, headers=HEADERS, timeout=60) as client:
+                ids = [client.post("/jobs", json={"scene": "cornell-box", "method": "path",
+                                                  "spp": 1, "depth": 2, "width": 16,
+                                                  "height": 16, "seed": i}).json()["id"]
+                       for i in range(args.jobs)]
+                while any(client.get(f"/jobs/{i}").json()["status"] not in ("done", "failed")
+                          for i in ids):
+                    time.sleep(0.5)
+            poller = Poller(base, args.gap)
+            poller.start()
+            t0 = time.monotonic()
+            time.sleep(args.idle)
+            t1 = time.monotonic()
+            results: list[tuple[int, float, str]] = []
 
-        def upload(k: int) -> None:
-            body = b"# upload %d\n" % k + obj  # a comment line: new content, the same mesh
-            scene = json.dumps(dict(SCENE, name=f"grid-{k}")).encode()
-            started = time.monotonic()
-            with httpx.Client(headers=HEADERS, timeout=600) as client:
-                response = client.post(f"{base}/scenes", files=[
-                    ("scene", ("grid.json", scene, "application/json")),
-                    ("files", ("grid.obj", body, "text/plain"))])
-            results.append((response.status_code, time.monotonic() - started,
-                            response.headers.get("retry-after", "")))
-        threads = [threading.Thread(target=upload, args=(k,)) for k in range(args.uploads)]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
-        t2 = time.monotonic()
-        time.sleep(args.idle)
-        t3 = time.monotonic()
-        poller.done.set()
-        poller.join()
-        print(f"GET /jobs idle          {summary(poller.between(t0, t1))}")
-        print(f"GET /jobs during uploads {summary(poller.between(t1, t2))}  ({t2 - t1:.1f} s)")
-        print(f"GET /jobs after         {summary(poller.between(t2, t3))}")
-        if args.trace:
-            args.trace.write_text(json.dumps({
-                "gets": [(round(t - t1, 3), round(s, 4)) for t, s, _ in poller.samples],
-                "uploads_done": round(t2 - t1, 3)}))
-        statuses = sorted(s for _, _, s in poller.samples)
-        print(f"GET /jobs statuses: {dict((s, statuses.count(s)) for s in set(statuses))}")
-        for status, seconds, retry in sorted(results):
-            print(f"upload: {status} in {seconds:.1f} s" + (f" (Retry-After {retry})"
-                                                            if retry else ""))
+            def upload(k: int) -> None:
+                body = b"# upload %d\n" % k + obj  # a comment line: new content, the same mesh
+                scene = json.dumps(dict(SCENE, name=f"grid-{k}")).encode()
+                started = time.monotonic()
+                with httpx.Client(headers=HEADERS, timeout=600) as client:
+                    response = client.post(f"{base}/scenes", files=[
+                        ("scene", ("grid.json", scene, "application/json")),
+                        ("files", ("grid.obj", body, "text/plain"))])
+                results.append((response.status_code, time.monotonic() - started,
+                                response.headers.get("retry-after", "")))
+            threads = [threading.Thread(target=upload, args=(k,)) for k in range(args.uploads)]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join()
+            t2 = time.monotonic()
+            time.sleep(args.idle)
+            t3 = time.monotonic()
+            poller.done.set()
+            poller.join()
+            print(f"GET /jobs idle          {summary(poller.between(t0, t1))}")
+            print(f"GET /jobs during uploads {summary(poller.between(t1, t2))}  ({t2 - t1:.1f} s)")
+            print(f"GET /jobs after         {summary(poller.between(t2, t3))}")
+            if args.trace:
+                args.trace.write_text(json.dumps({
+                    "gets": [(round(t - t1, 3), round(s, 4)) for t, s, _ in poller.samples],
+                    "uploads_done": round(t2 - t1, 3)}))
+            statuses = sorted(s for _, _, s in poller.samples)
+            print(f"GET /jobs statuses: {dict((s, statuses.count(s)) for s in set(statuses))}")
+            for status, seconds, retry in sorted(results):
+                print(f"upload: {status} in {seconds:.1f} s" + (f" (Retry-After {retry})"
+                                                                if retry else ""))
     finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(30)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
         shutil.rmtree(scratch, ignore_errors=True)
     return 0
 

@@ -32,13 +32,10 @@ Figures are in docs/hardening.md.
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import select
 import shutil
-import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -46,6 +43,9 @@ import time
 from pathlib import Path
 
 import httpx
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from embedded import embedded_service  # noqa: E402
 
 ROUTES = [("POST", "/auth/login"), ("POST", "/experiments"), ("POST", "/users"),
           ("PATCH", "/jobs/0123456789ab"), ("POST", "/jobs"), ("POST", "/scenes")]
@@ -168,59 +168,34 @@ def main() -> int:
     parser.add_argument("--size", type=_size, default=2 << 30, help="body size (default 2GiB)")
     args = parser.parse_args()
     workdir = Path(tempfile.mkdtemp(prefix="rayfarm-front-door-"))
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAYFARM_")}
-    env.update(RAYFARM_DATA_DIR=str(workdir / "data"), RAYFARM_LOCAL_WORKERS="1",
-               RAYFARM_ADMIN_TOKEN=TOKEN, PYTHONUNBUFFERED="1")
-    script = Path(sys.executable).parent / "rayfarm"
-    log = open(workdir / "serve.log", "wb")
-    server = subprocess.Popen([str(script), "serve", "--host", "127.0.0.1", "--port", str(port),
-                               "--loglevel", "warning"], env=env, stdout=log,
-                              stderr=subprocess.STDOUT, start_new_session=True)
-    base = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 300
-        while True:
-            try:
-                if httpx.get(f"{base}/healthz", timeout=2).status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if time.monotonic() > deadline or server.poll() is not None:
-                print((workdir / "serve.log").read_text(), file=sys.stderr)
-                return 1
-            time.sleep(0.2)
-        can_reset = _reset_peak(server.pid)
-        print(f"body: {args.size} bytes; service pid {server.pid}; RSS "
-              f"{_status(server.pid)['VmRSS'] / 2**20:.0f} MiB"
-              + ("" if can_reset else " (peak not resettable: deltas are since start)"))
-        print(f"{'route':<26} {'token':<6} {'body':<9} {'status':>6} {'seconds':>8} "
-              f"{'sent MiB':>9} {'RSS MiB':>8} {'peak +MiB':>9} {'healthz max s':>13}")
-        for method, path in ROUTES:
-            for token in (None, TOKEN):
-                for chunked in (False, True):
-                    _reset_peak(server.pid)
-                    before = _status(server.pid)["VmRSS"]
-                    with HealthPoll(base) as health:
-                        status, seconds, sent = send("127.0.0.1", port, method, path, args.size,
-                                                     chunked, token)
-                        time.sleep(0.1)  # what the service does right after the answer
-                    peak = _status(server.pid)["VmHWM"] - before
-                    print(f"{method + ' ' + path:<26} {'admin' if token else 'none':<6} "
-                          f"{'chunked' if chunked else 'declared':<9} {status:>6} "
-                          f"{seconds:>8.3f} {sent / 2**20:>9.1f} {before / 2**20:>8.0f} "
-                          f"{peak / 2**20:>9.1f} "
-                          f"{health.slowest:>13.3f}"
-                          + (f"  ({health.failed} /healthz failed)" if health.failed else ""))
+        with embedded_service(workers=1, data_dir=workdir / "data", token=TOKEN,
+                              loglevel="warning", log=workdir / "serve.log", timeout=300,
+                              stop_seconds=20) as server:
+            base, port = server.base, server.port
+            can_reset = _reset_peak(server.pid)
+            print(f"body: {args.size} bytes; service pid {server.pid}; RSS "
+                  f"{_status(server.pid)['VmRSS'] / 2**20:.0f} MiB"
+                  + ("" if can_reset else " (peak not resettable: deltas are since start)"))
+            print(f"{'route':<26} {'token':<6} {'body':<9} {'status':>6} {'seconds':>8} "
+                  f"{'sent MiB':>9} {'RSS MiB':>8} {'peak +MiB':>9} {'healthz max s':>13}")
+            for method, path in ROUTES:
+                for token in (None, TOKEN):
+                    for chunked in (False, True):
+                        _reset_peak(server.pid)
+                        before = _status(server.pid)["VmRSS"]
+                        with HealthPoll(base) as health:
+                            status, seconds, sent = send("127.0.0.1", port, method, path, args.size,
+                                                         chunked, token)
+                            time.sleep(0.1)  # what the service does right after the answer
+                        peak = _status(server.pid)["VmHWM"] - before
+                        print(f"{method + ' ' + path:<26} {'admin' if token else 'none':<6} "
+                              f"{'chunked' if chunked else 'declared':<9} {status:>6} "
+                              f"{seconds:>8.3f} {sent / 2**20:>9.1f} {before / 2**20:>8.0f} "
+                              f"{peak / 2**20:>9.1f} "
+                              f"{health.slowest:>13.3f}"
+                              + (f"  ({health.failed} /healthz failed)" if health.failed else ""))
     finally:
-        os.killpg(server.pid, signal.SIGTERM)
-        try:
-            server.wait(20)
-        except subprocess.TimeoutExpired:
-            os.killpg(server.pid, signal.SIGKILL)
-        log.close()
         shutil.rmtree(workdir, ignore_errors=True)
     return 0
 

@@ -34,14 +34,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
-import socket
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from embedded import embedded_service, rayfarm_script  # noqa: E402
 
 DEFAULT_JOBS = ["raster:1024:1024:1024", "raster:2048:2048:2048"]
 
@@ -91,70 +89,42 @@ def parse_job(text: str) -> dict:
 def run_job(rayfarm: str, body: dict, workers: int, env_extra: dict) -> dict:
     import httpx
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    data_dir = tempfile.mkdtemp(prefix="rayfarm-memory-")
-    token = "rf_bench_" + os.urandom(24).hex()
-    env = {**os.environ, "RAYFARM_DATA_DIR": data_dir, "RAYFARM_LOCAL_WORKERS": str(workers),
-           "RAYFARM_BROKER_URL": "", "RAYFARM_DATABASE_URL": "", "RAYFARM_ADMIN_TOKEN": token,
-           **env_extra}
-    server = subprocess.Popen([rayfarm, "serve", "--host", "127.0.0.1", "--port", str(port)],
-                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=60,
-                          headers={"Authorization": f"Bearer {token}"}) as client:
-            deadline = time.monotonic() + 900
+    # the temporary data dir goes with the service: a 4096^2 job's films are gigabytes
+    with embedded_service(workers=workers, env=env_extra, command=[rayfarm]) as server, \
+            httpx.Client(base_url=server.base, timeout=60, headers=server.headers) as client:
+
+        def submit(job: dict) -> tuple[dict, float]:
+            t0 = time.perf_counter()
+            response = client.post("/jobs", json=job)
+            if response.status_code != 201 and response.status_code != 200:
+                return {"status": "refused", "error": response.text}, 0.0
+            job_id = response.json()["id"]
             while True:
-                try:
-                    if client.get("/healthz").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise RuntimeError("rayfarm serve did not come up")
-                time.sleep(0.2)
+                state = client.get(f"/jobs/{job_id}").raise_for_status().json()
+                if state["status"] in ("done", "failed", "canceled"):
+                    return state, time.perf_counter() - t0
+                time.sleep(0.25)
 
-            def submit(job: dict) -> tuple[dict, float]:
-                t0 = time.perf_counter()
-                response = client.post("/jobs", json=job)
-                if response.status_code != 201 and response.status_code != 200:
-                    return {"status": "refused", "error": response.text}, 0.0
-                job_id = response.json()["id"]
-                while True:
-                    state = client.get(f"/jobs/{job_id}").raise_for_status().json()
-                    if state["status"] in ("done", "failed", "canceled"):
-                        return state, time.perf_counter() - t0
-                    time.sleep(0.25)
-
-            warm, _ = submit({**body, "width": 4, "height": 4, "tile_size": 4})
-            if warm["status"] != "done":
-                raise RuntimeError(f"warm-up job {warm['status']}: {warm.get('error')}")
-            time.sleep(1.0)
-            renderers = children(server.pid)
-            before = {pid: status(pid)["VmRSS"] for pid in [server.pid, *renderers]}
-            for pid in before:
-                reset_peak(pid)
-            state, seconds = submit(body)
-            peaks = {pid: status(pid)["VmHWM"] for pid in before}
-            time.sleep(3.0)
-            kept = status(server.pid)["VmRSS"]
-            render = max((peaks[p] - before[p] for p in renderers if peaks[p]), default=0)
-            return {"job": body, "status": state["status"], "error": state.get("error"),
-                    "seconds": round(seconds, 2),
-                    "service_base": before[server.pid],
-                    "service_rise": peaks[server.pid] - before[server.pid],
-                    "service_kept": kept - before[server.pid],
-                    "render_rise": render,
-                    "render_base": max((before[p] for p in renderers), default=0)}
-    finally:
-        server.terminate()
-        try:
-            server.wait(60)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
-        shutil.rmtree(data_dir, ignore_errors=True)  # a 4096^2 job's films are gigabytes
+        warm, _ = submit({**body, "width": 4, "height": 4, "tile_size": 4})
+        if warm["status"] != "done":
+            raise RuntimeError(f"warm-up job {warm['status']}: {warm.get('error')}")
+        time.sleep(1.0)
+        renderers = children(server.pid)
+        before = {pid: status(pid)["VmRSS"] for pid in [server.pid, *renderers]}
+        for pid in before:
+            reset_peak(pid)
+        state, seconds = submit(body)
+        peaks = {pid: status(pid)["VmHWM"] for pid in before}
+        time.sleep(3.0)
+        kept = status(server.pid)["VmRSS"]
+        render = max((peaks[p] - before[p] for p in renderers if peaks[p]), default=0)
+        return {"job": body, "status": state["status"], "error": state.get("error"),
+                "seconds": round(seconds, 2),
+                "service_base": before[server.pid],
+                "service_rise": peaks[server.pid] - before[server.pid],
+                "service_kept": kept - before[server.pid],
+                "render_rise": render,
+                "render_base": max((before[p] for p in renderers), default=0)}
 
 
 def predicted(body: dict, workers: int) -> dict:
@@ -183,7 +153,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--jobs", nargs="+", default=DEFAULT_JOBS)
     parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--rayfarm", default=str(Path(sys.executable).with_name("rayfarm")))
+    parser.add_argument("--rayfarm", default=rayfarm_script())
     parser.add_argument("--env", nargs="*", default=[], help="NAME=VALUE for the service")
     parser.add_argument("--label", default="this checkout")
     parser.add_argument("--save", type=Path)

@@ -370,77 +370,51 @@ def farm_times(scene_name: str, size, depth: int, spp_list: list[int], workers: 
     weighs on both alike; PAIRS of each. Returns {spp: {progressive: (pool
     seconds, service seconds, the service process's CPU seconds: medians; the
     median over the pairs of service / pool - 1)}}."""
-    import socket
-
     import httpx
 
+    from embedded import embedded_service
     from renderer import LocalPool
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    data_dir = tempfile.mkdtemp(prefix="rayfarm-bench-")
-    token = "rf_bench_" + os.urandom(24).hex()  # the first admin's token (auth stays on)
-    env = {**os.environ, "RAYFARM_DATA_DIR": data_dir, "RAYFARM_LOCAL_WORKERS": str(workers),
-           "RAYFARM_BROKER_URL": "", "RAYFARM_DATABASE_URL": "", "RAYFARM_ADMIN_TOKEN": token}
-    rayfarm = Path(sys.executable).with_name("rayfarm")
-    server = subprocess.Popen([str(rayfarm), "serve", "--host", "127.0.0.1", "--port", str(port)],
-                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=30,
-                          headers={"Authorization": f"Bearer {token}"}) as client, \
-                LocalPool(workers) as pool:
-            deadline = time.monotonic() + 600
-            while True:
-                try:
-                    if client.get("/healthz").status_code == 200:
+    with embedded_service(workers=workers, timeout=600) as server, \
+            httpx.Client(base_url=server.base, timeout=30, headers=server.headers) as client, \
+            LocalPool(workers) as pool:
+        def service_run(spp: int, seed: int, progressive: bool) -> tuple[float, float]:
+            body = {"scene": scene_name, "method": "path-mis", "spp": spp, "depth": depth,
+                    "tile_size": 64, "seed": seed, "width": size[0], "height": size[1],
+                    "sampler": sampler, "progressive": progressive}
+            cpu0 = process_cpu_seconds(server.pid)
+            t0 = time.perf_counter()
+            job = client.post("/jobs", json=body).raise_for_status().json()
+            # the job's event stream says `end` when it is final: no polling
+            # (a GET every 10 ms cost this 2-core machine several percent)
+            with client.stream("GET", f"/jobs/{job['id']}/events", timeout=None) as events:
+                for line in events.iter_lines():
+                    if line == "event: end":
                         break
-                except httpx.TransportError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise RuntimeError("rayfarm serve did not come up")
-                time.sleep(0.2)
+            seconds = time.perf_counter() - t0
+            cpu = process_cpu_seconds(server.pid) - cpu0
+            state = client.get(f"/jobs/{job['id']}").raise_for_status().json()
+            if state["status"] != "done":
+                raise RuntimeError(f"benchmark job {state['status']}: {state.get('error')}")
+            return seconds, cpu
 
-            def service_run(spp: int, seed: int, progressive: bool) -> tuple[float, float]:
-                body = {"scene": scene_name, "method": "path-mis", "spp": spp, "depth": depth,
-                        "tile_size": 64, "seed": seed, "width": size[0], "height": size[1],
-                        "sampler": sampler, "progressive": progressive}
-                cpu0 = process_cpu_seconds(server.pid)
-                t0 = time.perf_counter()
-                job = client.post("/jobs", json=body).raise_for_status().json()
-                # the job's event stream says `end` when it is final: no polling
-                # (a GET every 10 ms cost this 2-core machine several percent)
-                with client.stream("GET", f"/jobs/{job['id']}/events", timeout=None) as events:
-                    for line in events.iter_lines():
-                        if line == "event: end":
-                            break
-                seconds = time.perf_counter() - t0
-                cpu = process_cpu_seconds(server.pid) - cpu0
-                state = client.get(f"/jobs/{job['id']}").raise_for_status().json()
-                if state["status"] != "done":
-                    raise RuntimeError(f"benchmark job {state['status']}: {state.get('error')}")
-                return seconds, cpu
-
-            # warm-up: every process of both pools has loaded its kernels
-            _pool_run(pool, scene_name, size, depth, 1, 0, False, sampler)
-            service_run(1, 0, False)
-            out: dict = {}
-            for spp in spp_list:
-                for progressive in (False, True):
-                    pools, services, cpus = [], [], []
-                    for seed in range(1, PAIRS + 1):
-                        pools.append(_pool_run(pool, scene_name, size, depth, spp, seed,
-                                               progressive, sampler))
-                        seconds, cpu = service_run(spp, seed, progressive)
-                        services.append(seconds)
-                        cpus.append(cpu)
-                    share = median([b / a - 1 for a, b in zip(pools, services)])
-                    out.setdefault(spp, {})[progressive] = (median(pools), median(services),
-                                                            median(cpus), share)
-            return out
-    finally:
-        server.terminate()
-        server.wait(60)
+        # warm-up: every process of both pools has loaded its kernels
+        _pool_run(pool, scene_name, size, depth, 1, 0, False, sampler)
+        service_run(1, 0, False)
+        out: dict = {}
+        for spp in spp_list:
+            for progressive in (False, True):
+                pools, services, cpus = [], [], []
+                for seed in range(1, PAIRS + 1):
+                    pools.append(_pool_run(pool, scene_name, size, depth, spp, seed,
+                                           progressive, sampler))
+                    seconds, cpu = service_run(spp, seed, progressive)
+                    services.append(seconds)
+                    cpus.append(cpu)
+                share = median([b / a - 1 for a, b in zip(pools, services)])
+                out.setdefault(spp, {})[progressive] = (median(pools), median(services),
+                                                        median(cpus), share)
+        return out
 
 
 # -- the report ---------------------------------------------------------------------------

@@ -20,10 +20,7 @@ the upload checker's forkserver and load the kernels. Figures recorded in docs/h
 from __future__ import annotations
 
 import argparse
-import os
 import shutil
-import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -33,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from embedded import embedded_service, rayfarm_script  # noqa: E402
 from memory import status  # noqa: E402 (the same /proc reader)
 
 
@@ -93,7 +91,7 @@ class PeakWatch:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--grid", type=int, default=1000, help="quads per side (2 grid^2 triangles)")
-    parser.add_argument("--rayfarm", default=str(Path(sys.executable).with_name("rayfarm")))
+    parser.add_argument("--rayfarm", default=rayfarm_script())
     args = parser.parse_args()
     import httpx
 
@@ -112,89 +110,62 @@ def main() -> None:
                          ' "file": "big.obj"}, {"type": "rectangle", "material": "m", "to_world":'
                          ' [{"translate": [0, 0, 3]}], "flip_normals": true, "emitter": {"type": '
                          '"area", "radiance": [5, 5, 5]}}]}')
-        with socket.socket() as sock:
-            sock.bind(("127.0.0.1", 0))
-            port = sock.getsockname()[1]
-        token = "rf_bench_" + os.urandom(24).hex()
-        env = {**os.environ, "RAYFARM_DATA_DIR": str(data_dir), "RAYFARM_LOCAL_WORKERS": "1",
-               "RAYFARM_BROKER_URL": "", "RAYFARM_DATABASE_URL": "",
-               "RAYFARM_ADMIN_TOKEN": token, "RAYFARM_MAX_UPLOAD_BYTES": str(1 << 30)}
-        server = subprocess.Popen([args.rayfarm, "serve", "--host", "127.0.0.1", "--port",
-                                   str(port)], env=env, stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.DEVNULL)
-        try:
-            with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=900,
-                              headers={"Authorization": f"Bearer {token}"}) as client:
-                deadline = time.monotonic() + 900
-                while True:
-                    try:
-                        if client.get("/healthz").status_code == 200:
-                            break
-                    except httpx.TransportError:
-                        pass
-                    if time.monotonic() > deadline:
-                        raise RuntimeError("rayfarm serve did not come up")
-                    time.sleep(0.2)
-                # a first upload and job start the upload checker's forkserver and
-                # load the render process's kernels: not what is measured
-                tiny = work / "tiny"
-                tiny.mkdir()
-                write_obj(tiny / "big.obj", 2)
-                with scene.open("rb") as s, (tiny / "big.obj").open("rb") as o:
-                    warm = client.post("/scenes", files=[("scene", ("big.json", s)),
+        with embedded_service(workers=1, data_dir=data_dir, command=[args.rayfarm],
+                              env={"RAYFARM_MAX_UPLOAD_BYTES": str(1 << 30)}) as server, \
+                httpx.Client(base_url=server.base, timeout=900, headers=server.headers) as client:
+            # a first upload and job start the upload checker's forkserver and
+            # load the render process's kernels: not what is measured
+            tiny = work / "tiny"
+            tiny.mkdir()
+            write_obj(tiny / "big.obj", 2)
+            with scene.open("rb") as s, (tiny / "big.obj").open("rb") as o:
+                warm = client.post("/scenes", files=[("scene", ("big.json", s)),
+                                                     ("files", ("big.obj", o))])
+            if warm.status_code >= 300:
+                raise RuntimeError(f"warm-up upload refused: {warm.status_code} {warm.text}")
+            warm_job = client.post("/jobs", json={"scene": warm.json()["id"], "method": "path",
+                                                  "spp": 1, "depth": 2, "tile_size": 64,
+                                                  "seed": 1, "progressive": False}).json()
+            while client.get(f"/jobs/{warm_job['id']}").json()["status"] not in (
+                    "done", "failed", "canceled"):
+                time.sleep(0.1)
+            time.sleep(2.0)
+            base = status(server.pid)["VmRSS"]
+            watch = PeakWatch(server.pid)
+            t0 = time.perf_counter()
+            with scene.open("rb") as s, obj.open("rb") as o:
+                response = client.post("/scenes", files=[("scene", ("big.json", s)),
                                                          ("files", ("big.obj", o))])
-                if warm.status_code >= 300:
-                    raise RuntimeError(f"warm-up upload refused: {warm.status_code} {warm.text}")
-                warm_job = client.post("/jobs", json={"scene": warm.json()["id"], "method": "path",
-                                                      "spp": 1, "depth": 2, "tile_size": 64,
-                                                      "seed": 1, "progressive": False}).json()
-                while client.get(f"/jobs/{warm_job['id']}").json()["status"] not in (
-                        "done", "failed", "canceled"):
-                    time.sleep(0.1)
-                time.sleep(2.0)
-                base = status(server.pid)["VmRSS"]
-                watch = PeakWatch(server.pid)
-                t0 = time.perf_counter()
-                with scene.open("rb") as s, obj.open("rb") as o:
-                    response = client.post("/scenes", files=[("scene", ("big.json", s)),
-                                                             ("files", ("big.obj", o))])
-                upload = time.perf_counter() - t0
-                if response.status_code >= 300:
-                    raise RuntimeError(f"upload refused: {response.status_code} {response.text}")
-                info = response.json()
-                t1 = time.perf_counter()
-                job = client.post("/jobs", json={"scene": info["id"], "method": "path", "spp": 1,
-                                                 "depth": 2, "tile_size": 64, "seed": 1,
-                                                 "progressive": False})
-                if job.status_code != 201:
-                    raise RuntimeError(f"job refused: {job.status_code} {job.text}")
-                job_id = job.json()["id"]
-                while True:
-                    state = client.get(f"/jobs/{job_id}").raise_for_status().json()
-                    if state["progress"]["units_done"] >= 1 or state["status"] in ("failed",
-                                                                                   "canceled"):
-                        break
-                    time.sleep(0.05)
-                first = time.perf_counter() - t1
-                watch.stop()
-                if state["status"] in ("failed", "canceled"):
-                    raise RuntimeError(f"job {state['status']}: {state.get('error')}")
-            stored = sum(p.stat().st_size for p in (data_dir / "store").rglob("*") if p.is_file())
-            print(f"upload (POST /scenes): {upload:.1f} s; scene {info['id'][:12]}: "
-                  f"{info['triangles']} triangles, text {info['bytes']} bytes, store "
-                  f"{stored / 1e6:.0f} MB")
-            print(f"job to its first unit: {first:.1f} s; upload to first pixel: "
-                  f"{upload + first:.1f} s")
-            print(f"peak resident: service {watch.service / 1e6:.0f} MB (before: {base / 1e6:.0f}"
-                  f" MB), its largest child (upload check, render process) "
-                  f"{watch.children / 1e6:.0f} MB")
-        finally:
-            server.terminate()
-            try:
-                server.wait(60)
-            except subprocess.TimeoutExpired:
-                server.kill()
-                server.wait()
+            upload = time.perf_counter() - t0
+            if response.status_code >= 300:
+                raise RuntimeError(f"upload refused: {response.status_code} {response.text}")
+            info = response.json()
+            t1 = time.perf_counter()
+            job = client.post("/jobs", json={"scene": info["id"], "method": "path", "spp": 1,
+                                             "depth": 2, "tile_size": 64, "seed": 1,
+                                             "progressive": False})
+            if job.status_code != 201:
+                raise RuntimeError(f"job refused: {job.status_code} {job.text}")
+            job_id = job.json()["id"]
+            while True:
+                state = client.get(f"/jobs/{job_id}").raise_for_status().json()
+                if state["progress"]["units_done"] >= 1 or state["status"] in ("failed",
+                                                                               "canceled"):
+                    break
+                time.sleep(0.05)
+            first = time.perf_counter() - t1
+            watch.stop()
+            if state["status"] in ("failed", "canceled"):
+                raise RuntimeError(f"job {state['status']}: {state.get('error')}")
+        stored = sum(p.stat().st_size for p in (data_dir / "store").rglob("*") if p.is_file())
+        print(f"upload (POST /scenes): {upload:.1f} s; scene {info['id'][:12]}: "
+              f"{info['triangles']} triangles, text {info['bytes']} bytes, store "
+              f"{stored / 1e6:.0f} MB")
+        print(f"job to its first unit: {first:.1f} s; upload to first pixel: "
+              f"{upload + first:.1f} s")
+        print(f"peak resident: service {watch.service / 1e6:.0f} MB (before: {base / 1e6:.0f}"
+              f" MB), its largest child (upload check, render process) "
+              f"{watch.children / 1e6:.0f} MB")
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
