@@ -49,7 +49,7 @@ def open_ledger(settings: Settings) -> tuple[Engine, sessionmaker[Session]]:
 
 def _add_missing_columns(engine: Engine) -> None:
     """A ledger from an older version lacks the newer columns (all with server
-    defaults): add them. Nothing is ever dropped or changed."""
+    defaults, or nullable): add them. Nothing is ever dropped or changed."""
     inspector = inspect(engine)
     for table in Base.metadata.sorted_tables:
         present = {c["name"] for c in inspector.get_columns(table.name)}

@@ -242,6 +242,10 @@ class SceneRecord(Base):
     # did not take as written. Records from before importers: "" and "[]".
     source: Mapped[str] = mapped_column(String(1024), default="", server_default=text("''"))
     report: Mapped[str] = mapped_column(Text, default="[]", server_default=text("'[]'"))
+    # A job's depth when it gives none (renderer.spec.default_depth of the
+    # document: an imported file's max_depth), kept so that a job need not
+    # parse the stored text. NULL in records from before it: read the text.
+    default_depth: Mapped[int | None] = mapped_column(Integer, nullable=True)
 
 
 class SceneClaim(Base):

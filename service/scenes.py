@@ -54,6 +54,7 @@ from renderer import SceneError, builtin_scene_names, resolve_document, scene_te
 from renderer.importers import import_scene
 from renderer.scene import triangle_count
 from renderer.scene_format import ResolvedDocument
+from renderer.spec import default_depth
 
 from .access import Principal, require_submit
 from .errors import (Conflict, Forbidden, InvalidRequest, NotFound, RateLimited, ResultNotReady,
@@ -184,13 +185,15 @@ def uploaded_document(session: Session, store: Store, actor: Principal, scene_id
                       whole: bool = True) -> tuple[dict, str] | None:
     """(resolved document, name) of the uploaded scene `scene_id`, or None
     (also when it is not the caller's to use). With `whole` false the document
-    holds only its camera's width and height, from the record: parsing a large
-    mesh's stored text holds the GIL for seconds (5 s for a 59 MiB .obj)."""
+    holds only its camera's width and height and its default depth, from the
+    record: parsing a large mesh's stored text holds the GIL for seconds (5 s
+    for a 59 MiB .obj)."""
     record = _visible_upload(session, actor, scene_id)
     if record is None:
         return None
-    if not whole:
+    if not whole and record.default_depth is not None:
         return {"camera": {"width": record.width, "height": record.height},
+                "defaults": {"max_depth": record.default_depth},
                 "triangles": record.triangles}, record.name
     return ResolvedDocument(json.loads(store.scene_text(record.id)), store.asset_bytes), record.name
 
@@ -275,7 +278,7 @@ def _store_upload(store: Store, scene: UploadedFile | None, files: list[Uploaded
     return dict(id=key, name=(doc["name"] or imported.stem)[:200], description=doc["description"],
                 triangles=_triangles(imported), width=camera["width"], height=camera["height"],
                 bytes=len(text.encode()), source=imported.source[:1024],
-                report=json.dumps(imported.report))
+                report=json.dumps(imported.report), default_depth=default_depth(doc))
 
 
 def _check_in_child(sending, store: Store, scene: UploadedFile | None,

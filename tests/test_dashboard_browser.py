@@ -315,13 +315,13 @@ def test07_upload_a_scene_with_its_mesh_through_the_form_and_render_it(page, tmp
 def test07b_a_zipped_mitsuba_folder_uploads_renders_and_downloads_the_renderers_own_exr(
         page, tmp_path, reference_channels):
     """veach-bidir's folder zipped as a user zips it, chosen in the upload's
-    file picker, rendered small through the form; the EXR downloaded from the
-    job page is bit for bit the renderer's own render of scene.xml with the
-    job's spec."""
+    file picker, rendered small through the form with the depth left blank
+    (the file's); the EXR downloaded from the job page is bit for bit the
+    renderer's own render of scene.xml with the job's spec."""
     from renderer import scene_text
     from renderer.cli import load_scene as read_scene_file  # what `rayfarm render FILE` reads
 
-    from test_service_scenes import VEACH_JOB
+    from test_service_scenes import VEACH_DEPTH, VEACH_JOB
 
     folder = real_scenes("veach-bidir/scene.xml") / "veach-bidir"
     archive = zip_of_folder(folder, tmp_path)
@@ -333,8 +333,9 @@ def test07b_a_zipped_mitsuba_folder_uploads_renders_and_downloads_the_renderers_
     page.click("#upload-button")
     page.wait_for_function("id => document.querySelector('#f-scene').value === id", arg=scene_id)
     page.select_option("#f-method", "path-mis")
-    for name in ("spp", "depth", "width", "height", "tile_size", "seed"):
+    for name in ("spp", "width", "height", "tile_size", "seed"):
         page.fill(f"#f-{name}", str(VEACH_JOB[name]))
+    page.fill("#f-depth", "")
     page.click("#submit-button")
     page.wait_for_url("**/#/jobs/*")
     job_id = page.url.rsplit("/", 1)[1]
@@ -346,8 +347,9 @@ def test07b_a_zipped_mitsuba_folder_uploads_renders_and_downloads_the_renderers_
     with api(page.base) as client:
         job = client.get(f"/jobs/{job_id}").json()
     assert {k: job[k] for k in VEACH_JOB} == VEACH_JOB and job["scene_hash"] == scene_id
-    assert_bit_identical(channels_of(tmp_path / "farm.exr"),
-                         reference_channels(dict(VEACH_JOB, scene=local, sampler=job["sampler"])))
+    assert job["depth"] == VEACH_DEPTH
+    assert_bit_identical(channels_of(tmp_path / "farm.exr"), reference_channels(
+        dict(VEACH_JOB, scene=local, depth=VEACH_DEPTH, sampler=job["sampler"])))
 
 
 def test08_a_dag_job_shows_its_phases(page):

@@ -463,18 +463,22 @@ def test14_a_mitsuba_scene_uploads_with_its_import_report(local_client):
     assert listed[record["id"]]["report"] == report
 
 
-# A small render of the shared veach-bidir: seconds, not minutes.
-VEACH_JOB = {"method": "path-mis", "spp": 16, "depth": 5, "width": 64, "height": 64,
-             "tile_size": 32, "seed": 11}
+# A small render of the shared veach-bidir (seconds, not minutes), at the
+# file's own depth: its max_depth 7 less one (Mitsuba's max_depth is our depth + 1).
+VEACH_JOB = {"method": "path-mis", "spp": 16, "width": 64, "height": 64, "tile_size": 32,
+             "seed": 11}
+VEACH_DEPTH = 6
 
 
 def test14b_a_zipped_mitsuba_folder_renders_as_the_renderer_renders_its_file(
         local_client, tmp_path, reference_channels):
     """veach-bidir's folder zipped as a user zips it (meshes, license and the
     Tungsten render beside scene.xml), uploaded to POST /scenes and rendered
-    by the farm: the same scene hash as scene.xml imported locally, and the
-    EXR bit for bit the renderer's own render of that file with the same spec."""
+    by the farm with no depth given: the same scene hash as scene.xml
+    imported locally, the file's depth as `rayfarm render FILE` takes it, and
+    the EXR bit for bit the renderer's own render of that file with that spec."""
     from renderer.cli import load_scene as read_scene_file  # what `rayfarm render FILE` reads
+    from renderer.spec import default_depth
 
     folder = real_scenes("veach-bidir/scene.xml") / "veach-bidir"
     archive = zip_of_folder(folder, tmp_path)
@@ -488,10 +492,11 @@ def test14b_a_zipped_mitsuba_folder_renders_as_the_renderer_renders_its_file(
     job = poll_job(get_json(local_client), submit(local_client, body)["id"])
     assert job["status"] == "done", job
     assert job["scene_hash"] == scene_text(local)[0]
+    assert job["depth"] == default_depth(local) == VEACH_DEPTH
     (tmp_path / "farm.exr").write_bytes(local_client.get(job["result_url"]).content)
     farm = channels_of(tmp_path / "farm.exr")
     assert farm["R"].shape == (64, 64) and farm["R"].max() > 0
-    assert_bit_identical(farm, reference_channels(dict(body, scene=local)))
+    assert_bit_identical(farm, reference_channels(dict(body, scene=local, depth=VEACH_DEPTH)))
 
 
 # -- jobs, lookups and deletion --------------------------------------------------------------
