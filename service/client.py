@@ -274,14 +274,22 @@ def mesh_files(doc: dict, scene_dir: Path) -> list[Path]:
     return [path for _, path in scene_files(doc, scene_dir)]
 
 
+def _zip_root(folder: Path) -> str:
+    """The folder's name, as zip_folder puts it above every file."""
+    return Path(folder).resolve().name.lstrip(".") or "scene"
+
+
 def zip_folder(folder: Path, out) -> int:
     """Write the folder's files (hidden ones left out; symbolic links to files
-    followed, to folders not) as a zip into the binary file `out`; returns how
-    many files. Raises `Invalid` for a folder past MAX_FOLDER_FILES or
-    MAX_FOLDER_BYTES, before any is read."""
+    followed, to folders not) as a zip into the binary file `out`, each under
+    the folder's name (`veach-bidir/scene.xml`) as `zip -r veach-bidir.zip
+    veach-bidir` packs it: an importer that names a scene after its folder
+    then names it alike either way. Returns how many files. Raises `Invalid`
+    for a folder past MAX_FOLDER_FILES or MAX_FOLDER_BYTES, before any is read."""
     import zipfile
 
     folder = Path(folder)
+    root = _zip_root(folder)
     files: list[tuple[str, Path]] = []
     total = 0
     for directory, subdirs, names in os.walk(folder):
@@ -300,7 +308,7 @@ def zip_folder(folder: Path, out) -> int:
     with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as archive:
         for name, path in files:
             kind = zipfile.ZIP_STORED if name.lower().endswith(_STORED) else zipfile.ZIP_DEFLATED
-            archive.write(path, name, compress_type=kind)
+            archive.write(path, f"{root}/{name}", compress_type=kind)
     return len(files)
 
 
@@ -603,6 +611,7 @@ class RayfarmClient:
             if path.is_dir():
                 zip_folder(path, packed)
                 files = [("scene", (f"{path.name or 'scene'}.zip", packed, "application/zip"))]
+                main = main and f"{_zip_root(path)}/{main}"  # `main` is relative to the folder
             elif lowered.endswith(ARCHIVE_SUFFIXES):
                 files = [("scene", (path.name, _read_file(path), "application/octet-stream"))]
             elif lowered.endswith(".json"):
@@ -615,7 +624,7 @@ class RayfarmClient:
                 zip_folder(path.parent, packed)
                 files = [("scene", (f"{path.parent.name or 'scene'}.zip", packed,
                                     "application/zip"))]
-                main = main or path.name
+                main = f"{_zip_root(path.parent)}/{main or path.name}"
             else:
                 raise Invalid([("scene", f"{path} is not a scene file ({', '.join(SCENE_SUFFIXES)}),"
                                          f" a folder or an archive ({', '.join(ARCHIVE_SUFFIXES)})")])

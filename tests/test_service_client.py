@@ -25,7 +25,8 @@ import httpx
 import pytest
 
 from conftest import (ADMIN_HEADERS, ROOT, TEST_ADMIN_TOKEN, TINY, assert_bit_identical,
-                      channels_of, free_port, planned_units, rayfarm_command, wait_for)
+                      channels_of, free_port, planned_units, rayfarm_command, real_scenes,
+                      wait_for, zip_of_folder)
 from service.client import (Conflict, Invalid, NotFound, RayfarmClient, ServerSentEvent,
                             ServerUnavailable, parse_sse)
 
@@ -493,6 +494,22 @@ def test17_submit_uploads_a_scene_file_with_its_meshes(server, client, tmp_path,
     client.download_result(job_id, tmp_path / "mesh.exr")
     assert_bit_identical(channels_of(tmp_path / "mesh.exr"),
                          reference_channels(scene_file_body(path)))
+
+
+def test17b_a_mitsuba_file_its_folder_and_the_folder_zipped_upload_as_one_scene(client,
+                                                                               tmp_path):
+    """`rayfarm upload` of veach-bidir's scene.xml and of its folder, and the
+    folder zipped as `zip -r` packs it: one scene, named after its folder as
+    the importer names it locally (the file's folder, not the service's)."""
+    from renderer import scene_text
+    from renderer.cli import load_scene as read_scene_file  # what `rayfarm render FILE` reads
+
+    folder = real_scenes("veach-bidir/scene.xml") / "veach-bidir"
+    local = read_scene_file(str(folder / "scene.xml"))
+    records = [client.upload_scene(sent) for sent in
+               (folder / "scene.xml", folder, zip_of_folder(folder, tmp_path))]
+    assert {r["id"] for r in records} == {scene_text(local)[0]}, records
+    assert {r["name"] for r in records} == {local["name"]} == {"veach-bidir"}
 
 
 def test18_a_scene_file_with_a_missing_mesh_is_refused_before_sending(server, tmp_path):
