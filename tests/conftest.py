@@ -167,30 +167,24 @@ def assert_equals_renderer(exr_path: Path, body: dict) -> None:
         assert got[name].tobytes() == np.ascontiguousarray(mean[..., c]).tobytes(), name
         assert got[f"var.{name}"].tobytes() == np.ascontiguousarray(var[..., c]).tobytes(), name
 
-@pytest.fixture(scope="session", autouse=True)
-def compiled_kernels(tmp_path_factory):
+def pytest_sessionstart(session):
     """Every kernel compiled into Numba's on-disk cache before the first test,
     two method families at a time on a cold cache (renderer.runtime.warm_up):
     the worker and service processes the tests start then only load it. Left
     to themselves, each Celery render process compiled every kernel on its
     own for minutes while its worker held prefetched units.
 
-    Under pytest-xdist (pyproject's addopts) each worker process has this
-    session fixture: the first to take a lock in the run's shared temp
-    directory compiles with its two processes, and the other waits, then only
-    loads the cache. Both compiling at once would have done the same work
-    twice on the same two cores."""
+    Under pytest-xdist (pyproject's addopts) this runs in the controller,
+    before it starts its workers (xdist does that in its own, later
+    sessionstart hook), so the workers only load the cache. It is outside
+    every test, so no test's timeout counts a cold compile: as a session
+    fixture, a compile slowed down by a loaded machine timed out the waiting
+    worker's setup and with it every test of that worker."""
+    if hasattr(session.config, "workerinput") or session.config.option.collectonly:
+        return
     from renderer import warm_up
 
-    if os.environ.get("PYTEST_XDIST_WORKER") is None:
-        warm_up(processes=2)
-        return
-    import fcntl
-
-    # the workers' base temp dirs are popen-gw0, popen-gw1, ... of one run's dir
-    with open(tmp_path_factory.getbasetemp().parent / "compiled-kernels.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        warm_up(processes=2)
+    warm_up(processes=2)
 
 
 # -- the embedded service ---------------------------------------------------------
