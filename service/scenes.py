@@ -43,7 +43,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime
 from functools import cache
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Iterator
 
 from sqlalchemy import select
@@ -51,7 +51,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from renderer import SceneError, builtin_scene_names, resolve_document, scene_text
-from renderer.importers import import_scene
+from renderer.importers import import_scene, scene_name
 from renderer.scene import triangle_count
 from renderer.scene_format import ResolvedDocument
 from renderer.spec import default_depth
@@ -275,7 +275,7 @@ def _store_upload(store: Store, scene: UploadedFile | None, files: list[Uploaded
     store.put_scene(key, text)
     doc = imported.doc
     camera = doc["camera"]
-    return dict(id=key, name=(doc["name"] or imported.stem)[:200], description=doc["description"],
+    return dict(id=key, name=(doc["name"] or imported.name)[:200], description=doc["description"],
                 triangles=_triangles(imported), width=camera["width"], height=camera["height"],
                 bytes=len(text.encode()), source=imported.source[:1024],
                 report=json.dumps(imported.report), default_depth=default_depth(doc))
@@ -388,14 +388,14 @@ def add_upload(sessions: sessionmaker[Session], store: Store, actor: Principal,
 class ImportedUpload:
     """An upload imported: the resolved document, the assets it names (by
     digest), the import report (a list of {element, file, line, action}), the
-    main file's path in the upload and its stem (the name when the document
-    has none)."""
+    main file's path in the upload and the scene's name by
+    `renderer.importers.scene_name` (a JSON document's own name comes first)."""
 
     doc: dict
     assets: dict[str, bytes]
     report: list[dict]
     source: str
-    stem: str
+    name: str
 
 
 def import_upload(scene: UploadedFile | None, files: list[UploadedFile], directory: Path,
@@ -410,8 +410,7 @@ def import_upload(scene: UploadedFile | None, files: list[UploadedFile], directo
         if files:
             raise InvalidRequest("files[0]", "send an archive alone (its folder holds the "
                                              "scene's files), or a scene file with its files")
-        tree.unpack("scene", scene.filename or "the archive", scene.path, kind,
-                    directory / "archive.tar")
+        tree.unpack("scene", scene.filename, scene.path, kind, directory / "archive.tar")
         source = tree.main_file(main)
     elif scene is not None:
         if main is not None:
@@ -428,10 +427,9 @@ def import_upload(scene: UploadedFile | None, files: list[UploadedFile], directo
     else:
         raise InvalidRequest("scene", "field required: the scene file or an archive of its "
                                       "folder (curl -F scene=@room.json, -F scene=@room.zip)")
-    doc, assets, report = _import(tree.root, source)
-    stem = PurePosixPath(source).name
-    stem = stem[:-len(scene_suffix(stem) or "")] if scene_suffix(stem) else stem
-    return ImportedUpload(doc, assets, report, source, stem or "uploaded")
+    doc, assets, report = _import(tree.root, source, tree.name)
+    name = scene_name(tree.root / source, tree.root, tree.name)
+    return ImportedUpload(doc, assets, report, source, name or "uploaded")
 
 
 def _scene_name(scene: UploadedFile) -> str:
@@ -472,14 +470,16 @@ def _report(entries) -> list[dict]:
     return out
 
 
-def _import(root: Path, source: str) -> tuple[dict, dict[str, bytes], list[dict]]:
+def _import(root: Path, source: str, root_name: str
+            ) -> tuple[dict, dict[str, bytes], list[dict]]:
     """(resolved document, assets, report) of the scene file `source` of the
-    folder `root`; SceneError for what is wrong in it."""
+    folder `root` (which stands for a folder called `root_name`, "" if not
+    known: `scene_name`); SceneError for what is wrong in it."""
     path = root / source
     try:
         if scene_suffix(source) == ".json":
             _parse_scene_file(path, source)  # its messages name line and column
-        imported = import_scene(path, root=root)
+        imported = import_scene(path, root=root, root_name=root_name)
         resolved = resolve_document(imported.doc, assets=imported.assets)
         return resolved, dict(resolved.assets), _report(list(imported.report))
     except SceneError:

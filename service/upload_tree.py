@@ -5,6 +5,7 @@ archive unpacked, inside one directory; then the main scene file found.
     tree.add_part("files[2]", "models/Mesh000.obj", part_path)   # moved in
     tree.unpack("scene", "room.zip", archive_path)              # or an archive
     main = tree.main_file(requested="scene.xml")                # a relative path
+    tree.name                                                   # "room" (the archive's)
 
 Everything a client names is hostile until checked: a path is a relative
 POSIX path of plain names (no '..', no absolute path or drive letter, no
@@ -118,6 +119,10 @@ class UploadTree:
         self.dirs: set[str] = set()
         self.members = 0
         self.bytes = 0
+        # What the tree's folder stands for, as renderer.importers.scene_name
+        # takes it: an archive's name ("room" of room.zip), "" for files sent
+        # alone (their folder's name never comes with them).
+        self.name = ""
 
     # -- paths -----------------------------------------------------------------------------
     def check_path(self, name: str, field: str, what: str, directory: bool = False
@@ -208,9 +213,11 @@ class UploadTree:
 
     # -- archives --------------------------------------------------------------------------
     def unpack(self, field: str, name: str, path: Path, kind: str, scratch: Path) -> None:
-        """Unpack the archive at `path` ("zip" or "tar", from `archive_kind`)
-        into the tree; `scratch` is a file name beside it for a compressed
-        tar's plain bytes."""
+        """Unpack the archive at `path` ("zip" or "tar", from `archive_kind`),
+        the client's file `name` ("" if it gave none), into the tree;
+        `scratch` is a file name beside it for a compressed tar's plain bytes."""
+        self.name = _archive_stem(name)
+        name = name or "the archive"
         if kind == "zip":
             self._unpack_zip(field, name, path)
         else:
@@ -387,6 +394,16 @@ class UploadTree:
                                          f"level ({', '.join(shallowest[:20])}); name the one "
                                          "to render in the form field main (-F main=scene.xml)")
         return shallowest[0]
+
+
+def _archive_stem(name: str) -> str:
+    """An archive's file name without its folder and suffix ("room" of
+    "room.tar.gz"); "" for a name no scene should be called."""
+    base = (name or "").replace("\\", "/").rsplit("/", 1)[-1]
+    lowered = base.lower()
+    suffix = max((s for s in ARCHIVE_SUFFIXES if lowered.endswith(s)), key=len, default="")
+    stem = base[:len(base) - len(suffix)]
+    return stem if stem.isprintable() and len(stem.encode("utf-8", "replace")) <= MAX_NAME else ""
 
 
 def _after(member: str | None) -> str:

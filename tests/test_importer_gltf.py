@@ -542,6 +542,19 @@ def test07_imported_scenes_resolve_build_and_render(tmp_path):
             assert np.argmax(quadrants[0, 0]) == 0 and np.argmax(quadrants[0, 1]) == 1
             assert np.argmax(quadrants[1, 0]) == 2 and quadrants[1, 1].min() > quadrants[1, 0][0]
 
+def test07b_a_scene_gltf_is_named_after_its_folder_wherever_the_root_is(tmp_path):
+    """box.gltf is 'box'; scene.gltf takes its folder's name; the document
+    is the same whether the root is the file's folder or one above it (an
+    upload holding the folder): one scene, one hash."""
+    folder = tmp_path / "attic"
+    folder.mkdir()
+    gltf, data = _minimal()
+    assert import_scene(_write(folder, gltf, data, name="box")).doc["name"] == "box"
+    path = _write(folder, gltf, data)
+    assert import_scene(path).doc["name"] == "attic"
+    assert import_scene(path, root=tmp_path).doc == import_scene(path).doc
+
+
 def test08_corpus_files_upload_through_the_service(local_client):
     """POST /scenes of a .glb alone and of a .gltf folder as a zip: stored,
     with the import report; a folder the importer refuses is a 422 naming the

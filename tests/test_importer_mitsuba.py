@@ -495,3 +495,25 @@ def test_the_integrator_blocks_depth_is_the_jobs_default():
         with pytest.raises(SceneError) as info:
             resolve_document(dict(doc, defaults=bad))
         assert info.value.location.startswith("defaults")
+
+
+def test_a_scene_is_named_by_its_stem_or_for_scene_xml_its_folder(tmp_path, monkeypatch):
+    """cbox.xml is 'cbox'; scene.xml takes its folder's name, also when given
+    relative to the folder it is in (`rayfarm render scene.xml` there), and
+    the same document with the root one folder up (an upload holding the
+    folder); a root that stands for another folder (an upload's unpacking
+    folder) is called what it stands for, "" for nothing known."""
+    from renderer.importers import scene_name
+
+    folder = tmp_path / "attic"
+    folder.mkdir()
+    body = '<shape type="sphere"><bsdf type="diffuse"/></shape>'
+    assert load(folder, body, name="cbox.xml").doc["name"] == "cbox"
+    assert load(folder, body).doc["name"] == "attic"
+    # Objects without an id are named from the scene file's folder, not the root's.
+    assert import_scene(folder / "scene.xml", root=tmp_path).doc == load(folder, body).doc
+    monkeypatch.chdir(folder)
+    assert import_scene(Path("scene.xml")).doc["name"] == "attic"
+    assert scene_name(folder / "scene.xml", folder, root_name="room") == "room"
+    assert scene_name(folder / "scene.xml", folder, root_name="") == "scene"
+    assert scene_name(folder / "scene.xml", tmp_path, root_name="room") == "attic"

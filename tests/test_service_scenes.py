@@ -463,6 +463,60 @@ def test14_a_mitsuba_scene_uploads_with_its_import_report(local_client):
     assert listed[record["id"]]["report"] == report
 
 
+# A Mitsuba scene.xml in a folder "attic", naming its mesh in a subfolder;
+# its max_depth 4 is a job's depth 3 (Mitsuba's max_depth is our depth + 1).
+ATTIC = {"scene.xml": b"""<scene version="3.0.0">
+  <integrator type="path"><integer name="max_depth" value="4"/></integrator>
+  <sensor type="perspective"><float name="fov" value="45"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film>
+  </sensor>
+  <shape type="obj"><string name="filename" value="models/cube.obj"/><bsdf type="diffuse"/></shape>
+  <shape type="rectangle"><transform name="to_world"><translate z="2"/></transform>
+    <emitter type="area"><rgb name="radiance" value="5, 5, 5"/></emitter></shape>
+</scene>
+""", "models/cube.obj": CUBE_OBJ.encode()}
+ATTIC_DEPTH = 3
+
+
+def test14c_a_mitsuba_scene_is_named_after_its_folder_however_it_is_uploaded(local_client,
+                                                                             tmp_path):
+    """A scene.xml is named after its folder, as the importer names it
+    locally, whichever way the folder arrives: zipped under its name, its
+    contents zipped or tarred as attic.zip (the archive's name stands for the
+    folder), its files by their paths (the folder picker). Loose files carry
+    no folder's name: the scene is then named by the file's stem, never after
+    the service's unpacking folder."""
+    pytest.importorskip("renderer.importers.mitsuba",
+                        reason="the Mitsuba importer is not in this checkout")
+    from renderer.cli import load_scene as read_scene_file  # what `rayfarm render FILE` reads
+
+    folder = tmp_path / "attic"
+    for name, data in ATTIC.items():
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_bytes(data)
+    local = read_scene_file(str(folder / "scene.xml"))
+    assert local["name"] == "attic"
+
+    def uploaded(parts) -> dict:
+        response = local_client.post("/scenes", files=parts)
+        assert response.status_code in (200, 201), response.text
+        return response.json()
+
+    for how, parts in {
+            "zip -r attic.zip attic": [("scene", ("attic.zip", zipped(ATTIC, top="attic/")))],
+            "its contents zipped": [("scene", ("attic.zip", zipped(ATTIC)))],
+            "its contents tarred": [("scene", ("attic.tar.gz", tarred(ATTIC)))],
+            "the folder picker": [("files", (f"attic/{name}", data))
+                                  for name, data in ATTIC.items()]}.items():
+        record = uploaded(parts)
+        assert (record["name"], record["id"]) == ("attic", scene_text(local)[0]), how
+    loose = uploaded([("scene", ("scene.xml", ATTIC["scene.xml"])),
+                      ("files", ("models/cube.obj", ATTIC["models/cube.obj"]))])
+    assert loose["name"] == "scene"
+    assert loose["id"] == scene_text(dict(local, name="scene"))[0]
+
+
 # A small render of the shared veach-bidir (seconds, not minutes), at the
 # file's own depth: its max_depth 7 less one (Mitsuba's max_depth is our depth + 1).
 VEACH_JOB = {"method": "path-mis", "spp": 16, "width": 64, "height": 64, "tile_size": 32,

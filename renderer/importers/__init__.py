@@ -7,7 +7,8 @@ rayfarm document and its assets out.
 `import_scene` dispatches on the suffix: ``.json`` is rayfarm's own format,
 ``.xml`` Mitsuba (renderer.importers.mitsuba), ``.gltf``/``.glb`` glTF 2.0
 (renderer.importers.gltf). Every relative path a scene names must stay inside
-`root` (default: the scene file's folder). The document names meshes and
+`root` (default: the scene file's folder). `scene_name` names the scene
+(an imported format has no name of its own). The document names meshes and
 textures by digest; `assets` holds their blobs (renderer.assets). `report`
 lists every element that is not rendered as written (approximated, ignored),
 with its file and line: nothing a file asks for is dropped without an entry.
@@ -21,7 +22,8 @@ from pathlib import Path
 
 from ..errors import SceneError
 
-__all__ = ["Imported", "ReportEntry", "import_scene", "inside_root", "IMPORT_SUFFIXES"]
+__all__ = ["Imported", "ReportEntry", "import_scene", "inside_root", "scene_name",
+           "IMPORT_SUFFIXES"]
 
 IMPORT_SUFFIXES = (".json", ".xml", ".gltf", ".glb")
 
@@ -72,8 +74,35 @@ def inside_root(root: Path, relative: str, where: str = "") -> Path:
     return target
 
 
-def import_scene(path: Path, root: Path | None = None) -> Imported:
-    """Import the scene file `path`; relative paths stay inside `root`."""
+def scene_name(path: Path, root: Path | None = None, root_name: str | None = None) -> str:
+    """What the scene file `path` is called: its stem (``cbox`` for
+    cbox.xml), but a file called just ``scene`` (veach-bidir/scene.xml, as
+    scene collections name theirs) takes its folder's name. `root_name` is
+    what the folder `root` stands for when its directory's own name is not
+    the user's (an upload unpacked into the service's folder): an archive's
+    name, or "" when no name came with the files (then the stem).
+
+        scene_name(Path("veach-bidir/scene.xml"))                  # 'veach-bidir'
+        scene_name(tree / "scene.xml", tree, root_name="")         # 'scene'
+    """
+    path = Path(path)
+    stem = path.stem
+    if stem != "scene":
+        return stem
+    folder = path.resolve().parent  # `rayfarm render scene.xml` inside the folder: its name
+    root = Path(root) if root is not None else path.parent
+    if root_name is not None and folder == root.resolve():
+        name = root_name
+    else:
+        name = folder.name
+    return name.lstrip(".") or stem  # a hidden folder's name as `rayfarm upload` zips it
+
+
+def import_scene(path: Path, root: Path | None = None, root_name: str | None = None
+                 ) -> Imported:
+    """Import the scene file `path`; relative paths stay inside `root`. An
+    imported format's document is named by `scene_name` (`root_name` see
+    there); a rayfarm JSON document keeps the name it holds."""
     path = Path(path)
     root = Path(root) if root is not None else path.parent
     suffix = path.suffix.lower()
@@ -82,11 +111,14 @@ def import_scene(path: Path, root: Path | None = None) -> Imported:
                          f"{', '.join(IMPORT_SUFFIXES)})", path.name)
     if not path.is_file():
         raise SceneError(f"scene file not found: {path.name}", path.name)
+    if suffix == ".json":
+        return _import_native(path, root)
     if suffix == ".xml":
-        return _importer("mitsuba", "import_mitsuba", "Mitsuba XML", path)(path, root)
-    if suffix in (".gltf", ".glb"):
-        return _importer("gltf", "import_gltf", "glTF", path)(path, root)
-    return _import_native(path, root)
+        imported = _importer("mitsuba", "import_mitsuba", "Mitsuba XML", path)(path, root)
+    else:
+        imported = _importer("gltf", "import_gltf", "glTF", path)(path, root)
+    imported.doc["name"] = scene_name(path, root, root_name)
+    return imported
 
 
 def _importer(module: str, name: str, what: str, path: Path):

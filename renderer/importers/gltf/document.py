@@ -108,8 +108,7 @@ class _Importer(_Meshes, _SceneGraph):
             s.pop("_bounds", None)
         materials = {name: mat for name, mat, _, _ in self.materials.values()}
         doc: dict[str, Any] = {
-            "name": self.path.stem,
-            "description": _description(asset, self.name),
+            "description": _description(asset, self.path.name),  # not where in the root
             "camera": camera,
             "materials": materials,
             "shapes": shapes,

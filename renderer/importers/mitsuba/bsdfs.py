@@ -46,7 +46,7 @@ class BsdfMapper:
         key = id(node)
         if key not in self.material_of:
             mat = self.bsdf(node)
-            base = node.attrs.get("id") or f"bsdf@{node.loc}"
+            base = node.attrs.get("id") or self.anonymous("bsdf", node)
             name, i = base, 1
             while name in self.materials:
                 i += 1

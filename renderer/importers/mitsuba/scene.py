@@ -142,8 +142,7 @@ class _Importer(XmlTree, ValueReader, TextureMapper, BsdfMapper, ShapeMapper, Em
             cameras.append(self.default_camera(scene))
         self.materials = {k: v for k, v in self.materials.items() if v["type"] != "null"}
         self.check_sides(cameras[0])
-        name = self.path.stem if self.path.stem != "scene" else (self.path.parent.name or "scene")
-        doc: dict = {"name": name, "camera": cameras[0], "materials": self.materials,
+        doc: dict = {"camera": cameras[0], "materials": self.materials,
                      "shapes": shapes, "emitters": emitters, "defaults": {"max_depth": depth}}
         if self.textures:
             doc["textures"] = self.textures

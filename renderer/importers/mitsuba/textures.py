@@ -18,7 +18,7 @@ class TextureMapper:
         for name, other in self.textures.items():
             if other == entry:
                 return name
-        base = node.attrs.get("id") or f"texture@{node.loc}"
+        base = node.attrs.get("id") or self.anonymous("texture", node)
         name, i = base, 1
         while name in self.textures:
             i += 1

@@ -7,6 +7,7 @@ importer's report and the files a scene names, inside its root.
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 from xml.parsers import expat
@@ -101,6 +102,13 @@ class XmlTree:
 
     def rel(self, path: Path) -> str:
         return path.relative_to(self.root).as_posix()
+
+    def anonymous(self, kind: str, node: _Node) -> str:
+        """The name of an object without an id (``bsdf@scene.xml:12``): its
+        file relative to the main file's folder, not to the root, so that a
+        folder uploaded as it is or under its name is one scene (one hash)."""
+        file = Path(os.path.relpath(self.root / node.file, self.main.parent)).as_posix()
+        return f"{kind}@{file}:{node.line}"
 
     def find_file(self, name: str, node: _Node, what: str) -> Path:
         """A file a scene names: relative to the naming file's folder, or else
