@@ -110,6 +110,9 @@ class SceneInfo:
     created: datetime | None
     source: str = ""  # an upload's main file, its path in the upload
     report: tuple[dict, ...] = ()  # the import report: {element, file, line, action}
+    # A job's depth when it gives none (renderer.spec.default_depth); None for
+    # an upload recorded before the ledger kept it (its jobs read the file).
+    default_depth: int | None = None
 
     @classmethod
     def from_record(cls, record: SceneRecord) -> "SceneInfo":
@@ -117,7 +120,8 @@ class SceneInfo:
                    description=record.description, width=record.width, height=record.height,
                    triangles=record.triangles, scene_hash=record.id, bytes=record.bytes,
                    created=record.created, source=record.source or "",
-                   report=tuple(_stored_report(record.report)))
+                   report=tuple(_stored_report(record.report)),
+                   default_depth=record.default_depth)
 
 
 def _stored_report(text: str | None) -> list[dict]:
@@ -139,7 +143,8 @@ def _builtins() -> dict[str, tuple[SceneInfo, str]]:
         out[name] = (SceneInfo(id=name, kind="builtin", name=name,
                                description=doc.get("description", ""), width=camera["width"],
                                height=camera["height"], triangles=triangle_count(doc),
-                               scene_hash=key, bytes=len(text.encode()), created=None), text)
+                               scene_hash=key, bytes=len(text.encode()), created=None,
+                               default_depth=default_depth(doc)), text)
     return out
 
 

@@ -322,6 +322,10 @@ class ScenePublic(BaseModel):
         default_factory=list, description="the import report: each element of the uploaded "
                                           "files rayfarm does not render as written, where it "
                                           "is and what was done instead (empty: all as written)")
+    default_depth: int | None = Field(
+        None, description="a job's depth when it gives none: the scene's defaults.max_depth "
+                          "(an imported file's integrator), else the renderer's default; null: "
+                          "an upload recorded before this field (its jobs read the file)")
 
     @classmethod
     def from_info(cls, info, thumbnail_ready: bool) -> "ScenePublic":
@@ -333,7 +337,8 @@ class ScenePublic(BaseModel):
                    source=info.source, report=[ReportEntryPublic(
                        element=str(e.get("element", "")), file=str(e.get("file", "")),
                        line=e["line"] if isinstance(e.get("line"), int) else None,
-                       action=str(e.get("action", ""))) for e in info.report])
+                       action=str(e.get("action", ""))) for e in info.report],
+                   default_depth=info.default_depth)
 
 
 class UnitPublic(BaseModel):

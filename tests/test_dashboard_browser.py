@@ -315,9 +315,9 @@ def test07_upload_a_scene_with_its_mesh_through_the_form_and_render_it(page, tmp
 def test07b_a_zipped_mitsuba_folder_uploads_renders_and_downloads_the_renderers_own_exr(
         page, tmp_path, reference_channels):
     """veach-bidir's folder zipped as a user zips it, chosen in the upload's
-    file picker, rendered small through the form with the depth left blank
-    (the file's); the EXR downloaded from the job page is bit for bit the
-    renderer's own render of scene.xml with the job's spec."""
+    file picker, rendered small through the form with its depth untouched
+    (blank: the file's); the EXR downloaded from the job page is bit for bit
+    the renderer's own render of scene.xml with the job's spec."""
     from renderer import scene_text
     from renderer.cli import load_scene as read_scene_file  # what `rayfarm render FILE` reads
 
@@ -335,7 +335,6 @@ def test07b_a_zipped_mitsuba_folder_uploads_renders_and_downloads_the_renderers_
     page.select_option("#f-method", "path-mis")
     for name in ("spp", "width", "height", "tile_size", "seed"):
         page.fill(f"#f-{name}", str(VEACH_JOB[name]))
-    page.fill("#f-depth", "")
     page.click("#submit-button")
     page.wait_for_url("**/#/jobs/*")
     job_id = page.url.rsplit("/", 1)[1]
@@ -350,6 +349,34 @@ def test07b_a_zipped_mitsuba_folder_uploads_renders_and_downloads_the_renderers_
     assert job["depth"] == VEACH_DEPTH
     assert_bit_identical(channels_of(tmp_path / "farm.exr"), reference_channels(
         dict(VEACH_JOB, scene=local, depth=VEACH_DEPTH, sampler=job["sampler"])))
+
+
+def test07c_the_forms_depth_is_blank_showing_the_scenes_own(page):
+    """The form's depth starts blank, its placeholder the chosen scene's
+    default depth (an uploaded Mitsuba file's, a built-in's 5): a job sent
+    with it untouched renders at the file's depth, not the form's."""
+    from test_service_scenes import ATTIC, ATTIC_DEPTH
+
+    with api(page.base) as client:
+        response = client.post("/scenes", files=[("files", (f"attic/{name}", data))
+                                                 for name, data in ATTIC.items()])
+        assert response.status_code in (200, 201), response.text
+    scene_id = response.json()["id"]
+    page.goto(f"{page.base}/#/submit")
+    page.wait_for_selector(f"#f-scene option[value='{scene_id}']", state="attached")
+    page.select_option("#f-scene", "cornell-box")
+    assert page.input_value("#f-depth") == ""
+    assert page.get_attribute("#f-depth", "placeholder") == "5"
+    page.select_option("#f-scene", scene_id)
+    assert page.input_value("#f-depth") == ""
+    assert page.get_attribute("#f-depth", "placeholder") == str(ATTIC_DEPTH)
+    for name, value in (("spp", "1"), ("width", "16"), ("height", "12")):
+        page.fill(f"#f-{name}", value)
+    page.click("#submit-button")
+    page.wait_for_url("**/#/jobs/*")
+    with api(page.base) as client:
+        job = client.get(f"/jobs/{page.url.rsplit('/', 1)[1]}").json()
+    assert (job["scene_hash"], job["depth"]) == (scene_id, ATTIC_DEPTH)
 
 
 def test08_a_dag_job_shows_its_phases(page):

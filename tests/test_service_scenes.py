@@ -511,6 +511,7 @@ def test14c_a_mitsuba_scene_is_named_after_its_folder_however_it_is_uploaded(loc
                                   for name, data in ATTIC.items()]}.items():
         record = uploaded(parts)
         assert (record["name"], record["id"]) == ("attic", scene_text(local)[0]), how
+        assert record["default_depth"] == ATTIC_DEPTH, how
     loose = uploaded([("scene", ("scene.xml", ATTIC["scene.xml"])),
                       ("files", ("models/cube.obj", ATTIC["models/cube.obj"]))])
     assert loose["name"] == "scene"

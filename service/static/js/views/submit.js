@@ -9,7 +9,7 @@ import { h, replace, toast } from "../ui.js";
 const NUMBER_FIELDS = [
   // [name, label, default, hint]
   ["spp", "Samples per pixel", 16, "per pixel, over all passes"],
-  ["depth", "Max depth", 5, "surface bounces; 1 = direct light"],
+  ["depth", "Max depth", "", "surface bounces, 1 = direct light; blank: the scene's"],
   ["width", "Width", "", "blank: the scene camera's"],
   ["height", "Height", "", "blank: the scene camera's"],
   ["tile_size", "Tile size", 32, "pixels per side of a work unit"],
@@ -109,6 +109,8 @@ export function submitView(root) {
     if (!scene) return;
     numbers.width.placeholder = scene.width;
     numbers.height.placeholder = scene.height;
+    // An imported file's own depth (veach-bidir's 6) is what a blank field renders.
+    numbers.depth.placeholder = scene.default_depth ?? "";
     replace(sceneInfo, `${scene.width} × ${scene.height}`,
       scene.triangles ? ` · ${scene.triangles.toLocaleString()} triangles` : "",
       scene.source ? ` · from ${scene.source}` : "",
