@@ -195,7 +195,8 @@ for method in dict.fromkeys(METHODS.values()):
     for option in method.options:
         for choice in option.choices or ():
             run_plan(scene, RenderSpec(method=method.name, spp=2, depth=2, width=4, height=4,
-                                       tile_size=4, options={option.name: choice}))
+                                       tile_size=4,
+                                       options={**method.warm_base, option.name: choice}))
 after = signatures()
 print(json.dumps({k: [before.get(k, 0), n] for k, n in after.items() if n != before.get(k, 0)}))
 '''

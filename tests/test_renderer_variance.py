@@ -34,6 +34,10 @@ from renderer import METHODS, RenderSpec, load_scene, render_serial
 Z = 4.5
 SEEDS = 8
 METHOD_NAMES = [m.name for m in dict.fromkeys(METHODS.values())]
+# Radiosity on a coarser mesh than its automatic one (0.1 here): about a
+# quarter of the patches, so 16 solves cost 22 s instead of 74 s on 2 cores;
+# the jackknife's share of the var channels is the same contract at any mesh.
+OPTIONS = {"radiosity": {"patch_size": 0.25}}
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +49,8 @@ def _spread_z(scene, method: str, sampler: str) -> tuple[float, float]:
     """(z of observed minus predicted per-pixel variance, observed / predicted)."""
     films = [render_serial(scene, RenderSpec(method=method, spp=16, depth=3, width=32,
                                              height=32, tile_size=32, seed=500 + k,
-                                             sampler=sampler))
+                                             sampler=sampler,
+                                             options=OPTIONS.get(method, {})))
              for k in range(SEEDS)]
     return _films_spread_z(films)
 
