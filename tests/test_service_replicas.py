@@ -260,10 +260,15 @@ def test04_two_services_on_one_sqlite_file_never_both_schedule(spawn_replica):
     assert "another service runs the scheduler" in second.log()
     # Submitted to the standby, run by the leader; a second or two of units.
     job = api(b, "POST", "/jobs", json=dict(TINY, spp=256))
+    # Paused until the stream below has subscribed: on a loaded machine a
+    # stream opened after the submit found the job done, with no live event.
+    api(b, "POST", f"/jobs/{job['id']}/pause")
     # A stream on the standby follows the job the leader renders (the standby
     # reads the changes from the ledger: service.ledger_watch) to its end.
     stream = EventReader(f"{b}/jobs/{job['id']}/events")
     stream.start()
+    wait_for(lambda: stream.seen, 30, "the stream's first event")
+    api(b, "POST", f"/jobs/{job['id']}/resume")
     wait_for(lambda: api(b, "GET", f"/jobs/{job['id']}")["status"] == "done", 120,
              "the job to be done")
     stream.join(30)
