@@ -98,7 +98,7 @@ def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1, rr_depth: int | None
     emitters; a pinhole camera). `rr_depth` None keeps Mitsuba's default
     Russian roulette (from depth 5); the references here switch it off.
 
-    `glossy` becomes `roughconductor` with a GGX distribution, alpha = our
+    `glossy` becomes `roughconductor` with its distribution, alpha = our
     roughness and no Fresnel (`material: none`, times the specular colour):
     rayfarm's glossy uses Schlick's Fresnel from that colour and Smith's
     height-correlated G2, Mitsuba a constant colour and the separable G1 G1,
@@ -127,7 +127,8 @@ def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1, rr_depth: int | None
         if mat["type"] == "diffuse":
             bsdf = {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(mat["albedo"])}}
         elif mat["type"] == "glossy":
-            bsdf = {"type": "roughconductor", "distribution": "ggx", "material": "none",
+            bsdf = {"type": "roughconductor", "distribution": mat.get("distribution", "ggx"),
+                    "material": "none",
                     "alpha": float(mat["roughness"]),
                     "specular_reflectance": {"type": "rgb", "value": list(mat["specular"])}}
         elif mat["type"] == "mirror":
