@@ -257,6 +257,16 @@ def xml_scene(path: Path, size: tuple[int, int] | None, max_depth: int | None = 
                     raise ValueError(f"a conductor's {child.get('name')} of {child.get('value')}: "
                                      "Mitsuba 3 has none")
                 parent.remove(child)
+    if int(root.get("version", "3").split(".")[0]) < 2:
+        for emitter in root.iter("emitter"):
+            if emitter.get("type") == "sunsky" and emitter.find("transform") is None:
+                # 0.5/0.6's sky has its zenith on +y, Mitsuba 3's on its local +z (its
+                # sun_direction stays in world space): without this the sun of
+                # classroom is below the horizon and the render black
+                print("mitsuba_reference: sunsky turned to Mitsuba 0.6's zenith +y",
+                      file=sys.stderr)
+                rotate = ET.Element("rotate", x="1", angle="-90")
+                ET.SubElement(emitter, "transform", name="to_world").append(rotate)
     for film in root.iter("film"):
         # Mitsuba 3 has only `hdrfilm`: keep the size and the filter, drop the
         # LDR output settings (gamma, file format, banner) it would refuse

@@ -74,10 +74,10 @@ REAL_REF_SPP = 16384
 
 @pytest.mark.parametrize("name, spp", [
     ("cornell-box", 64),
-    # 256 spp: the lamp's Beckmann lobe shows (rendered as GGX, its blocks were
-    # 0.8 of Mitsuba's; 64 spp hid that under the reference's variance floor).
-    # The image mean is heavy-tailed (caustics of a tiny light through glass):
-    # at 256 spp a typical one is half the true mean, Mitsuba's own too.
+    # 256 spp: the lamp's Beckmann lobe shows (rendered as GGX, blocks (3..5, 2)
+    # were 0.8 to 1.35 of Mitsuba's; 64 spp hid that under the variance floor).
+    # The image mean is heavy-tailed (a tiny light seen through glass): at 256
+    # spp a typical one is half the true mean, Mitsuba's own too (docs/real-scenes.md).
     ("veach-bidir", 256),
 ])
 def test03_published_mitsuba_scenes_agree_with_mitsuba_rendering_the_same_file(name, spp):

@@ -11,8 +11,9 @@ roughconductor with `distribution: ggx` or `beckmann`):
 - The roughness argument `alpha` is signed: alpha in (0, 1] is GGX
   (Trowbridge-Reitz) of that alpha, -alpha Beckmann of that alpha (the
   sign is the material's `distribution`, scene.py's mat_param[:, 1]). The
-  two differ in their tails: on veach-bidir's lamp (Beckmann, alpha 0.25)
-  Mitsuba 3 renders GGX up to 3.7 times brighter in some 8x8 blocks.
+  two differ in their tails: veach-bidir's lamp (Beckmann, alpha 0.25)
+  rendered as GGX moved its 8x8 blocks by factors of 0.8 to 1.6 in Mitsuba
+  3's renders as in ours (docs/real-scenes.md).
 - D: isotropic GGX, or Beckmann exp(-tan^2 / alpha^2) / (pi alpha^2 cos^4).
 - G2: Smith's *height-correlated* masking-shadowing, 1 / (1 + L(wo) + L(wi))
   (Heitz 2014, "Understanding the Masking-Shadowing Function"; pbrt-v4's
