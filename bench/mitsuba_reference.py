@@ -98,7 +98,7 @@ def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1, rr_depth: int | None
     emitters; a pinhole camera). `rr_depth` None keeps Mitsuba's default
     Russian roulette (from depth 5); the references here switch it off.
 
-    `glossy` becomes `roughconductor` with a GGX distribution, alpha = our
+    `glossy` becomes `roughconductor` with its distribution, alpha = our
     roughness and no Fresnel (`material: none`, times the specular colour):
     rayfarm's glossy uses Schlick's Fresnel from that colour and Smith's
     height-correlated G2, Mitsuba a constant colour and the separable G1 G1,
@@ -127,7 +127,8 @@ def mitsuba_scene_dict(doc: dict, depth: int, spp: int = 1, rr_depth: int | None
         if mat["type"] == "diffuse":
             bsdf = {"type": "diffuse", "reflectance": {"type": "rgb", "value": list(mat["albedo"])}}
         elif mat["type"] == "glossy":
-            bsdf = {"type": "roughconductor", "distribution": "ggx", "material": "none",
+            bsdf = {"type": "roughconductor", "distribution": mat.get("distribution", "ggx"),
+                    "material": "none",
                     "alpha": float(mat["roughness"]),
                     "specular_reflectance": {"type": "rgb", "value": list(mat["specular"])}}
         elif mat["type"] == "mirror":
@@ -256,6 +257,16 @@ def xml_scene(path: Path, size: tuple[int, int] | None, max_depth: int | None = 
                     raise ValueError(f"a conductor's {child.get('name')} of {child.get('value')}: "
                                      "Mitsuba 3 has none")
                 parent.remove(child)
+    if int(root.get("version", "3").split(".")[0]) < 2:
+        for emitter in root.iter("emitter"):
+            if emitter.get("type") == "sunsky" and emitter.find("transform") is None:
+                # 0.5/0.6's sky has its zenith on +y, Mitsuba 3's on its local +z (its
+                # sun_direction stays in world space): without this the sun of
+                # classroom is below the horizon and the render black
+                print("mitsuba_reference: sunsky turned to Mitsuba 0.6's zenith +y",
+                      file=sys.stderr)
+                rotate = ET.Element("rotate", x="1", angle="-90")
+                ET.SubElement(emitter, "transform", name="to_world").append(rotate)
     for film in root.iter("film"):
         # Mitsuba 3 has only `hdrfilm`: keep the size and the filter, drop the
         # LDR output settings (gamma, file format, banner) it would refuse

@@ -17,8 +17,10 @@ MIN_ROUGHNESS = 1e-3
 
 # Fields a material may hold beyond its type, by type (anything else is refused).
 MATERIAL_FIELDS = {"diffuse": ("albedo",), "mirror": ("tint",), "dielectric": ("ior",),
-                   "glossy": ("specular", "roughness")}
+                   "glossy": ("specular", "roughness", "distribution")}
 COMMON_MATERIAL_FIELDS = ("type", "twosided", "opacity")
+# The glossy lobe's microfacet distributions (kernels/ggx.py), Mitsuba's names.
+DISTRIBUTIONS = ("ggx", "beckmann")
 TEXTURE_TYPES = ("bitmap", "checkerboard")
 TEXTURE_FILTERS = ("bilinear", "nearest")
 
@@ -73,6 +75,12 @@ def resolve_material(name: str, mat: Any, textures: dict | None = None) -> dict:
             out["roughness"] = _texture_ref(rough, f"{loc}.roughness", textures)
         else:
             out["roughness"] = _number(rough, f"{loc}.roughness", lo=MIN_ROUGHNESS, hi=1.0)
+        distribution = mat.get("distribution", "ggx")
+        if distribution not in DISTRIBUTIONS:
+            raise SceneError(f"unknown distribution {json.dumps(distribution)[:40]} (allowed: "
+                             f"{_name_list(DISTRIBUTIONS)})", f"{loc}.distribution")
+        if distribution != "ggx":  # the default is left out: older documents keep their hash
+            out["distribution"] = distribution
     # The default (false) is left out of the resolved document, so the scenes
     # written before the field existed keep their hash.
     if _bool(mat.get("twosided", False), f"{loc}.twosided"):

@@ -43,7 +43,7 @@ SceneArrays = namedtuple("SceneArrays", [
     "sph_light",    # (S,) int32 light index or -1
     "mat_type",     # (M,) int32 MAT_*
     "mat_rgb",      # (M, 3) albedo (diffuse), tint (mirror) or specular (glossy)
-    "mat_param",    # (M, 4) [ior (dielectric), GGX alpha (glossy), 0, 0]
+    "mat_param",    # (M, 4) [ior (dielectric), signed alpha (glossy: < 0 Beckmann), 0, 0]
     "light_type",   # (L,) int32 LIGHT_*
     "light_rgb",    # (L, 3) radiance (area) or intensity (point)
     "light_pos",    # (L, 3) position (point lights)
@@ -212,8 +212,10 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
         rough = m.get("roughness", 0.0)
         if isinstance(rough, dict):
             mat_tex[i, 1] = tex_index[rough["texture"]]
-        else:
-            mat_param[i, 1] = rough
+            rough = 1.0  # only its sign is read: the texture gives the magnitude
+        mat_param[i, 1] = rough
+        if m.get("distribution") == "beckmann":
+            mat_param[i, 1] = -rough  # the signed roughness of kernels/ggx.py
         # the dielectric is two-sided already (its back is its inside)
         mat_twosided[i] = 1 if m.get("twosided") and m["type"] != "dielectric" else 0
 

@@ -116,7 +116,7 @@ FIELDS: dict[str, set[str]] = {
     "material.diffuse": {"albedo"},
     "material.mirror": {"tint"},
     "material.dielectric": {"ior"},
-    "material.glossy": {"specular", "roughness"},
+    "material.glossy": {"specular", "roughness", "distribution"},
     "shape": {"type", "material", "to_world", "flip_normals", "name", "emitter"},
     "shape.rectangle": set(),
     "shape.disk": set(),

@@ -140,13 +140,13 @@ def test03_furnaces(method, scene_name, depth):
         assert z_pass_rate(mean, var, np.full_like(mean, expected), 0 * var, scale) == 0.0
 
 
-def _specular_scene():
+def _specular_scene(distribution="ggx"):
     """The Cornell box's walls with a mirror, a glass and a glossy sphere, the
     area light and a point light: every kind of vertex BDPT meets."""
     doc = json.loads((Path(subpaths.__file__).parents[1] / "scenes" / "cornell-box.json").read_text())
     doc["materials"].update(mirror={"type": "mirror"}, glass={"type": "dielectric", "ior": 1.5},
                             gloss={"type": "glossy", "specular": [0.8, 0.8, 0.8],
-                                   "roughness": 0.3})
+                                   "roughness": 0.3, "distribution": distribution})
     doc["shapes"] = doc["shapes"][:6] + [
         {"type": "sphere", "center": [-0.4, -0.6, -0.2], "radius": 0.35, "material": "mirror"},
         {"type": "sphere", "center": [0.4, -0.6, 0.3], "radius": 0.35, "material": "glass"},
@@ -155,12 +155,13 @@ def _specular_scene():
     return build_scene(resolve_document(doc))
 
 
-def test04_bdpt_mis_weights_of_one_path_sum_to_one():
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
+def test04_bdpt_mis_weights_of_one_path_sum_to_one(distribution):
     """For random complete paths (every (s, t) that sampled one), the weights
     of all strategies of that length, each evaluated as if it had sampled the
     same path, sum to 1; and the densities the random walks stored are the
     ones the re-cut path recomputes."""
-    scene = _specular_scene()
+    scene = _specular_scene(distribution)
     sc, width, height, depth = scene.arrays, 32, 32, 4
     cam = camera_array(scene.camera, width, height)
     stack = np.empty(STACK_SIZE, np.int64)

@@ -198,9 +198,10 @@ def test08_direct_is_one_bounce_of_light_through_specular_chains():
     assert np.array_equal(a.sum, b.sum)
 
 
-def test09_glossy_floor_under_a_white_sky_reflects_its_directional_albedo():
+@pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
+def test09_glossy_floor_under_a_white_sky_reflects_its_directional_albedo(distribution):
     """Under a uniform sky of radiance 1, a surface's radiance is its
-    directional albedo, the integral of f cos: measured here from the GGX
+    directional albedo, the integral of f cos: measured here from the glossy
     sampler's own weights and compared with every estimator's render."""
     from numba import njit
 
@@ -208,6 +209,7 @@ def test09_glossy_floor_under_a_white_sky_reflects_its_directional_albedo():
     from renderer.kernels.rng import sample_key, uniform
 
     alpha, spec = 0.3, 0.8
+    signed = -alpha if distribution == "beckmann" else alpha  # the kernels' signed roughness
     wo = np.array([0.0, math.sin(math.radians(60)), math.cos(math.radians(60))])  # z up
 
     @njit
@@ -215,7 +217,7 @@ def test09_glossy_floor_under_a_white_sky_reflects_its_directional_albedo():
         s = s2 = 0.0
         for i in range(n):
             key = sample_key(99, i, 0)
-            w = glossy_sample(0.0, 0.0, 1.0, wo[0], wo[1], wo[2], alpha, spec, spec, spec,
+            w = glossy_sample(0.0, 0.0, 1.0, wo[0], wo[1], wo[2], signed, spec, spec, spec,
                               uniform(key, 0), uniform(key, 1))[3]
             s += w
             s2 += w * w
@@ -226,7 +228,8 @@ def test09_glossy_floor_under_a_white_sky_reflects_its_directional_albedo():
         # looking down at 60 degrees from the normal, as wo above (floor normal +y here)
         "camera": {"origin": [0, math.cos(math.radians(60)), math.sin(math.radians(60))],
                    "target": [0, 0, 0], "fov": 0.5, "width": 4, "height": 4},
-        "materials": {"floor": {"type": "glossy", "roughness": alpha, "specular": spec},
+        "materials": {"floor": {"type": "glossy", "roughness": alpha, "specular": spec,
+                                "distribution": distribution},
                       "sky": {"type": "diffuse", "albedo": 0}},
         "shapes": [{"type": "rectangle", "material": "floor",
                     "to_world": [{"scale": [50, 50, 1]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}}]},

@@ -13,7 +13,8 @@
   towards the viewer, so its back shades as its front (Mitsuba's twosided
   adapter); one-sided materials are black where -d . g <= 0.
 - rgb is the colour input (albedo, tint or specular) and alpha the glossy
-  roughness, each a constant or a texture evaluated at the hit's uv.
+  roughness, each a constant or a texture evaluated at the hit's uv; alpha
+  is signed, negative for a Beckmann lobe (kernels/ggx.py).
 
 The callers evaluate BSDFs in the shading frame (cosines against `s`) and
 reject a direction that lies on different sides of `g` and `s`, so shading
@@ -173,7 +174,9 @@ def shade_hit(sc, prim, hx, hy, hz, dx, dy, dz):
         if t_rough >= 0:
             lr, lg, lb = tex_eval(sc.tex_info, sc.tex_data, t_rough, u, v)
             # Mitsuba's luminance of an RGB roughness map
-            alpha = min(1.0, max(MIN_ROUGHNESS, 0.212671 * lr + 0.715160 * lg + 0.072169 * lb))
+            alpha = math.copysign(  # the material's sign is its distribution (ggx.py)
+                min(1.0, max(MIN_ROUGHNESS, 0.212671 * lr + 0.715160 * lg + 0.072169 * lb)),
+                alpha)
     if sc.mat_twosided[mat] != 0 and dx * gx + dy * gy + dz * gz > 0.0:
         gx, gy, gz = -gx, -gy, -gz
         sx, sy, sz = -sx, -sy, -sz

@@ -246,7 +246,7 @@ class BsdfMapper:
                                  f"with alpha = sqrt(alpha_u alpha_v) = {alpha:g}")
             else:
                 alpha = obj.scalar_or_texture("alpha", 0.1)
-            if distribution != "ggx":
+            if distribution not in ("ggx", "beckmann"):
                 notes.append(f"the {distribution} distribution is rendered as GGX of the same alpha")
             if isinstance(alpha, (int, float)) and alpha < 1e-3:
                 mat = {"type": "mirror", "tint": colour if isinstance(colour, list) else
@@ -258,7 +258,10 @@ class BsdfMapper:
                     notes.append(f"alpha {alpha:g} is clamped to 1")
                     alpha = 1.0
                 mat = {"type": "glossy", "specular": colour, "roughness": alpha}
-                kind = "glossy (GGX, specular = specular_reflectance x reflectance)"
+                if distribution == "beckmann":
+                    mat["distribution"] = "beckmann"
+                kind = (f"glossy ({'Beckmann' if distribution == 'beckmann' else 'GGX'}, "
+                        "specular = specular_reflectance x reflectance)")
         if notes:
             self.note(node, f"approximated as {kind}: " + "; ".join(notes))
         obj.finish()
