@@ -18,7 +18,7 @@ MIN_ROUGHNESS = 1e-3
 # Fields a material may hold beyond its type, by type (anything else is refused).
 MATERIAL_FIELDS = {"diffuse": ("albedo",), "mirror": ("tint",), "dielectric": ("ior",),
                    "glossy": ("specular", "roughness", "distribution")}
-COMMON_MATERIAL_FIELDS = ("type", "twosided", "opacity")
+COMMON_MATERIAL_FIELDS = ("type", "twosided", "opacity", "opacity_cutoff")
 # The glossy lobe's microfacet distributions (kernels/ggx.py), Mitsuba's names.
 DISTRIBUTIONS = ("ggx", "beckmann")
 TEXTURE_TYPES = ("bitmap", "checkerboard")
@@ -85,12 +85,28 @@ def resolve_material(name: str, mat: Any, textures: dict | None = None) -> dict:
     # written before the field existed keep their hash.
     if _bool(mat.get("twosided", False), f"{loc}.twosided"):
         out["twosided"] = True
-    if "opacity" in mat:
-        # The renderer has no any-hit masks yet: a cut-out would be drawn solid.
-        op = mat["opacity"]
-        if isinstance(op, dict) or _number(op, f"{loc}.opacity", lo=0.0, hi=1.0) != 1.0:
-            raise SceneError("opacity masks are not rendered yet (only opacity 1 is accepted)",
-                             f"{loc}.opacity")
+    out.update(_opacity(mat, loc, textures))
+    return out
+
+
+def _opacity(mat: dict, loc: str, textures: dict) -> dict:
+    """The mask fields of a resolved material: `opacity` (a number in [0, 1]
+    or a texture's value) and `opacity_cutoff` (with a textured opacity: opaque
+    where the value is >= it, cut out elsewhere). Opacity 1, the default, is
+    left out, so scenes written before masks keep their hash."""
+    op = mat.get("opacity", 1.0)
+    if isinstance(op, dict):
+        out: dict[str, Any] = {"opacity": _texture_ref(op, f"{loc}.opacity", textures)}
+    else:
+        op = _number(op, f"{loc}.opacity", lo=0.0, hi=1.0)
+        out = {"opacity": op} if op < 1.0 else {}
+    if "opacity_cutoff" in mat:
+        if not isinstance(op, dict):
+            raise SceneError("opacity_cutoff thresholds a textured opacity (here opacity is "
+                             f"{op:g})", f"{loc}.opacity_cutoff")
+        # (a cutoff of 0 would keep every hit: no mask at all)
+        out["opacity_cutoff"] = _number(mat["opacity_cutoff"], f"{loc}.opacity_cutoff", lo=0.0,
+                                        hi=1.0, lo_open=True)
     return out
 
 

@@ -146,9 +146,10 @@ class Method:
 
 def shading_features(doc: dict) -> list[str]:
     """What a resolved scene document asks of shading beyond constant
-    one-sided constant materials: "textures", "textured glossy inputs",
-    "two-sided materials". (Vertex normals live in the mesh assets, not in
-    the document: every method takes them, radiosity as flat patches.)"""
+    one-sided opaque materials: "textures", "textured glossy inputs",
+    "two-sided materials", "opacity masks". (Vertex normals live in the mesh
+    assets, not in the document: every method takes them, radiosity as flat
+    patches.)"""
     out = []
     mats = doc.get("materials", {}).values()
     if any(isinstance(v, dict) for m in mats for v in m.values()):
@@ -158,6 +159,8 @@ def shading_features(doc: dict) -> list[str]:
         out.append("textured glossy inputs")
     if any(m.get("twosided") for m in mats):
         out.append("two-sided materials")
+    if any("opacity" in m for m in mats):
+        out.append("opacity masks")
     return out
 
 

@@ -19,6 +19,7 @@ from .bvh import build_bvh, collapse_wide, wide_bounds
 from .kernels.camera import filter_params
 from .kernels.bsdf import MAT_DIELECTRIC, MAT_DIFFUSE, MAT_GLOSSY, MAT_MIRROR
 from .kernels.lights import LIGHT_MESH, LIGHT_POINT, LIGHT_SPHERE
+from .kernels.opacity import MAT_CUTOFF, MAT_OPACITY
 from .kernels.shading import TEX_BITMAP, TEX_CHECKER, TEX_COLUMNS
 from .errors import SceneError
 from .primitives import DISK_SEGMENTS, FIXED, world_mesh, world_mesh_data  # noqa: F401
@@ -43,7 +44,7 @@ SceneArrays = namedtuple("SceneArrays", [
     "sph_light",    # (S,) int32 light index or -1
     "mat_type",     # (M,) int32 MAT_*
     "mat_rgb",      # (M, 3) albedo (diffuse), tint (mirror) or specular (glossy)
-    "mat_param",    # (M, 4) [ior (dielectric), signed alpha (glossy: < 0 Beckmann), 0, 0]
+    "mat_param",    # (M, 4) [ior (dielectric), signed alpha (glossy: < 0 Beckmann), opacity, its cutoff or 0]
     "light_type",   # (L,) int32 LIGHT_*
     "light_rgb",    # (L, 3) radiance (area) or intensity (point)
     "light_pos",    # (L, 3) position (point lights)
@@ -62,8 +63,9 @@ SceneArrays = namedtuple("SceneArrays", [
     "tri_attr",     # (T,) int32 row in attr_n / attr_uv, or -1
     "attr_n",       # (A, 9) float64 world vertex normals n0 n1 n2 (all 0: none)
     "attr_uv",      # (A, 6) float64 vertex uvs u0 v0 u1 v1 u2 v2
-    "mat_tex",      # (M, 2) int32 texture of the colour input, of the roughness; -1 constant
+    "mat_tex",      # (M, 3) int32 texture of the colour input, roughness, opacity; -1 constant
     "mat_twosided",  # (M,) int32 1: the back side shades as the front (Mitsuba's twosided)
+    "mat_masked",   # (M,) int32 1: an opacity mask (kernels/opacity.py), read on hits only
     "tex_info",     # (X, 16) float64 one row per texture (TEX_* columns, kernels/shading.py)
     "tex_data",     # (N,) float32 every bitmap's texels, row-major, channels interleaved
 ])
@@ -200,8 +202,10 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
     rgb_field = {"diffuse": "albedo", "mirror": "tint", "glossy": "specular"}
     mat_rgb = np.ones((len(mats), 3))
     mat_param = np.zeros((len(mats), 4))
-    mat_tex = np.full((len(mats), 2), -1, np.int32)
+    mat_param[:, MAT_OPACITY] = 1.0
+    mat_tex = np.full((len(mats), 3), -1, np.int32)
     mat_twosided = np.zeros(len(mats), np.int32)
+    mat_masked = np.zeros(len(mats), np.int32)
     for i, m in enumerate(mats):
         colour = m.get(rgb_field.get(m["type"], ""), [1.0, 1.0, 1.0])
         if isinstance(colour, dict):
@@ -218,6 +222,13 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
             mat_param[i, 1] = -rough  # the signed roughness of kernels/ggx.py
         # the dielectric is two-sided already (its back is its inside)
         mat_twosided[i] = 1 if m.get("twosided") and m["type"] != "dielectric" else 0
+        if "opacity" in m:  # resolved documents hold it only when it is not 1
+            mat_masked[i] = 1
+            if isinstance(m["opacity"], dict):
+                mat_tex[i, 2] = tex_index[m["opacity"]["texture"]]
+            else:
+                mat_param[i, MAT_OPACITY] = m["opacity"]
+            mat_param[i, MAT_CUTOFF] = m.get("opacity_cutoff", 0.0)
 
     tris, tri_mat, tri_light = [], [], []  # per shape: (F, 3, 3) corners, (F,) ids
     n_tris = 0
@@ -343,7 +354,8 @@ def build_scene(doc: dict, load_asset=None) -> Scene:
         tri_attr=np.concatenate(attr_rows) if attr_rows else np.zeros(0, np.int32),
         attr_n=np.ascontiguousarray(np.concatenate(attr_n) if attr_n else np.zeros((0, 9))),
         attr_uv=np.ascontiguousarray(np.concatenate(attr_uv) if attr_uv else np.zeros((0, 6))),
-        mat_tex=mat_tex, mat_twosided=mat_twosided, tex_info=tex_info, tex_data=tex_data,
+        mat_tex=mat_tex, mat_twosided=mat_twosided, mat_masked=mat_masked, tex_info=tex_info,
+        tex_data=tex_data,
     )
     return Scene(doc=doc, hash=scene_hash(doc), arrays=arrays)
 

@@ -112,7 +112,7 @@ FIELDS: dict[str, set[str]] = {
     "filter.tent": {"type", "radius"},
     "filter.gaussian": {"type", "stddev"},
     # (material_format.MATERIAL_FIELDS: the same per type, checked there)
-    "material": {"type", "twosided", "opacity"},
+    "material": {"type", "twosided", "opacity", "opacity_cutoff"},
     "material.diffuse": {"albedo"},
     "material.mirror": {"tint"},
     "material.dielectric": {"ior"},
@@ -406,6 +406,10 @@ def _resolve_shape(i: int, shape: Any, materials: dict, base_dir: Path | None,
         if not isinstance(em, dict) or em.get("type") != "area":
             raise SceneError("a shape's emitter must be {'type': 'area', 'radiance': [r, g, b]}", eloc)
         _check_fields(em, eloc, "emitter.area")
+        if "opacity" in materials[out["material"]]:
+            # light sampling would see emission where the mask lets rays through
+            raise SceneError(f"material '{out['material']}' has an opacity mask: an emitting "
+                             "shape's material must be opaque", eloc)
         out["emitter"] = {"type": "area",
                           "radiance": _vec3(_require(em, "radiance", eloc), f"{eloc}.radiance",
                                             nonneg=True, limit=MAX_RADIANCE)}

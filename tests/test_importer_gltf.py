@@ -303,7 +303,7 @@ def test02_hierarchy_primitives_camera_materials_and_lights(tmp_path, recorded):
 
 def test03_textures_bake_factors_and_data_uris(tmp_path, recorded):
     """A data: URI PNG as base colour (sRGB decoded, times baseColorFactor),
-    its alpha under MASK as a 0/1 opacity texture, a metallic-roughness
+    its alpha under MASK as an opacity texture with the cutoff, a metallic-roughness
     texture as the GGX alpha texture (roughnessFactor x G, squared), nearest
     filtering and KHR_texture_transform's offset and scale carried over."""
     rgba = np.array([[[255, 128, 0, 255], [0, 0, 0, 10]]], np.uint8)
@@ -338,7 +338,9 @@ def test03_textures_bake_factors_and_data_uris(tmp_path, recorded):
     base = texels[tex["m.base_color"]["image"]]["texels"]
     srgb = lambda c: ((c / 255 + 0.055) / 1.055) ** 2.4 if c / 255 > 0.04045 else c / 255 / 12.92
     assert base[0, 0, :3] == pytest.approx([0.5, srgb(128), 0], abs=2e-3)
-    assert texels[tex[mat["opacity"]["texture"]]["image"]]["texels"][0, :, 0].tolist() == [1, 0]
+    # MASK: the alpha as it is (linear), thresholded after filtering by the cutoff
+    opacity = texels[tex[mat["opacity"]["texture"]]["image"]]["texels"][0, :, 0]
+    assert opacity == pytest.approx([1, 10 / 255]) and mat["opacity_cutoff"] == 0.5
     alpha = texels[tex[mat["roughness"]["texture"]]["image"]]["texels"][0, :, 0]
     assert alpha == pytest.approx([0.25, (0.5 * 128 / 255) ** 2], rel=1e-4)
 
@@ -582,3 +584,32 @@ def test08_corpus_files_upload_through_the_service(local_client):
     refused = local_client.post("/scenes", files=[("scene", (
         "draco.zip", zipped(CORPUS / "draco"), "application/zip"))])
     assert refused.status_code == 422 and "KHR_draco_mesh_compression" in refused.text
+
+
+def test09_alpha_modes_become_opacity_masks(tmp_path):
+    """BLEND: opacity = alpha; MASK with a constant alpha: opaque, or cut out
+    everywhere (opacity 0); an emissive material keeps no mask (reported).
+    Every document resolves."""
+    from renderer.scene_format import resolve_document
+
+    cases = [({"alphaMode": "BLEND", "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 0.4],
+                                                               "metallicFactor": 0}},
+              {"opacity": pytest.approx(0.4)}),
+             ({"alphaMode": "MASK", "alphaCutoff": 0.6,
+               "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 0.4], "metallicFactor": 0}},
+              {"opacity": 0.0}),
+             ({"alphaMode": "MASK", "alphaCutoff": 0.3,
+               "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 0.4], "metallicFactor": 0}},
+              {}),
+             ({"alphaMode": "BLEND", "emissiveFactor": [1, 1, 1],
+               "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 0.4], "metallicFactor": 0}},
+              {})]
+    for i, (material, mask) in enumerate(cases):
+        gltf, data = _minimal({"materials": [material]})
+        gltf["meshes"][0]["primitives"][0]["material"] = 0
+        imported = import_scene(_write(tmp_path, gltf, data, name=f"case{i}"))
+        (mat,) = imported.doc["materials"].values()
+        assert {k: v for k, v in mat.items() if k.startswith("opacity")} == mask, (i, mat)
+        resolve_document(imported.doc, assets=imported.assets)
+        if "emissiveFactor" in material:
+            assert any("ignored on an emissive material" in e.action for e in imported.report)

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from renderer import resolve_document
 from renderer.errors import SceneError
 from renderer.importers import import_scene
 from renderer.importers.mitsuba import UNBOUNDED_DEPTH, look_at
@@ -189,9 +190,42 @@ def test_defaults_substitution_refs_nested_objects_and_includes(tmp_path):
     assert doc["textures"][tex["texture"]] == {"type": "checkerboard", "color0": [0.1] * 3,
                                                "color1": [0.2] * 3}
     masked = doc["materials"][doc["shapes"][2]["material"]]
-    assert masked == {"type": "diffuse", "albedo": [0.25, 0.5, 0.75]}  # no cut-outs yet
-    assert any("opacity mask is ignored" in a for a in actions(out))
+    assert masked == {"type": "diffuse", "albedo": [0.25, 0.5, 0.75], "opacity": 0.3}
+    assert not any("mask" in a for a in actions(out))
     assert any("'$method' is not used" in a for a in actions(out))
+
+
+def test_a_mask_passes_its_opacity_on(tmp_path):
+    """A mask's opacity reaches the native material: a bitmap (whose alpha
+    channel Mitsuba 3 does not read: reported), a number (clamped into [0, 1]:
+    reported), a mask inside a mask multiplies; an emitting shape keeps its
+    material without the mask (reported: area lights have no masks)."""
+    from PIL import Image
+
+    Image.fromarray(np.full((2, 2, 4), 128, np.uint8)).save(tmp_path / "leaf.png")
+    out = load(tmp_path, CAMERA_3 + """
+      <shape type="rectangle" id="a"><bsdf type="mask"><texture type="bitmap" name="opacity">
+        <string name="filename" value="leaf.png"/></texture><bsdf type="diffuse"/></bsdf></shape>
+      <shape type="rectangle" id="b"><bsdf type="mask"><float name="opacity" value="1.5"/>
+        <bsdf type="diffuse"/></bsdf></shape>
+      <shape type="rectangle" id="c"><bsdf type="mask"><float name="opacity" value="0.5"/>
+        <bsdf type="mask"><float name="opacity" value="0.4"/><bsdf type="diffuse"/></bsdf></bsdf>
+      </shape>
+      <shape type="rectangle" id="d"><bsdf type="mask" id="veil"><float name="opacity" value="0.5"/>
+        <bsdf type="diffuse"/></bsdf>
+        <emitter type="area"><rgb name="radiance" value="1"/></emitter></shape>""")
+    mats = {s["name"]: out.doc["materials"][s["material"]] for s in out.doc["shapes"]}
+    tex = out.doc["textures"][mats["a"]["opacity"]["texture"]]
+    assert tex["type"] == "bitmap" and tex["image"] in out.assets
+    assert "opacity" not in mats["b"]  # 1.5 clamped to 1: opaque
+    assert mats["c"]["opacity"] == pytest.approx(0.2)
+    assert mats["d"] == {"type": "diffuse", "albedo": [0.5] * 3}
+    assert out.doc["materials"]["veil"]["opacity"] == 0.5
+    text = "\n".join(actions(out))
+    assert "the image's alpha channel is not read" in text
+    assert "opacity 1.5 clamped to 1" in text
+    assert "the opacity mask of an emitting shape is ignored" in text
+    resolve_document(out.doc)  # what the importer wrote, the format takes
 
 
 def test_transforms_compose_in_mitsubas_order(tmp_path):
@@ -404,8 +438,8 @@ def test_the_shared_real_scenes_import_with_their_quirks_reported(monkeypatch):
     assert 'bsdf type="roughplastic" (in bsdf type="twosided" id="Floor")' in text
     assert "integrator type=\"sppm\"" in text
     leaves = living.doc["materials"]["Leaves"]
-    assert leaves["twosided"] and "texture" in leaves["albedo"]
-    assert 'bsdf type="mask" id="Leaves": approximated: the opacity mask is ignored' in text
+    assert leaves["twosided"] and "texture" in leaves["albedo"] and "texture" in leaves["opacity"]
+    assert 'bsdf type="mask" id="Leaves": ' not in text  # nothing about the mask itself
     assert len(living.doc["shapes"]) == 65 and living.doc["camera"]["width"] == 1280
 
     classroom = _real("classroom")

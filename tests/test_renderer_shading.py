@@ -69,8 +69,6 @@ def test01_the_scene_format_checks_what_shading_adds():
     assert "smooth" in refused({"materials": {"grey": {**grey, "smooth": True}}},
                                "materials.grey.smooth")
     refused({"materials": {"grey": {**grey, "twosided": 1}}}, "materials.grey.twosided")
-    assert "opacity" in refused({"materials": {"grey": {**grey, "opacity": 0.5}}},
-                                "materials.grey.opacity")
     assert "unknown texture 'nope'" in refused(
         {"materials": {"grey": {"type": "diffuse", "albedo": {"texture": "nope"}}}},
         "materials.grey.albedo.texture")

@@ -58,6 +58,7 @@ from ..kernels.geometry import (
 )
 from ..kernels.ggx import glossy_eval, glossy_sample
 from ..kernels.lights import light_pdf, sample_light
+from ..kernels.opacity import blocked_after_masks, has_masks, masked, pass_masks
 from ..kernels.packet import PACKET, packet_intersect
 from ..kernels.shading import shade_hit
 from ..kernels.rng import sample_key
@@ -94,7 +95,8 @@ LR, LG, LB = range(20, 23)  # the radiance so far
 ALB_R, ALB_G, ALB_B, AN_X, AN_Y, AN_Z, FIRST_T = range(23, 30)  # the AOVs
 BR, BG, BB, ETA, PREV_PDF, VX, VY, VZ = range(30, 38)
 CR, CG, CB = range(38, 41)  # the light sample's contribution, if the shadow ray is clear
-N_LANE_FLOATS = 41
+SMAX = 41  # the shadow ray's tmax (ST holds its hit after the packet)
+N_LANE_FLOATS = 42
 # what a finished item leaves in the ring: rows LR..FIRST_T
 RING_VALUES = 10
 # ints: the hit primitive, tracing, the shadow ray's hit and tracing, the
@@ -248,6 +250,7 @@ def _shade_lane(sc, fl, il, r, bounce, key, depth, strategy, heuristic, hemisphe
                     fl[SOX, r], fl[SOY, r], fl[SOZ, r] = sx, sy, sz
                     fl[SDX, r], fl[SDY, r], fl[SDZ, r] = tx, ty, tz
                     fl[ST, r] = tmax
+                    fl[SMAX, r] = tmax
                     il[SACT, r] = 1
         if strategy == DIRECT:
             il[ACT, r] = 0  # Whitted: light stops at the first non-specular surface
@@ -410,6 +413,7 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
       cost more than the vector arithmetic saves. The light sample's loop
       above (+3.1 %) had said the same."""
     nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
+    masks = has_masks(sc.mat_masked)  # else no hit needs a look (kernels/opacity.py)
     n = n_samples(blocks)
     s_lo = blocks[0, 0]
     total = (x1 - x0) * n
@@ -473,6 +477,13 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                 packet_intersect(nodes, info, prims, tri, sph, stack,
                                  fl[OX], fl[OY], fl[OZ], fl[DX], fl[DY], fl[DZ],
                                  fl[IX], fl[IY], fl[IZ], fl[T], il[PRIM], il[ACT], False)
+                if masks:  # a masked surface's hit: kept, or the ray goes on beyond it
+                    for r in range(PACKET):
+                        p = il[PRIM, r]
+                        if il[ACT, r] != 0 and p >= 0 and masked(sc, p):
+                            fl[T, r], il[PRIM, r] = pass_masks(
+                                sc, stack, fl[OX, r], fl[OY, r], fl[OZ, r], fl[DX, r], fl[DY, r],
+                                fl[DZ, r], np.inf, fl[T, r], p)
                 shadows = 0
                 for r in range(PACKET):
                     if il[ACT, r] != 0:
@@ -485,6 +496,13 @@ def _render_tile(sc, cam, x0, y0, x1, y1, width, height, blocks, seed, depth, sm
                     packet_intersect(nodes, info, prims, tri, sph, stack,
                                      fl[SOX], fl[SOY], fl[SOZ], fl[SDX], fl[SDY], fl[SDZ],
                                      fl[SIX], fl[SIY], fl[SIZ], fl[ST], il[SPRIM], il[SACT], True)
+                    if masks:  # stopped at a masked surface: traced again through the masks
+                        for r in range(PACKET):
+                            p = il[SPRIM, r]
+                            if p >= 0 and masked(sc, p) and not blocked_after_masks(
+                                    sc, stack, fl[SOX, r], fl[SOY, r], fl[SOZ, r], fl[SDX, r],
+                                    fl[SDY, r], fl[SDZ, r], fl[SMAX, r]):
+                                il[SACT, r] = 1
                     for r in range(PACKET):
                         # still set: the lane's shadow ray was traced and found nothing
                         if il[SACT, r] != 0:

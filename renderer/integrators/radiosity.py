@@ -545,8 +545,9 @@ METHODS = (Method(
     # Patches are flat and hold one radiosity each: a texture or a back side
     # that shades would need patches of their own. (Vertex normals: a patch
     # is shaded with its geometric normal.)
-    unsupported={f: "its patches are one-sided and of one constant albedo"
-                 for f in ("textures", "two-sided materials")},
+    unsupported={**{f: "its patches are one-sided and of one constant albedo"
+                    for f in ("textures", "two-sided materials")},
+                 "opacity masks": "its patches are solid: form factors see every surface opaque"},
     name="radiosity",
     aovs=("albedo", "normal", "depth"),
     description="Finite element radiosity: diffuse patches, Monte Carlo form factors with "

@@ -323,4 +323,5 @@ METHODS = (Method(
     plan=tile_plan,
     aovs=("albedo", "normal", "depth"),
     check_scene=check_scene,
+    unsupported={"opacity masks": "its z-buffer keeps the nearest surface of a pixel whole"},
 ),)

@@ -25,13 +25,10 @@ from .bsdf import (
     specular_step,
 )
 from .camera import CAM_LENS, camera_ray_at, film_position
-from .geometry import (
-    intersect_arrays,
-    offset_origin,
-    shadow_ray,
-)
+from .geometry import offset_origin, shadow_ray
 from .ggx import glossy_eval, glossy_sample
 from .lights import sample_emission, sample_light
+from .opacity import blocked, trace
 from .shading import shade_hit
 from .rng import STREAM_PHOTONS, sample_key, stream_key, uniform
 from .sampling import INV_PI
@@ -53,7 +50,6 @@ def trace_photons(sc, stack, seed, g0, g1, depth, pos, dirs, power, hits):
     """Trace photons g0..g1-1 (global indices) and record them at every
     diffuse or glossy hit from the second on (front side only) up to hit
     `depth`. Returns (records, rays); records = -1 if the buffers are full."""
-    nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
     sph_flip, sph_mat, sph_light = sc.sph_flip, sc.sph_mat, sc.sph_light
     mat_type, mat_rgb, mat_param = sc.mat_type, sc.mat_rgb, sc.mat_param
@@ -76,8 +72,7 @@ def trace_photons(sc, stack, seed, g0, g1, depth, pos, dirs, power, hits):
             ox, oy, oz = offset_origin(ox, oy, oz, nx, ny, nz, 1.0)
         br, bg, bb = er * k, eg * k, eb * k
         for hit in range(1, depth + 1):
-            t, p = intersect_arrays(nodes, info, prims, tri, sph, stack,
-                                    ox, oy, oz, dx, dy, dz, np.inf, False)
+            t, p = trace(sc, stack, ox, oy, oz, dx, dy, dz, np.inf)
             rays += 1
             if p < 0:
                 break
@@ -164,7 +159,6 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
     sample's AOVs as path tracing gives them (albedo and normal of the first
     diffuse or glossy hit, distance to the first hit: 7 floats). `memo`: the
     sampler's row scratch (samplers/dispatch.py) or NO_MEMO."""
-    nodes, info, prims, tri, sph = sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph
     tri_n, tri_mat, tri_light = sc.tri_n, sc.tri_mat, sc.tri_light
     sph_flip, sph_mat, sph_light = sc.sph_flip, sc.sph_mat, sc.sph_light
     light_rgb, mat_type, mat_rgb, mat_param = sc.light_rgb, sc.mat_type, sc.mat_rgb, sc.mat_param
@@ -177,8 +171,7 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
     aov_set = False
     alb_r, alb_g, alb_b, an_x, an_y, an_z, first_t = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for bounce in range(depth + 1):
-        t, prim = intersect_arrays(nodes, info, prims, tri, sph, stack,
-                                   ox, oy, oz, dx, dy, dz, np.inf, False)
+        t, prim = trace(sc, stack, ox, oy, oz, dx, dy, dz, np.inf)
         rays += 1
         if prim < 0:
             break
@@ -219,9 +212,8 @@ def visible_point(sc, stack, ox, oy, oz, dx, dy, dz, depth, smp, key, seed, pixe
                     sx, sy, sz, tx, ty, tz, tmax = shadow_ray(hx, hy, hz, gx, gy, gz, wx, wy, wz,
                                                               dist)
                     rays += 1
-                    if (fr > 0.0 or fg > 0.0 or fb > 0.0) and intersect_arrays(
-                            nodes, info, prims, tri, sph, stack, sx, sy, sz, tx, ty, tz, tmax,
-                            True)[1] < 0:
+                    if (fr > 0.0 or fg > 0.0 or fb > 0.0) and not blocked(
+                            sc, stack, sx, sy, sz, tx, ty, tz, tmax):
                         w = cos_i / pl
                         lr += br * fr * er * w
                         lg += bg * fg * eg * w

@@ -13,8 +13,10 @@
   towards the viewer, so its back shades as its front (Mitsuba's twosided
   adapter); one-sided materials are black where -d . g <= 0.
 - rgb is the colour input (albedo, tint or specular) and alpha the glossy
-  roughness, each a constant or a texture evaluated at the hit's uv; alpha
-  is signed, negative for a Beckmann lobe (kernels/ggx.py).
+  roughness, each a constant or a texture evaluated at the hit's uv (a
+  scalar input takes the texture's luminance, `tex_value`); alpha is signed,
+  negative for a Beckmann lobe (kernels/ggx.py). The opacity is not
+  shading's: a hit the mask passes is no hit (kernels/opacity.py).
 
 The callers evaluate BSDFs in the shading frame (cosines against `s`) and
 reject a direction that lies on different sides of `g` and `s`, so shading
@@ -84,6 +86,14 @@ def tex_eval(info, data, t, u, v):
             wy0 * (wx0 * b00 + wx1 * b10) + wy1 * (wx0 * b01 + wx1 * b11))
 
 
+@kernel_inline
+def tex_value(info, data, t, u, v):
+    """Texture t as a scalar input (roughness, opacity), Mitsuba 3's eval_1:
+    the luminance of its RGB, the value of a one-channel image."""
+    r, g, b = tex_eval(info, data, t, u, v)
+    return 0.212671 * r + 0.715160 * g + 0.072169 * b
+
+
 @kernel
 def _barycentrics(tri, prim, hx, hy, hz):
     """(b1, b2) of the hit point on triangle `prim` (rows of tri_isect: v0, e1, e2)."""
@@ -139,6 +149,14 @@ def _surface_detail(sc, prim, a, need_uv, hx, hy, hz, fx, fy, fz):
     return sx, sy, sz, u, v
 
 
+@kernel
+def hit_uv(sc, prim, hx, hy, hz):
+    """The uv of primitive `prim` at the point h on it (as `shade_hit` finds it)."""
+    a = sc.tri_attr[prim] if prim < sc.tri_n.shape[0] else -1
+    _, _, _, u, v = _surface_detail(sc, prim, a, True, hx, hy, hz, 0.0, 0.0, 1.0)
+    return u, v
+
+
 @kernel_inline
 def shade_hit(sc, prim, hx, hy, hz, dx, dy, dz):
     """At the hit point h of primitive `prim` reached along direction d:
@@ -172,11 +190,9 @@ def shade_hit(sc, prim, hx, hy, hz, dx, dy, dz):
         if t_col >= 0:
             r, g, b = tex_eval(sc.tex_info, sc.tex_data, t_col, u, v)
         if t_rough >= 0:
-            lr, lg, lb = tex_eval(sc.tex_info, sc.tex_data, t_rough, u, v)
-            # Mitsuba's luminance of an RGB roughness map
-            alpha = math.copysign(  # the material's sign is its distribution (ggx.py)
-                min(1.0, max(MIN_ROUGHNESS, 0.212671 * lr + 0.715160 * lg + 0.072169 * lb)),
-                alpha)
+            # the material's sign is its distribution (ggx.py)
+            alpha = math.copysign(min(1.0, max(MIN_ROUGHNESS, tex_value(
+                sc.tex_info, sc.tex_data, t_rough, u, v))), alpha)
     if sc.mat_twosided[mat] != 0 and dx * gx + dy * gy + dz * gz > 0.0:
         gx, gy, gz = -gx, -gy, -gz
         sx, sy, sz = -sx, -sy, -sz

@@ -64,7 +64,8 @@ from .bsdf import (
     reflect,
 )
 from .camera import CAM_MARGIN, camera_connect, camera_pdf_dir, camera_ray_at
-from .geometry import intersect_arrays, offset_origin
+from .geometry import offset_origin
+from .opacity import blocked, trace
 from .shading import shade_hit
 from .ggx import glossy_eval, glossy_sample
 from .lights import LIGHT_POINT, sample_emission
@@ -182,8 +183,7 @@ def random_walk(sc, stack, V, n0, n_end, sx, sy, sz, dx, dy, dz, br, bg, bb, pdf
     n = n0
     rays = 0
     while n < n_end:
-        t, prim = intersect_arrays(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph,
-                                   stack, sx, sy, sz, dx, dy, dz, np.inf, False)
+        t, prim = trace(sc, stack, sx, sy, sz, dx, dy, dz, np.inf)
         rays += 1
         if prim < 0:
             break
@@ -328,10 +328,10 @@ def light_subpath(sc, stack, V, row0, n_max, u, ubase):
     return n - r, rays
 
 
-@kernel
-def visible(nodes, info, prims, tri, sph, stack, V, i, j):
+@kernel_inline
+def visible(sc, stack, V, i, j):
     """True if nothing blocks the segment between vertices i and j (both ends
-    moved off their surfaces towards each other)."""
+    moved off their surfaces towards each other; opacity masks pass some)."""
     wx, wy, wz, d2 = _dir(V, i, j)
     if d2 == 0.0:
         return False
@@ -346,8 +346,7 @@ def visible(nodes, info, prims, tri, sph, stack, V, i, j):
     dx, dy, dz = bx - ax, by - ay, bz - az
     d = math.sqrt(dx * dx + dy * dy + dz * dz)
     inv = 1.0 / d
-    return intersect_arrays(nodes, info, prims, tri, sph, stack, ax, ay, az, dx * inv, dy * inv,
-                            dz * inv, d * (1.0 - 1e-9), True)[1] < 0
+    return not blocked(sc, stack, ax, ay, az, dx * inv, dy * inv, dz * inv, d * (1.0 - 1e-9))
 
 
 @kernel
@@ -432,6 +431,7 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
     fx, fy = -1.0, -1.0
     rays = 0
     pt = t - 1
+    vi, vj = -1, -1  # the vertices whose segment must be clear
     if s == 0:
         li = int(V[pt, V_LIGHT])
         if V[pt, V_TYPE] == T_SURFACE and li >= 0:
@@ -467,11 +467,7 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
             fr, fg, fb = fr * c, fg * c, fb * c
         k = we * cos_cam / (dist * dist)
         r, g, b = V[qs, 6] * fr * k, V[qs, 7] * fg * k, V[qs, 8] * fb * k
-        if r > 0.0 or g > 0.0 or b > 0.0:
-            rays += 1
-            if not visible(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph, stack,
-                           V, qs, 0):
-                return 0.0, 0.0, 0.0, fx, fy, rays
+        vi, vj = qs, 0
     elif s == 1:
         if not _connectible(sc.mat_type, V, pt) or sc.light_type.shape[0] == 0:
             return 0.0, 0.0, 0.0, fx, fy, 0
@@ -505,11 +501,7 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
         r = V[pt, 6] * fr * er * c
         g = V[pt, 7] * fg * eg * c
         b = V[pt, 8] * fb * eb * c
-        if r > 0.0 or g > 0.0 or b > 0.0:
-            rays += 1
-            if not visible(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph, stack,
-                           V, pt, srow):
-                return 0.0, 0.0, 0.0, fx, fy, rays
+        vi, vj = pt, srow
     else:
         qs = lrow + s - 1
         if not (_connectible(sc.mat_type, V, qs) and _connectible(sc.mat_type, V, pt)):
@@ -526,11 +518,12 @@ def connect(sc, cam, width, height, stack, V, lrow, srow, s, t, u, ubase, heuris
         r = V[qs, 6] * ar * cr * V[pt, 6] * gterm
         g = V[qs, 7] * ag * cg * V[pt, 7] * gterm
         b = V[qs, 8] * ab * cb * V[pt, 8] * gterm
-        if r > 0.0 or g > 0.0 or b > 0.0:
-            rays += 1
-            if not visible(sc.bvh_nodes, sc.bvh_info, sc.bvh_prims, sc.tri_isect, sc.sph, stack,
-                           V, qs, pt):
-                return 0.0, 0.0, 0.0, fx, fy, rays
+        vi, vj = qs, pt
+    # the connection's segment (s = 0 has none), one call site: `visible` is inlined
+    if vi >= 0 and (r > 0.0 or g > 0.0 or b > 0.0):
+        rays += 1
+        if not visible(sc, stack, V, vi, vj):
+            return 0.0, 0.0, 0.0, fx, fy, rays
     if weighted and (r > 0.0 or g > 0.0 or b > 0.0):
         w = mis_weight_arrays(sc.mat_type, sc.mat_rgb, sc.mat_param, sc.light_type,
                               sc.light_area, cam, width, height, V, lrow, srow, s, t, heuristic)

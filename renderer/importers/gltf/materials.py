@@ -126,13 +126,15 @@ class _Materials(_Container):
                              else ""), what)
             if double:
                 out["twosided"] = True
-            opacity = self.opacity(alpha_mode, cutoff, base[3], base_img, base_tex, name, what,
-                                   ptr)
-            if opacity is not None:
-                out["opacity"] = opacity
+            out.update(self.opacity(alpha_mode, cutoff, base[3], base_img, base_tex, name, what,
+                                    ptr))
         if out["type"] == "dielectric" and alpha_mode != "OPAQUE":
             self.note(ptr, f"alphaMode {alpha_mode} ignored on a transmissive material", what)
         emission = self.emission(m, ptr, name, what, double)
+        if emission is not None and "opacity" in out:
+            out = {k: v for k, v in out.items() if k not in ("opacity", "opacity_cutoff")}
+            self.note(ptr, f"alphaMode {alpha_mode} ignored on an emissive material (rayfarm's "
+                      "area lights have no masks)", what)
         self.materials[key] = (name, out, emission, double)
         return self.materials[key]
 
@@ -153,22 +155,29 @@ class _Materials(_Container):
         return alpha
 
     def opacity(self, mode: str, cutoff: float, alpha: float, img, tex, name: str, what: str,
-                ptr: str):
+                ptr: str) -> dict:
+        """The native material's mask fields ({} when opaque): alpha is the
+        base colour's alpha times its texture's (linear) alpha channel."""
         if mode == "OPAQUE":
-            return None
-        a = alpha if img is None or img.shape[2] not in (2, 4) else img[..., -1] * alpha
+            return {}
+        a = np.asarray(alpha if img is None or img.shape[2] not in (2, 4)
+                       else img[..., -1] * alpha, np.float32)
         if mode == "MASK":
-            a = (np.asarray(a) >= cutoff).astype(np.float32)
-            self.note(ptr, f"alphaMode MASK: opacity = 1 where alpha >= {cutoff:g}, else 0",
-                      what)
-        else:
-            self.note(ptr, "alphaMode BLEND approximated as opacity = alpha (a stochastic mask, "
-                      "as Mitsuba's mask)", what)
-        if np.ndim(a) == 0:
-            return None if float(a) >= 1 else float(a)
+            self.note(ptr, f"alphaMode MASK: opaque where alpha >= {cutoff:g} (after filtering), "
+                      "cut out elsewhere", what)
+            if a.min() >= cutoff:  # so is any filtered value: opaque
+                return {}
+            if a.max() < cutoff or a.ndim == 0:
+                return {"opacity": 0.0}
+            return {"opacity": self.baked(tex, "opacity", a[..., None], name),
+                    "opacity_cutoff": cutoff}
+        self.note(ptr, "alphaMode BLEND approximated as opacity = alpha (a stochastic mask, "
+                  "as Mitsuba's mask)", what)
         if a.min() >= 1:
-            return None
-        return self.baked(tex, "opacity", np.asarray(a, np.float32)[..., None], name)
+            return {}
+        if a.ndim == 0:
+            return {"opacity": float(a)}
+        return {"opacity": self.baked(tex, "opacity", a[..., None], name)}
 
     def emission(self, m: dict, ptr: str, name: str, what: str, double: bool):
         factor = self.numbers(m, "emissiveFactor", ptr, 3, [0, 0, 0], 0, 1)

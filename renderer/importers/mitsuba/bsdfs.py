@@ -6,13 +6,10 @@ from __future__ import annotations
 
 import math
 
+from ...assets import asset_header
 from ...errors import SceneError
 from .values import _Obj
 from .xmltree import _Node
-
-# rayfarm renders no cut-outs yet: a mask's opacity is reported, not passed on
-# (the native format refuses opacity other than 1 until the renderer has them).
-OPACITY_MASKS = False
 
 # Mitsuba 3's table of named indices of refraction.
 IOR_NAMES = {
@@ -82,14 +79,19 @@ class BsdfMapper:
             obj.finish(("bsdf",))
             return mat
         if t == "mask":
-            opacity = obj.scalar_or_texture("opacity", 0.5)
+            opacity = self._opacity(obj, node)
             mat, inner = self._nested_bsdf(obj, node)
-            if OPACITY_MASKS:
-                mat = dict(mat)
-                mat["opacity"] = opacity
+            inner_opacity = mat.get("opacity")
+            if mat["type"] == "null" or opacity == 1.0:
+                pass  # invisible already, or opaque
+            elif inner_opacity is None:
+                mat = {**mat, "opacity": opacity}
+            elif not isinstance(opacity, dict) and not isinstance(inner_opacity, dict):
+                mat = {**mat, "opacity": opacity * inner_opacity}  # a mask in a mask
             else:
-                self.note(node, "approximated: the opacity mask is ignored, the surface renders "
-                                "solid (rayfarm does not render cut-outs yet)")
+                self.note(node, "approximated: the textured opacity of the nested mask is "
+                                "replaced by this one")
+                mat = {**mat, "opacity": opacity}
             obj.finish(("bsdf",))
             return mat
         if t in ("bumpmap", "normalmap", "coating", "roughcoating"):
@@ -156,6 +158,23 @@ class BsdfMapper:
             obj.ignore(key)
         self.note(node, f"approximated as diffuse (reflectance 0.5): rayfarm has no '{t}' bsdf")
         return {"type": "diffuse", "albedo": [0.5, 0.5, 0.5]}
+
+    def _opacity(self, obj: _Obj, node: _Node):
+        """A mask's opacity: a number in [0, 1] or a texture, whose value the
+        renderer takes as Mitsuba 3's eval_1 does (the luminance of its RGB)."""
+        opacity = obj.scalar_or_texture("opacity", 0.5)
+        if isinstance(opacity, dict):
+            image = self.textures[opacity["texture"]].get("image")
+            if image in self.assets and asset_header(self.assets[image])["channels"] == 4:
+                self.note(obj.props["opacity"], "the image's alpha channel is not read: as in "
+                                                "Mitsuba 3, the opacity is the luminance of its "
+                                                "colour")
+            return opacity
+        if not 0.0 <= opacity <= 1.0:
+            clamped = min(max(opacity, 0.0), 1.0)
+            self.note(node, f"approximated: opacity {opacity:g} clamped to {clamped:g}")
+            opacity = clamped
+        return opacity
 
     def _ior(self, obj: _Obj, key: str, default: str) -> float:
         n = obj.take(key)

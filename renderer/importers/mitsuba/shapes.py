@@ -106,6 +106,13 @@ class ShapeMapper:
             self.note(bsdfs[0], "approximated: an emitter with a null bsdf is a black diffuse "
                                 "surface (it blocks the light that Mitsuba lets through it)")
             out["material"] = black
+        if "emitter" in out and "opacity" in self.materials[out["material"]]:
+            solid = f"{out['material']} (solid)"
+            self.materials[solid] = {k: v for k, v in self.materials[out["material"]].items()
+                                     if k not in ("opacity", "opacity_cutoff")}
+            self.note(bsdfs[0], "approximated: the opacity mask of an emitting shape is "
+                                "ignored, it renders solid (rayfarm's area lights have no masks)")
+            out["material"] = solid
         if "id" in node.attrs:
             out["name"] = node.attrs["id"]
         flip = obj.bool("flip_normals", False)
