@@ -258,10 +258,11 @@ def test04_two_services_on_one_sqlite_file_never_both_schedule(spawn_replica):
     assert standby["leadership"]["role"] == "standby" and standby["scheduler"] == "standby"
     assert standby["leadership"]["holder"] == health(a)["leadership"]["replica"]
     assert "another service runs the scheduler" in second.log()
-    # Submitted to the standby, run by the leader; a second or two of units.
-    job = api(b, "POST", "/jobs", json=dict(TINY, spp=256))
+    # Submitted to the standby, run by the leader.
     # Paused until the stream below has subscribed: on a loaded machine a
     # stream opened after the submit found the job done, with no live event.
+    # 4096 spp (a few seconds of units) so the pause comes before the end.
+    job = api(b, "POST", "/jobs", json=dict(TINY, spp=4096))
     api(b, "POST", f"/jobs/{job['id']}/pause")
     # A stream on the standby follows the job the leader renders (the standby
     # reads the changes from the ledger: service.ledger_watch) to its end.
